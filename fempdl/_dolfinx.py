@@ -1,0 +1,123 @@
+"""The one place that touches DOLFINx names that changed after 0.5.
+
+DOLFINx 0.6+ renamed or moved several calls used here (``FunctionSpace`` ->
+``functionspace``, ``gmshio`` return values, ``create_vector`` / ``assemble_*``
+signatures). Everything else in fempdl goes through this module, so a port to a
+newer DOLFINx touches this file only.
+"""
+from __future__ import annotations
+
+import dolfinx
+import dolfinx.fem
+import dolfinx.fem.petsc
+import dolfinx.io.gmshio
+import dolfinx.mesh
+import numpy as np
+from petsc4py import PETSc
+
+DOLFINX_VERSION = dolfinx.__version__
+
+
+def function_space(msh, family: str, degree: int, shape: tuple | None = None):
+    """A (scalar or vector) Lagrange/DG space on ``msh``."""
+    if shape is None:
+        return dolfinx.fem.FunctionSpace(msh, (family, degree))
+    return dolfinx.fem.VectorFunctionSpace(msh, (family, degree), dim=shape[0])
+
+
+def compile_form(ufl_form):
+    """JIT-compile a UFL form (cached on disk by FFCx)."""
+    return dolfinx.fem.form(ufl_form)
+
+
+def read_msh(path: str, comm, rank: int = 0, gdim: int = 3):
+    """Read a gmsh ``.msh`` file on ``rank`` and distribute it over ``comm``.
+
+    Returns:
+        (mesh, cell_tags, facet_tags)
+    """
+    return dolfinx.io.gmshio.read_from_msh(str(path), comm, rank, gdim=gdim)
+
+
+def model_to_mesh(model, comm, rank: int = 0, gdim: int = 3):
+    """Convert the current gmsh model on ``rank`` into a distributed mesh.
+
+    Returns:
+        (mesh, cell_tags, facet_tags)
+    """
+    return dolfinx.io.gmshio.model_to_mesh(model, comm, rank, gdim=gdim)
+
+
+def boundary_facets(msh) -> np.ndarray:
+    """Local indices of all exterior facets of ``msh``."""
+    tdim = msh.topology.dim
+    msh.topology.create_connectivity(tdim - 1, tdim)
+    return dolfinx.mesh.exterior_facet_indices(msh.topology)
+
+
+def dirichlet_bc(V, value, facets: np.ndarray):
+    """A Dirichlet condition ``u = value`` on the DOFs of ``facets``.
+
+    ``value`` is a ``fem.Function`` on ``V`` or a ``fem.Constant``.
+    """
+    fdim = V.mesh.topology.dim - 1
+    dofs = dolfinx.fem.locate_dofs_topological(V, fdim, facets)
+    if isinstance(value, dolfinx.fem.Function):
+        return dolfinx.fem.dirichletbc(value, dofs)
+    return dolfinx.fem.dirichletbc(value, dofs, V)
+
+
+def create_matrix(a_form) -> PETSc.Mat:
+    return dolfinx.fem.petsc.create_matrix(a_form)
+
+
+def create_vector(L_form) -> PETSc.Vec:
+    """A ghosted PETSc vector laid out like the test space of ``L_form``."""
+    return dolfinx.fem.petsc.create_vector(L_form)
+
+
+def assemble_matrix_into(A: PETSc.Mat, a_form, bcs=(), diagonal: float = 1.0) -> PETSc.Mat:
+    """Zero ``A`` and assemble ``a_form`` into it; BC rows and columns are zeroed
+    and ``diagonal`` is put on BC rows (only when ``bcs`` is given)."""
+    A.zeroEntries()
+    dolfinx.fem.petsc.assemble_matrix(A, a_form, bcs=list(bcs), diagonal=diagonal)
+    A.assemble()
+    return A
+
+
+def assemble_vector_into(b: PETSc.Vec, L_form, a_form=None, bcs=()) -> PETSc.Vec:
+    """Zero ``b``, assemble ``L_form`` into it, lift by ``a_form``'s BC columns,
+    accumulate ghosts and set BC values (the standard DOLFINx RHS sequence)."""
+    with b.localForm() as loc:
+        loc.set(0.0)
+    dolfinx.fem.petsc.assemble_vector(b, L_form)
+    if bcs and a_form is not None:
+        dolfinx.fem.petsc.apply_lifting(b, [a_form], bcs=[list(bcs)])
+    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    if bcs:
+        dolfinx.fem.petsc.set_bc(b, list(bcs))
+    return b
+
+
+def assemble_scalar(M_form, comm) -> float:
+    """Assemble a functional and sum it over ``comm``."""
+    from mpi4py import MPI
+
+    return comm.allreduce(dolfinx.fem.assemble_scalar(M_form), op=MPI.SUM)
+
+
+def bc_dofs_owned(bcs, n_owned: int) -> np.ndarray:
+    """Owned local indices of all DOFs constrained by ``bcs`` (sorted, unique)."""
+    if not bcs:
+        return np.empty(0, dtype=np.int32)
+    parts = []
+    for bc in bcs:
+        dofs, first_ghost = bc.dof_indices()
+        parts.append(dofs[:first_ghost])
+    idx = np.unique(np.concatenate(parts))
+    return idx[idx < n_owned].astype(np.int32)
+
+
+def bc_on_space(bc, V) -> bool:
+    """Whether Dirichlet condition ``bc`` constrains ``V`` or one of its subspaces."""
+    return V._cpp_object.contains(bc.function_space)

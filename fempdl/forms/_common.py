@@ -1,0 +1,89 @@
+"""Pieces shared by the PDE modules: spaces, coefficient Functions, Dirichlet data."""
+from __future__ import annotations
+
+import math
+from typing import Callable, Iterable
+
+import dolfinx.fem
+import numpy as np
+
+from fempdl import _dolfinx
+from fempdl.mesh import TaggedMesh, as_tagged
+
+# Spaces a coefficient (kappa) may live in.
+COEFFICIENT_SPACES = {"P1": ("Lagrange", 1), "DG0": ("DG", 0)}
+
+
+def check_controls(requested, allowed: tuple, pde: str) -> tuple:
+    """The requested control names as a tuple, or a ValueError naming the allowed ones."""
+    if isinstance(requested, str):
+        requested = (requested,)
+    requested = tuple(requested)
+    unknown = [c for c in requested if c not in allowed]
+    if unknown:
+        raise ValueError(f"{pde}: unknown control(s) {unknown}; allowed controls are {list(allowed)}")
+    if len(set(requested)) != len(requested):
+        raise ValueError(f"{pde}: controls {list(requested)} contain duplicates")
+    return requested
+
+
+def coefficient_space(msh, kind: str):
+    """The space of a scalar coefficient: ``"P1"`` or ``"DG0"``."""
+    if kind not in COEFFICIENT_SPACES:
+        raise ValueError(f"kappa_space must be one of {list(COEFFICIENT_SPACES)}, got {kind!r}")
+    return _dolfinx.function_space(msh, *COEFFICIENT_SPACES[kind])
+
+
+def make_function(space, value, name: str) -> dolfinx.fem.Function:
+    """A Function on ``space`` holding ``value``: a float or a callable x (3, N) -> (N,)."""
+    fn = dolfinx.fem.Function(space, name=name)
+    if callable(value):
+        fn.interpolate(value)
+    elif isinstance(value, (int, float, np.floating, np.integer)) and not isinstance(value, bool):
+        if not math.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {value!r}")
+        fn.x.array[:] = float(value)
+    else:
+        raise TypeError(f"{name} must be a float or a callable x -> values, got {type(value).__name__}")
+    if not np.all(np.isfinite(fn.x.array)):
+        raise ValueError(f"{name}: the callable returned NaN or inf values")
+    return fn
+
+
+def positive_constant(msh, value, name: str) -> dolfinx.fem.Constant:
+    """A ``fem.Constant`` (so the value can change without recompiling) that must be > 0."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    return dolfinx.fem.Constant(msh, float(value))
+
+
+def dirichlet_bcs(tagged: TaggedMesh, V, g, dirichlet) -> tuple:
+    """Dirichlet conditions u = g on the boundary parts named by ``dirichlet``.
+
+    Args:
+        dirichlet: ``None`` for the whole boundary; an iterable of facet tag
+            names (bundled meshes) or integers; an empty tuple for none.
+    """
+    if dirichlet is None:
+        facets = _dolfinx.boundary_facets(tagged.mesh)
+    else:
+        parts = (dirichlet,) if isinstance(dirichlet, (str, int)) else tuple(dirichlet)
+        if not parts:
+            return ()
+        facets = _tagged_facets(tagged, parts)
+    return (_dolfinx.dirichlet_bc(V, make_function(V, g, "g"), facets),)
+
+
+def _tagged_facets(tagged: TaggedMesh, parts: tuple) -> np.ndarray:
+    if tagged.facet_tags is None:
+        raise ValueError(f"dirichlet={list(parts)} needs facet tags, but this mesh has none; "
+                         "pass dirichlet=None for the whole boundary or load a tagged .msh file")
+    values = [tagged.facet_tag(p) if isinstance(p, str) else int(p) for p in parts]
+    ft = tagged.facet_tags
+    # Under MPI a rank may own no facet of a tag: a tag is unknown only if no rank has it.
+    present = set().union(*tagged.mesh.comm.allgather(set(np.unique(ft.values).tolist())))
+    missing = [v for v in values if v not in present]
+    if missing:
+        raise ValueError(f"dirichlet facet tag(s) {missing} do not occur in the mesh; "
+                         f"tags present: {sorted(present)}")
+    return np.unique(np.concatenate([ft.find(v) for v in values])).astype(np.int32)

@@ -1,0 +1,79 @@
+"""One theta-step of the heat equation du/dt - div(kappa grad u) = f.
+
+With step dt and theta in [0, 1] (1 = implicit Euler, the default; 1/2 =
+Crank-Nicolson), the step u0 -> u1 solves
+
+    (M + theta dt K(kappa)) u1 = (M - (1 - theta) dt K(kappa)) u0 + dt M f,
+
+with u1 = g on Gamma_D (the whole boundary by default). Weak form: find u1 in
+V_g such that for all v in V_0
+
+    ∫ u1 v + theta dt kappa ∇u1·∇v dx = ∫ u0 v - (1 - theta) dt kappa ∇u0·∇v + dt f v dx.
+
+Controls: ``"u0"`` and ``"f"`` (both in the solution space V, so a step's output
+feeds the next step's ``u0``) and ``"kappa"`` (P1 or DG0). For theta = 1, u0 and
+f enter the right-hand side affinely (b = M u0 + dt M f: one sparse product per
+sample); kappa enters the matrix. ``dt`` is a ``fem.Constant``
+(``problem.dt.value``) so it can change without recompiling.
+"""
+from __future__ import annotations
+
+import math
+
+import ufl
+
+from fempdl import _dolfinx
+from fempdl.forms._common import (check_controls, coefficient_space, dirichlet_bcs, make_function,
+                                  positive_constant)
+from fempdl.mesh import as_tagged
+from fempdl.problem import Problem
+
+CONTROLS = ("u0", "f", "kappa")
+
+
+def problem(msh, controls=("u0",), *, dt: float = 0.01, theta: float = 1.0, degree: int = 1,
+            kappa_space: str = "P1", u0=0.0, f=0.0, kappa=1.0, g=0.0, dirichlet=None) -> Problem:
+    """Build one heat step on ``msh``.
+
+    Args:
+        msh: a :class:`fempdl.mesh.TaggedMesh` or a dolfinx Mesh.
+        controls: names among ``("u0", "f", "kappa")`` that become layer inputs.
+        dt: time step (> 0).
+        theta: 1 implicit Euler, 0.5 Crank-Nicolson, 0 explicit Euler (a mass solve).
+        degree: Lagrange degree of the solution space.
+        kappa_space: ``"P1"`` or ``"DG0"``.
+        u0, f, kappa, g: fixed values (float or callable x -> values).
+        dirichlet: ``None`` (whole boundary), facet tags, or ``()`` for none
+            (zero-flux boundary; the mass matrix keeps the step well posed).
+
+    Returns:
+        A :class:`fempdl.Problem`; its ``dt`` attribute is the step Constant.
+    """
+    controls = check_controls(controls, CONTROLS, "heat")
+    tagged = as_tagged(msh)
+    if isinstance(theta, bool) or not isinstance(theta, (int, float)) or not (0.0 <= theta <= 1.0) \
+            or not math.isfinite(theta):
+        raise ValueError(f"theta must be in [0, 1], got {theta!r}")
+    if isinstance(degree, bool) or not isinstance(degree, int) or degree < 1:
+        raise ValueError(f"degree must be an int >= 1, got {degree!r}")
+    msh_ = tagged.mesh
+    V = _dolfinx.function_space(msh_, "Lagrange", degree)
+    dt_c = positive_constant(msh_, dt, "dt")
+    u0_fn = make_function(V, u0, "u0")
+    f_fn = make_function(V, f, "f")
+    kappa_fn = make_function(coefficient_space(msh_, kappa_space), kappa, "kappa")
+    bcs = dirichlet_bcs(tagged, V, g, dirichlet)
+
+    u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+    # Terms with a zero factor are left out rather than multiplied by 0 (UFL
+    # collapses 0*form), which also keeps u0 an affine right-hand-side control for theta = 1.
+    a = u * v * ufl.dx
+    if theta > 0:
+        a = a + theta * dt_c * kappa_fn * ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx
+    L = u0_fn * v * ufl.dx + dt_c * f_fn * v * ufl.dx
+    if theta < 1:
+        L = L - (1.0 - theta) * dt_c * kappa_fn * ufl.inner(ufl.grad(u0_fn), ufl.grad(v)) * ufl.dx
+    fns = {"u0": u0_fn, "f": f_fn, "kappa": kappa_fn}
+    prob = Problem(a, L, bcs, controls={name: fns[name] for name in controls})
+    prob.dt = dt_c
+    return prob

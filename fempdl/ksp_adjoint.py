@@ -1,0 +1,495 @@
+"""Capped PETSc Krylov solves, their transposes, and iteration accounting.
+
+This module knows PETSc and nothing of UFL or torch. It has three parts:
+
+* :class:`KSPOptions` — an immutable, validated description of a linear solver
+  (KSP type, preconditioner, iteration cap, tolerances, extra PETSc options, and
+  an optional override for the adjoint solve). Presets: ``"jacobi"``
+  (Richardson + PCJACOBI), ``"cg"``, ``"gmres"``, ``"lu"``.
+* :class:`CappedSolver` — a KSP on one operator with ``solve`` (A x = b) and
+  ``solve_transpose`` (A^T x = b), each returning a :class:`SolveStats`.
+* :class:`CumulativeStats` — forward/backward iteration and time counters; the
+  sum ``forward_iterations + backward_iterations`` is the cost metric PRDP
+  savings are quoted in.
+
+Semantics of a capped solve (``max_it`` set): it starts from a zero initial
+guess and runs exactly ``max_it`` iterations, never more. It stops earlier only
+if the user asked for a tolerance (``rtol``/``atol``) and it is met, or if the
+residual vanishes exactly. Without ``rtol`` the convergence test is effectively
+disabled (rtol = atol = 0, no divergence test), and Richardson/CG/Chebyshev skip
+computing the residual norm altogether (PETSc's NORM_NONE), which is 15-25%
+faster; ``SolveStats.residual_norm`` is then ``None``.
+
+With ``max_it=None`` a solve runs to ``rtol`` (default 1e-10) and not reaching it
+is a failure.
+"""
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+import time
+import types
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+from petsc4py import PETSc
+
+__all__ = [
+    "KSPOptions",
+    "CappedSolver",
+    "SolveStats",
+    "CumulativeStats",
+    "SolverFailedError",
+    "PRESETS",
+]
+
+_KSP_TYPES = frozenset(getattr(PETSc.KSP.Type, n) for n in dir(PETSc.KSP.Type) if n.isupper())
+_PC_TYPES = frozenset(getattr(PETSc.PC.Type, n) for n in dir(PETSc.PC.Type) if n.isupper())
+_REASON_NAMES = {
+    getattr(PETSc.KSP.ConvergedReason, n): n
+    for n in dir(PETSc.KSP.ConvergedReason)
+    if n.isupper() and not n.startswith("CONVERGED_ITERATING")
+}
+_DIVERGED_MAX_IT = PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
+_RESTARTED_KSP_TYPES = frozenset({"gmres", "fgmres", "lgmres", "dgmres", "pgmres", "pipefgmres"})
+# Methods whose iteration does not need the residual norm: with a pure cap they
+# run with NORM_NONE (no reduction per iteration).
+_NORM_FREE_KSP_TYPES = frozenset({"richardson", "cg", "chebyshev"})
+_DIRECT_KSP_TYPES = frozenset({"preonly"})
+# Keys that have a first-class field; setting them through petsc_options would
+# silently fight the cap that PRDP moves.
+_RESERVED_OPTIONS = {
+    "ksp_type": "ksp_type",
+    "pc_type": "pc_type",
+    "ksp_max_it": "max_it",
+    "ksp_rtol": "rtol",
+    "ksp_atol": "atol",
+    "ksp_divtol": "divtol",
+    "ksp_gmres_restart": "gmres_restart",
+    "ksp_initial_guess_nonzero": "(always a zero initial guess)",
+}
+DEFAULT_RTOL = 1e-10
+DEFAULT_CONVERGED_MAX_IT = 10_000
+
+
+class SolverFailedError(RuntimeError):
+    """A solve ended in anything other than convergence or reaching its cap.
+
+    Attributes:
+        stats: the :class:`SolveStats` of the failed solve.
+    """
+
+    def __init__(self, message: str, stats: "SolveStats"):
+        super().__init__(message)
+        self.stats = stats
+
+
+@dataclass(frozen=True)
+class KSPOptions:
+    """Immutable, validated options of a (possibly capped) PETSc linear solve.
+
+    Args:
+        ksp_type: any PETSc KSP type name (``"richardson"``, ``"cg"``, ``"gmres"``,
+            ``"preonly"``, ...).
+        pc_type: any PETSc PC type name (``"jacobi"``, ``"none"``, ``"lu"``, ...).
+        max_it: the iteration cap K (int >= 1), or ``None`` to run to ``rtol``.
+            Must be ``None`` for direct solves (``ksp_type="preonly"``).
+        rtol: relative tolerance. With a cap it applies only if given; without a
+            cap it defaults to 1e-10.
+        atol: absolute tolerance (default 0 with a cap, PETSc's 1e-50 without).
+        divtol: divergence tolerance; ``None`` disables the divergence test
+            (a capped iteration is allowed to grow; NaN/inf is still caught).
+        gmres_restart: restart length m of GMRES(m) (GMRES-family only).
+        petsc_options: further PETSc options without the leading ``-`` and
+            without a prefix, e.g. ``{"ksp_gmres_modifiedgramschmidt": None}`` or
+            ``{"ksp_richardson_scale": 0.8}``; applied under a private prefix and
+            removed from the global database right after.
+        adjoint: options of the transposed (adjoint) solve. ``None`` means the
+            same solver with the same cap (PRDP moves both together); given
+            options decouple the adjoint, including its cap.
+        on_failure: ``"raise"`` (default) raises :class:`SolverFailedError` when a
+            solve diverges, breaks down or produces NaN/inf; ``"warn"`` returns
+            the iterate with a warning (never NaN without a warning).
+    """
+
+    ksp_type: str = "richardson"
+    pc_type: str = "jacobi"
+    max_it: int | None = 20
+    rtol: float | None = None
+    atol: float | None = None
+    divtol: float | None = None
+    gmres_restart: int | None = None
+    petsc_options: Mapping[str, Any] = field(default_factory=dict)
+    adjoint: "KSPOptions | None" = None
+    on_failure: str = "raise"
+
+    def __post_init__(self):
+        _check_choice("ksp_type", self.ksp_type, _KSP_TYPES)
+        _check_choice("pc_type", self.pc_type, _PC_TYPES)
+        if self.max_it is not None:
+            _check_int("max_it", self.max_it, minimum=1,
+                       hint="use max_it=None to run to rtol instead of capping")
+            if self.ksp_type in _DIRECT_KSP_TYPES:
+                raise ValueError(
+                    f"max_it={self.max_it!r} has no effect with ksp_type={self.ksp_type!r} "
+                    "(a direct solve); use max_it=None, or an iterative ksp_type to cap it")
+        for name in ("rtol", "atol", "divtol"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise TypeError(f"{name} must be a finite float or None, got {value!r}")
+        if self.rtol is not None and not 0.0 <= self.rtol < 1.0:
+            raise ValueError(f"rtol must be in [0, 1), got {self.rtol!r}")
+        if self.atol is not None and self.atol < 0.0:
+            raise ValueError(f"atol must be >= 0, got {self.atol!r}")
+        if self.divtol is not None and self.divtol <= 1.0:
+            raise ValueError(f"divtol must be > 1 (a growth factor of the residual), got {self.divtol!r}")
+        if self.gmres_restart is not None:
+            _check_int("gmres_restart", self.gmres_restart, minimum=1)
+            if self.ksp_type not in _RESTARTED_KSP_TYPES:
+                raise ValueError(
+                    f"gmres_restart is only meaningful for {sorted(_RESTARTED_KSP_TYPES)}, "
+                    f"got ksp_type={self.ksp_type!r}; drop gmres_restart or change ksp_type")
+        object.__setattr__(self, "petsc_options", _frozen_petsc_options(self.petsc_options))
+        if self.adjoint is not None:
+            if not isinstance(self.adjoint, KSPOptions):
+                raise TypeError(f"adjoint must be KSPOptions or None, got {type(self.adjoint).__name__}")
+            if self.adjoint.adjoint is not None:
+                raise ValueError("adjoint options must not have an adjoint of their own")
+        if self.on_failure not in ("raise", "warn"):
+            raise ValueError(f"on_failure must be 'raise' or 'warn', got {self.on_failure!r}")
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> "KSPOptions":
+        """Options from a named preset, with any field overridden.
+
+        Presets: ``"jacobi"`` (Richardson + PCJACOBI, the PRDP paper's solver),
+        ``"cg"`` (CG + Jacobi), ``"gmres"`` (GMRES(30) + Jacobi), ``"lu"``
+        (direct). Iterative presets run to rtol=1e-10 unless ``max_it`` caps them.
+
+        Example:
+            ``KSPOptions.preset("jacobi", max_it=20)``
+        """
+        if name not in PRESETS:
+            raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+        return dataclasses.replace(PRESETS[name], **overrides)
+
+    @property
+    def capped(self) -> bool:
+        """True when the solve stops at ``max_it`` rather than at a tolerance."""
+        return self.max_it is not None
+
+    @property
+    def direct(self) -> bool:
+        return self.ksp_type in _DIRECT_KSP_TYPES
+
+    @property
+    def adjoint_options(self) -> "KSPOptions":
+        """The options of the transposed solve (the forward ones by default)."""
+        return self if self.adjoint is None else self.adjoint
+
+    def with_max_it(self, max_it: int | None) -> "KSPOptions":
+        """A copy with a new cap (the adjoint override, if any, keeps its own)."""
+        return dataclasses.replace(self, max_it=max_it)
+
+    def petsc_tolerances(self) -> dict:
+        """The (rtol, atol, divtol, max_it) that realise these semantics in PETSc."""
+        if self.capped:
+            rtol = 0.0 if self.rtol is None else self.rtol
+            atol = 0.0 if self.atol is None else self.atol
+            max_it = self.max_it
+        else:
+            rtol = DEFAULT_RTOL if self.rtol is None else self.rtol
+            atol = 1e-50 if self.atol is None else self.atol
+            max_it = DEFAULT_CONVERGED_MAX_IT
+        divtol = 1e300 if self.divtol is None else self.divtol
+        return {"rtol": rtol, "atol": atol, "divtol": divtol, "max_it": max_it}
+
+    def skips_residual_norm(self) -> bool:
+        """Whether a solve may run with NORM_NONE (pure cap, no tolerance asked)."""
+        return (self.capped and self.rtol is None and self.atol is None and self.divtol is None
+                and self.ksp_type in _NORM_FREE_KSP_TYPES and "ksp_norm_type" not in self.petsc_options)
+
+
+
+
+@dataclass(frozen=True)
+class SolveStats:
+    """What one linear solve did.
+
+    Attributes:
+        iterations: Krylov iterations run (1 for a direct solve).
+        reason: PETSc's converged reason (> 0 converged, < 0 diverged/stopped).
+        reason_name: its name, e.g. ``"DIVERGED_MAX_IT"`` (= the cap was reached).
+        residual_norm: final residual norm, or ``None`` when not computed (NORM_NONE).
+        time: wall time of the KSP solve in seconds.
+        capped: True when the solve stopped because it reached ``max_it``.
+        ok: False when the solve diverged, broke down or produced NaN/inf.
+    """
+
+    iterations: int
+    reason: int
+    reason_name: str
+    residual_norm: float | None
+    time: float
+    capped: bool
+    ok: bool
+
+
+@dataclass
+class CumulativeStats:
+    """Cumulative iteration and time counters of a layer (summed over samples).
+
+    ``forward_iterations + backward_iterations`` is the cost metric PRDP savings
+    are quoted in; ``solve_time`` counts KSP time only, ``layer_time`` the whole
+    forward and backward of the layer (assembly and conversions included).
+    """
+
+    forward_iterations: int = 0
+    backward_iterations: int = 0
+    forward_solves: int = 0
+    backward_solves: int = 0
+    forward_time: float = 0.0
+    backward_time: float = 0.0
+    layer_time: float = 0.0
+    failures: int = 0
+    last: SolveStats | None = None
+
+    def record(self, direction: str, stats: SolveStats) -> None:
+        """Add one solve; ``direction`` is ``"forward"`` or ``"backward"``."""
+        if direction == "forward":
+            self.forward_iterations += stats.iterations
+            self.forward_solves += 1
+            self.forward_time += stats.time
+        elif direction == "backward":
+            self.backward_iterations += stats.iterations
+            self.backward_solves += 1
+            self.backward_time += stats.time
+        else:
+            raise ValueError(f"direction must be 'forward' or 'backward', got {direction!r}")
+        self.failures += not stats.ok
+        self.last = stats
+
+    @property
+    def total_iterations(self) -> int:
+        return self.forward_iterations + self.backward_iterations
+
+    @property
+    def solve_time(self) -> float:
+        return self.forward_time + self.backward_time
+
+    def reset(self) -> None:
+        for f in dataclasses.fields(self):
+            setattr(self, f.name, f.default)
+
+    def as_dict(self) -> dict:
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "last"}
+        out["total_iterations"] = self.total_iterations
+        out["solve_time"] = self.solve_time
+        return out
+
+
+class CappedSolver:
+    """A PETSc KSP on one operator, with a forward and a transposed solve.
+
+    Follows the init / compute / transpose split: build once for an operator,
+    call :meth:`solve` and :meth:`solve_transpose` many times. When the operator's
+    entries are reassembled in place, PETSc notices and rebuilds the
+    preconditioner on the next solve.
+
+    Args:
+        A: the assembled operator (square PETSc Mat).
+        options: the solver options.
+        prefix: options prefix; a unique private one by default.
+
+    Attributes:
+        stats: :class:`CumulativeStats` of every solve (``solve`` counts as
+            forward, ``solve_transpose`` as backward), failed ones included.
+
+    The KSP objects are destroyed by :meth:`destroy` (or on leaving a ``with``
+    block); PETSc objects are not left to the garbage collector.
+    """
+
+    _counter = itertools.count()
+
+    def __init__(self, A: PETSc.Mat, options: KSPOptions, *, prefix: str | None = None):
+        if not isinstance(options, KSPOptions):
+            raise TypeError(f"options must be KSPOptions, got {type(options).__name__}")
+        self._A = A
+        self._options = options
+        base = prefix or f"fempdl_ksp{next(self._counter)}_"
+        self._ksp = _create_ksp(A, options, base)
+        # The adjoint has its own KSP only when its options differ.
+        self._ksp_adjoint = (_create_ksp(A, options.adjoint, base + "adj_")
+                             if options.adjoint is not None else None)
+        self.stats = CumulativeStats()
+
+    @property
+    def options(self) -> KSPOptions:
+        return self._options
+
+    @property
+    def max_it(self) -> int | None:
+        return self._options.max_it
+
+    @max_it.setter
+    def max_it(self, value: int | None) -> None:
+        """Move the cap of the forward solve (and of a coupled adjoint)."""
+        new = self._options.with_max_it(value)  # validates
+        if new.skips_residual_norm() != self._options.skips_residual_norm():
+            _set_norm_type(self._ksp, new)
+        self._ksp.setTolerances(**new.petsc_tolerances())
+        self._options = new
+
+    @property
+    def ksp(self) -> PETSc.KSP:
+        """The forward KSP (for inspection; do not change its tolerances)."""
+        return self._ksp
+
+    def solve(self, b: PETSc.Vec, x: PETSc.Vec) -> SolveStats:
+        """Solve A x = b from a zero initial guess; ``x`` is overwritten.
+
+        Raises:
+            SolverFailedError: on divergence, breakdown or NaN/inf (unless the
+                options say ``on_failure="warn"``). The solve is counted in
+                :attr:`stats` either way.
+        """
+        return self._run(self._ksp, self._options, b, x, direction="forward")
+
+    def solve_transpose(self, b: PETSc.Vec, x: PETSc.Vec) -> SolveStats:
+        """Solve A^T x = b with the adjoint options (the forward ones by default)."""
+        if self._ksp_adjoint is None:
+            return self._run(self._ksp, self._options, b, x, direction="backward")
+        return self._run(self._ksp_adjoint, self._options.adjoint, b, x, direction="backward")
+
+    def destroy(self) -> None:
+        for ksp in (self._ksp, self._ksp_adjoint):
+            if ksp is not None:
+                ksp.destroy()
+        self._ksp = self._ksp_adjoint = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.destroy()
+
+    def _run(self, ksp, options: KSPOptions, b, x, *, direction: str) -> SolveStats:
+        transpose = direction == "backward"
+        t0 = time.perf_counter()
+        (ksp.solveTranspose if transpose else ksp.solve)(b, x)
+        elapsed = time.perf_counter() - t0
+        reason = int(ksp.getConvergedReason())
+        iterations = int(ksp.getIterationNumber())
+        norm_computed = ksp.getNormType() != PETSc.KSP.NormType.NONE
+        rnorm = float(ksp.getResidualNorm()) if norm_computed else None
+        finite = math.isfinite(x.norm(PETSc.NormType.NORM_INFINITY))
+        capped = options.capped and (reason == _DIVERGED_MAX_IT
+                                     or (reason == PETSc.KSP.ConvergedReason.CONVERGED_ITS
+                                         and iterations >= options.max_it))
+        ok = finite and (reason > 0 or capped)
+        stats = SolveStats(iterations=iterations, reason=reason,
+                           reason_name=_REASON_NAMES.get(reason, str(reason)),
+                           residual_norm=rnorm, time=elapsed, capped=capped, ok=ok)
+        self.stats.record(direction, stats)
+        if not ok:
+            _report_failure(options, stats, finite, transpose)
+        return stats
+
+
+def _report_failure(options: KSPOptions, stats: SolveStats, finite: bool, transpose: bool) -> None:
+    what = "transposed solve" if transpose else "solve"
+    if not finite:
+        cause = "produced NaN or inf"
+        fix = ("check the inputs and the operator (e.g. a zero or negative coefficient), "
+               "or use a more robust solver such as KSPOptions.preset('lu')")
+    elif stats.reason == _DIVERGED_MAX_IT:
+        cause = f"did not reach rtol={options.petsc_tolerances()['rtol']:g} in {stats.iterations} iterations"
+        fix = "try increasing max_it, a stronger pc_type, or set max_it to cap the solve on purpose"
+    else:
+        cause = f"stopped with {stats.reason_name} after {stats.iterations} iterations"
+        fix = ("the operator may be singular or indefinite for this method; try ksp_type='gmres', "
+               "pc_type='lu', or a larger divtol")
+    message = (f"{options.ksp_type}+{options.pc_type} {what} {cause}"
+               + (f" (residual norm {stats.residual_norm:.3e})" if stats.residual_norm is not None else "")
+               + f"; {fix}. Pass on_failure='warn' to get the iterate with a warning instead.")
+    if options.on_failure == "warn":
+        warnings.warn(message, RuntimeWarning, stacklevel=4)
+    else:
+        raise SolverFailedError(message, stats)
+
+
+def _create_ksp(A: PETSc.Mat, options: KSPOptions, prefix: str) -> PETSc.KSP:
+    ksp = PETSc.KSP().create(A.getComm())
+    ksp.setOptionsPrefix(prefix)
+    ksp.setOperators(A)
+    ksp.setType(options.ksp_type)
+    ksp.getPC().setType(options.pc_type)
+    if options.gmres_restart is not None:
+        ksp.setGMRESRestart(options.gmres_restart)
+    if options.pc_type in ("lu", "cholesky") and A.getComm().getSize() > 1 \
+            and "pc_factor_mat_solver_type" not in options.petsc_options:
+        # PETSc's own LU is serial only.
+        ksp.getPC().setFactorSolverType("mumps")
+    _set_norm_type(ksp, options)
+    ksp.setTolerances(**options.petsc_tolerances())
+    ksp.setInitialGuessNonzero(False)
+    db = PETSc.Options()
+    for key, value in options.petsc_options.items():
+        db[prefix + key] = "" if value is None else value
+    try:
+        ksp.setFromOptions()
+    finally:
+        for key in options.petsc_options:
+            db.delValue(prefix + key)
+    return ksp
+
+
+def _set_norm_type(ksp: PETSc.KSP, options: KSPOptions) -> None:
+    if options.skips_residual_norm():
+        ksp.setNormType(PETSc.KSP.NormType.NONE)
+    elif options.ksp_type in _NORM_FREE_KSP_TYPES and "ksp_norm_type" not in options.petsc_options:
+        ksp.setNormType(PETSc.KSP.NormType.PRECONDITIONED if options.ksp_type != "richardson"
+                        else PETSc.KSP.NormType.UNPRECONDITIONED)
+
+
+def _frozen_petsc_options(options) -> Mapping[str, Any]:
+    if not isinstance(options, Mapping):
+        raise TypeError(f"petsc_options must be a mapping of option name to value, got {type(options).__name__}")
+    clean = {}
+    for key, value in options.items():
+        if not isinstance(key, str) or not key or key.startswith("-"):
+            raise ValueError(f"petsc_options keys are option names without the leading '-', got {key!r}")
+        if key in _RESERVED_OPTIONS:
+            raise ValueError(f"petsc_options[{key!r}] conflicts with a KSPOptions field; "
+                             f"set {_RESERVED_OPTIONS[key]} instead")
+        if value is not None and not isinstance(value, (str, bool, int, float, np.integer, np.floating)):
+            raise TypeError(f"petsc_options[{key!r}] must be str, number, bool or None, got {value!r}")
+        clean[key] = value
+    return types.MappingProxyType(clean)
+
+
+def _check_choice(name: str, value, allowed: frozenset) -> None:
+    if not isinstance(value, str):
+        raise TypeError(f"{name} must be a str, got {value!r}")
+    if value not in allowed:
+        raise ValueError(f"{name}={value!r} is not a PETSc type; choose one of {sorted(allowed)}")
+
+
+def _check_int(name: str, value, *, minimum: int, hint: str = "") -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an int, got {value!r}" + (f"; {hint}" if hint else ""))
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value!r}" + (f"; {hint}" if hint else ""))
+
+
+PRESETS: Mapping[str, KSPOptions] = types.MappingProxyType({
+    "jacobi": KSPOptions(ksp_type="richardson", pc_type="jacobi", max_it=None),
+    "cg": KSPOptions(ksp_type="cg", pc_type="jacobi", max_it=None),
+    "gmres": KSPOptions(ksp_type="gmres", pc_type="jacobi", gmres_restart=30, max_it=None),
+    "lu": KSPOptions(ksp_type="preonly", pc_type="lu", max_it=None),
+})

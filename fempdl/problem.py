@@ -1,0 +1,214 @@
+"""A linear variational problem with named controls, and what depends on what.
+
+``Problem(a, L, bcs, controls={name: Function})`` describes: find u in V with
+u = g on the Dirichlet boundary and
+
+    a(u, v; m) = L(v; m)   for all v in V0,
+
+where the controls m are DOLFINx Functions that appear as coefficients in ``a``
+and/or ``L``. A Problem compiles ``a`` and ``L`` once and answers the questions
+that decide how much work a solve needs ("model only what a scene requires"):
+
+* which controls enter the matrix (``matrix_controls``): if none of those is
+  passed, the matrix is assembled once and reused for every sample and call;
+* which controls enter the right-hand side affinely with a constant
+  coefficient (``affine_rhs_controls``, e.g. a source f or an initial state u0):
+  their contribution is one sparse product with an assembled matrix
+  C_m = dL/dm, and so is their gradient (C_m^T lam);
+* the derivative forms of every other control, built and compiled only when a
+  gradient with respect to it is first requested.
+
+Control gradients follow from the residual F(u; v) = a(u, v) - L(v) and the
+adjoint solution lam of A^T lam = dJ/du (BC entries of dJ/du zeroed):
+
+    dJ/dm = -action(adjoint(derivative(F, m, TrialFunction(M))), lam).
+
+The module knows DOLFINx and UFL but nothing of torch or of solvers.
+"""
+from __future__ import annotations
+
+import keyword
+from typing import Callable, Mapping
+
+import dolfinx.fem
+import numpy as np
+import ufl
+from ufl.algorithms import expand_derivatives
+
+from fempdl import _dolfinx
+
+__all__ = ["Problem"]
+
+
+class Problem:
+    """A linear variational problem a(u, v) = L(v) with named controls.
+
+    Args:
+        a: bilinear UFL form (test function number 0, trial function number 1).
+        L: linear UFL form on the same test space.
+        bcs: Dirichlet conditions on the trial space (``dolfinx.fem.dirichletbc``).
+        controls: ``{name: dolfinx.fem.Function}``; each Function must appear as a
+            coefficient of ``a`` or ``L`` and live on the same mesh.
+
+    Attributes:
+        V: the solution space; ``u`` and ``lam`` are work Functions on it.
+        control_names: the control names in the order given.
+        matrix_controls: names of controls that ``a`` depends on.
+        rhs_controls: names of controls that ``L`` depends on.
+        affine_rhs_controls: controls that enter only ``L``, linearly, with a
+            coefficient that depends on no control (C_m = dL/dm is constant).
+    """
+
+    def __init__(self, a: ufl.Form, L: ufl.Form, bcs=(), controls: Mapping | None = None):
+        if not isinstance(a, ufl.Form) or len(a.arguments()) != 2:
+            raise TypeError(f"a must be a bilinear UFL form (two arguments), got {_describe_form(a)}")
+        if not isinstance(L, ufl.Form) or len(L.arguments()) != 1:
+            raise TypeError(f"L must be a linear UFL form (one argument), got {_describe_form(L)}")
+        test, trial = sorted(a.arguments(), key=lambda arg: arg.number())
+        if L.arguments()[0].ufl_function_space() != test.ufl_function_space():
+            raise ValueError("L's test space differs from a's test space; build both with the same TestFunction")
+        self.V = trial.ufl_function_space()
+        self.a = a
+        self.L = L
+        self.bcs = tuple(bcs)
+        for i, bc in enumerate(self.bcs):
+            if not isinstance(bc, dolfinx.fem.DirichletBCMetaClass):
+                raise TypeError(f"bcs[{i}] must be a dolfinx.fem.dirichletbc, got {type(bc).__name__}")
+            if not _dolfinx.bc_on_space(bc, self.V):
+                raise ValueError(f"bcs[{i}] is not defined on the trial space of a (or a subspace of it); "
+                                 "create it with the same FunctionSpace")
+        self._controls = _validated_controls(controls or {}, a, L, self.V.mesh)
+        self.control_names = tuple(self._controls)
+
+        self.u = dolfinx.fem.Function(self.V, name="u")
+        self.lam = dolfinx.fem.Function(self.V, name="adjoint")
+        self.a_form = _dolfinx.compile_form(a)
+        self.L_form = _dolfinx.compile_form(L)
+
+        a_coeffs, L_coeffs = set(a.coefficients()), set(L.coefficients())
+        self.matrix_controls = frozenset(n for n, fn in self._controls.items() if fn in a_coeffs)
+        self.rhs_controls = frozenset(n for n, fn in self._controls.items() if fn in L_coeffs)
+        self._rhs_derivatives = {n: self._rhs_derivative(n) for n in self.rhs_controls}
+        self.affine_rhs_controls = frozenset(
+            n for n, dL in self._rhs_derivatives.items()
+            if n not in self.matrix_controls and not self._depends_on_state(dL))
+        self._gradient_forms: dict = {}
+        self._rhs_matrix_forms: dict = {}
+
+        imap = self.V.dofmap.index_map
+        self._n_owned = imap.size_local * self.V.dofmap.index_map_bs
+        self.bc_dofs = _dolfinx.bc_dofs_owned(self.bcs, self._n_owned)
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def output_size(self) -> int:
+        """Number of owned DOF values of the solution on this rank."""
+        return self._n_owned
+
+    def control(self, name: str) -> dolfinx.fem.Function:
+        """The Function that holds control ``name``."""
+        self._check_name(name)
+        return self._controls[name]
+
+    def control_size(self, name: str) -> int:
+        """Number of owned DOF values a tensor for control ``name`` must have."""
+        space = self.control(name).function_space
+        return space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+
+    def dof_coordinates(self, name: str | None = None) -> np.ndarray:
+        """Coordinates (n_owned, 3) of the owned DOFs of the solution (``name=None``)
+        or of control ``name``, in the order tensors use."""
+        space = self.V if name is None else self.control(name).function_space
+        n = space.dofmap.index_map.size_local
+        return space.tabulate_dof_coordinates()[:n]
+
+    def interpolate(self, expression: Callable[[np.ndarray], np.ndarray], name: str | None = None) -> np.ndarray:
+        """Owned DOF values of ``expression`` (x of shape (3, N) -> values (N,))
+        interpolated into the solution space or the space of control ``name``."""
+        space = self.V if name is None else self.control(name).function_space
+        fn = dolfinx.fem.Function(space)
+        fn.interpolate(expression)
+        n = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+        return fn.x.array[:n].copy()
+
+    # ------------------------------------------------- derivative information
+    def gradient_form(self, name: str):
+        """Compiled linear form on control ``name``'s space whose assembly with
+        ``u`` and ``lam`` set gives dJ/dm = -lam^T dF/dm (built on first use)."""
+        self._check_name(name)
+        if name not in self._gradient_forms:
+            m = self._controls[name]
+            residual = ufl.action(self.a, self.u) - self.L
+            dF = expand_derivatives(ufl.derivative(residual, m, ufl.TrialFunction(m.function_space)))
+            form = None if dF.empty() else _dolfinx.compile_form(
+                -ufl.action(ufl.adjoint(dF), self.lam))
+            self._gradient_forms[name] = form
+        return self._gradient_forms[name]
+
+    def rhs_matrix_form(self, name: str):
+        """Compiled bilinear form C_m = dL/dm (test space V, trial space of m)
+        for an affine right-hand-side control (BC rows not applied)."""
+        if name not in self.affine_rhs_controls:
+            raise ValueError(f"control {name!r} does not enter the right-hand side affinely; "
+                             f"affine ones: {sorted(self.affine_rhs_controls)}")
+        if name not in self._rhs_matrix_forms:
+            self._rhs_matrix_forms[name] = _dolfinx.compile_form(self._rhs_derivatives[name])
+        return self._rhs_matrix_forms[name]
+
+    def matrix_inputs(self) -> tuple:
+        """Coefficients and constants whose values the matrix depends on."""
+        return tuple(self.a.coefficients()) + tuple(self.a.constants())
+
+    def rhs_inputs(self) -> tuple:
+        """Coefficients and constants the right-hand side (with lifting) depends on."""
+        return (tuple(self.L.coefficients()) + tuple(self.L.constants())
+                + (self.matrix_inputs() if self.bcs else ()) + tuple(bc.g for bc in self.bcs))
+
+    def rhs_matrix_inputs(self, name: str) -> tuple:
+        form = self._rhs_derivatives[name]
+        return tuple(form.coefficients()) + tuple(form.constants())
+
+    # ----------------------------------------------------------------- helpers
+    def _rhs_derivative(self, name: str) -> ufl.Form:
+        m = self._controls[name]
+        return expand_derivatives(ufl.derivative(self.L, m, ufl.TrialFunction(m.function_space)))
+
+    def _depends_on_state(self, form: ufl.Form) -> bool:
+        coeffs = set(form.coefficients())
+        return any(fn in coeffs for fn in self._controls.values())
+
+    def _check_name(self, name: str) -> None:
+        if name not in self._controls:
+            raise ValueError(f"unknown control {name!r}; this problem's controls are {list(self.control_names)}")
+
+    def __repr__(self) -> str:
+        return (f"Problem(V={self.V.ufl_element().family()} {self.V.ufl_element().degree()}, n={self.output_size}, "
+                f"controls={list(self.control_names)}, matrix_controls={sorted(self.matrix_controls)})")
+
+
+def _validated_controls(controls: Mapping, a: ufl.Form, L: ufl.Form, msh) -> dict:
+    if not isinstance(controls, Mapping):
+        raise TypeError(f"controls must be a mapping {{name: dolfinx.fem.Function}}, got {type(controls).__name__}")
+    coefficients = set(a.coefficients()) | set(L.coefficients())
+    out = {}
+    for name, fn in controls.items():
+        if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name):
+            raise ValueError(f"control names must be Python identifiers (they become keyword "
+                             f"arguments of the layer), got {name!r}")
+        if not isinstance(fn, dolfinx.fem.Function):
+            raise TypeError(f"controls[{name!r}] must be a dolfinx.fem.Function, got {type(fn).__name__}; "
+                            "wrap constants in a Function on a DG0 or P1 space to control them")
+        if fn.function_space.mesh is not msh:
+            raise ValueError(f"controls[{name!r}] lives on a different mesh than the solution space; "
+                             "create it on the same mesh object")
+        if fn not in coefficients:
+            raise ValueError(f"controls[{name!r}] does not appear in a or L; use the same Function "
+                             "object when building the forms")
+        out[name] = fn
+    return out
+
+
+def _describe_form(form) -> str:
+    if isinstance(form, ufl.Form):
+        return f"a form with {len(form.arguments())} argument(s)"
+    return type(form).__name__

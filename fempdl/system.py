@@ -1,0 +1,269 @@
+"""The assembled discrete system of a Problem: batched solves and adjoints on arrays.
+
+:class:`LinearSystem` owns the PETSc objects of one Problem for one solver
+configuration (matrix, work vectors, the capped solver, control-to-RHS
+matrices) and works on NumPy arrays of owned DOF values, one row per sample:
+
+* :meth:`LinearSystem.solve` — for each sample i: set the controls, assemble
+  what depends on them, solve A(m_i) u_i = b(m_i) with the capped solver.
+* :meth:`LinearSystem.adjoint` — for each sample: A(m_i)^T lam_i = g_i with the
+  BC entries of g_i zeroed, then dJ/dm for each requested control, either as
+  C_m^T lam_i (controls that enter the RHS affinely) or by assembling the
+  problem's gradient form with u = u_i and lam = lam_i.
+
+What does not depend on the controls passed in a call is assembled once and
+reused while its inputs are unchanged (a fingerprint of the coefficient and
+constant values it was assembled with detects user edits). The Functions of
+controls passed in a call are restored to their previous values afterwards.
+
+Shapes: ``controls[name]`` is (B, n_m) (a broadcast view is fine); solutions,
+incoming gradients and adjoints are (B, n) with n = ``problem.output_size``.
+"""
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+from petsc4py import PETSc
+
+from fempdl import _dolfinx
+from fempdl.ksp_adjoint import CappedSolver, CumulativeStats, KSPOptions
+from fempdl.problem import Problem
+
+__all__ = ["LinearSystem"]
+
+
+class LinearSystem:
+    """Assembled matrix, vectors and capped solver of ``problem``.
+
+    Args:
+        problem: the variational problem.
+        options: solver options (the cap can be moved later via ``max_it``).
+    """
+
+    def __init__(self, problem: Problem, options: KSPOptions):
+        self.problem = problem
+        self._A = _dolfinx.create_matrix(problem.a_form)
+        self._b = _dolfinx.create_vector(problem.L_form)       # ghosted: assembly target
+        self._x, self._rhs = self._A.createVecs()              # solution / transposed RHS
+        self._solver = CappedSolver(self._A, options)
+        self._A_inputs = None                                  # fingerprint of the assembled A
+        self._b_base: dict = {}                                # frozenset(names) -> (Vec, fingerprint)
+        self._rhs_mats: dict = {}                              # name -> (Mat, vec in, fingerprint)
+        self._grad_vecs: dict = {}                             # name -> ghosted Vec on M
+
+    # ------------------------------------------------------------ properties
+    @property
+    def options(self) -> KSPOptions:
+        return self._solver.options
+
+    @property
+    def max_it(self) -> int | None:
+        return self._solver.max_it
+
+    @max_it.setter
+    def max_it(self, value: int | None) -> None:
+        self._solver.max_it = value
+
+    @property
+    def stats(self) -> CumulativeStats:
+        return self._solver.stats
+
+    # ----------------------------------------------------------------- solve
+    def solve(self, controls: Mapping[str, np.ndarray], batch: int) -> np.ndarray:
+        """Forward solves for ``batch`` samples; returns U of shape (batch, n)."""
+        p = self.problem
+        names = frozenset(controls)
+        varies_matrix = bool(names & p.matrix_controls)
+        # Matrix fixed and every passed control a pure RHS term: b_i = b_base + sum_m C_m m_i.
+        affine = not varies_matrix and names <= p.affine_rhs_controls
+        U = np.empty((batch, p.output_size))
+        with _ControlValues(p, controls) as ctl:
+            if not varies_matrix:
+                self._ensure_constant_matrix()
+            if affine:
+                b_base = self._base_rhs(names, ctl)
+            for i in range(batch):
+                if affine:
+                    self._affine_rhs(b_base, sorted(names), controls, i)
+                else:
+                    ctl.set_sample(i)
+                    if varies_matrix:
+                        _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs)
+                    _dolfinx.assemble_vector_into(self._b, p.L_form, p.a_form, p.bcs)
+                self._solver.solve(self._b, self._x)
+                U[i] = self._x.getArray(readonly=True)
+        return U
+
+    def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
+                wanted) -> dict[str, np.ndarray]:
+        """Control gradients dJ/dm (batch, n_m) for m in ``wanted``, given the
+        forward solutions U and incoming gradients G = dJ/du, both (batch, n)."""
+        p = self.problem
+        batch = G.shape[0]
+        wanted = [n for n in p.control_names if n in set(wanted)]
+        names = frozenset(controls)
+        varies_matrix = bool(names & p.matrix_controls)
+        by_matrix = [n for n in wanted if n in p.affine_rhs_controls]
+        by_form = [n for n in wanted if n not in p.affine_rhs_controls]
+        grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
+        G = np.array(G, dtype=np.float64)  # private copy: BC entries are zeroed in place
+        if len(p.bc_dofs):
+            # u = g on the boundary does not depend on the controls.
+            G[:, p.bc_dofs] = 0.0
+        n_owned = p.output_size
+        with _ControlValues(p, controls) as ctl:
+            if not varies_matrix:
+                self._ensure_constant_matrix()
+            for i in range(batch):
+                if varies_matrix or by_form:
+                    ctl.set_sample(i)
+                if varies_matrix:
+                    _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs)
+                self._rhs.setArray(G[i])
+                self._solver.solve_transpose(self._rhs, self._x)
+                for name in by_matrix:
+                    C, _, out, _ = self._rhs_matrix(name)
+                    C.multTranspose(self._x, out)
+                    grads[name][i] = out.getArray(readonly=True)
+                if by_form:
+                    _set_owned(p.lam, self._x.getArray(readonly=True), n_owned)
+                    _set_owned(p.u, U[i], n_owned)
+                    for name in by_form:
+                        grads[name][i] = self._assemble_gradient(name)
+        return grads
+
+    def destroy(self) -> None:
+        """Free the PETSc objects (the system is unusable afterwards)."""
+        self._solver.destroy()
+        objs = [self._A, self._b, self._x, self._rhs]
+        objs += [v for v, _ in self._b_base.values()]
+        objs += [o for C, vin, out, _ in self._rhs_mats.values() for o in (C, vin, out)]
+        objs += list(self._grad_vecs.values())
+        for obj in objs:
+            obj.destroy()
+        self._b_base.clear()
+        self._rhs_mats.clear()
+        self._grad_vecs.clear()
+
+    # ------------------------------------------------------- assembly caches
+    def _ensure_constant_matrix(self) -> None:
+        inputs = self.problem.matrix_inputs()
+        if self._A_inputs is None or not _fingerprint_matches(self._A_inputs, inputs):
+            _dolfinx.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
+            self._A_inputs = _fingerprint(inputs)
+
+    def _base_rhs(self, names: frozenset, ctl: "_ControlValues") -> PETSc.Vec:
+        """b with the passed affine controls set to zero (lifting and BC values included)."""
+        p = self.problem
+        with ctl.zeroed(names):
+            cached = self._b_base.get(names)
+            if cached is not None and _fingerprint_matches(cached[1], p.rhs_inputs()):
+                return cached[0]
+            vec = cached[0] if cached is not None else self._b.duplicate()
+            _dolfinx.assemble_vector_into(vec, p.L_form, p.a_form, p.bcs)
+            self._b_base[names] = (vec, _fingerprint(p.rhs_inputs()))
+        return vec
+
+    def _affine_rhs(self, b_base: PETSc.Vec, names, controls, i: int) -> None:
+        """self._b = b_base + sum_m C_m m_i, with BC rows of the control part zeroed."""
+        b_base.copy(self._b)
+        bc = self.problem.bc_dofs
+        for name in names:
+            C, vin, out, _ = self._rhs_matrix(name)
+            vin.setArray(controls[name][i])
+            C.mult(vin, out)
+            if len(bc):
+                out.array_w[bc] = 0.0
+            self._b.axpy(1.0, out)
+
+    def _rhs_matrix(self, name: str):
+        """(C_m, input vector, output vector, fingerprint), reassembled when its inputs change."""
+        p = self.problem
+        inputs = p.rhs_matrix_inputs(name)
+        cached = self._rhs_mats.get(name)
+        if cached is not None and _fingerprint_matches(cached[3], inputs):
+            return cached
+        form = p.rhs_matrix_form(name)
+        if cached is None:
+            C = _dolfinx.create_matrix(form)
+            vin, out = C.createVecs()
+        else:
+            C, vin, out, _ = cached
+        _dolfinx.assemble_matrix_into(C, form)
+        entry = (C, vin, out, _fingerprint(inputs))
+        self._rhs_mats[name] = entry
+        return entry
+
+    def _assemble_gradient(self, name: str) -> np.ndarray:
+        p = self.problem
+        form = p.gradient_form(name)
+        n = p.control_size(name)
+        if form is None:
+            return np.zeros(n)
+        vec = self._grad_vecs.get(name)
+        if vec is None:
+            vec = self._grad_vecs[name] = _dolfinx.create_vector(form)
+        _dolfinx.assemble_vector_into(vec, form)
+        return vec.getArray(readonly=True)[:n].copy()
+
+
+class _ControlValues:
+    """Sets control Functions per sample and restores their values on exit."""
+
+    def __init__(self, problem: Problem, controls: Mapping[str, np.ndarray]):
+        self._fns = {n: problem.control(n) for n in controls}
+        self._sizes = {n: problem.control_size(n) for n in controls}
+        self._values = controls
+        self._saved = {}
+
+    def __enter__(self):
+        self._saved = {n: fn.x.array.copy() for n, fn in self._fns.items()}
+        return self
+
+    def __exit__(self, *exc):
+        for n, fn in self._fns.items():
+            fn.x.array[:] = self._saved[n]
+
+    def set_sample(self, i: int) -> None:
+        for n, fn in self._fns.items():
+            _set_owned(fn, self._values[n][i], self._sizes[n])
+
+    def zeroed(self, names):
+        return _Zeroed([self._fns[n] for n in names])
+
+
+class _Zeroed:
+    def __init__(self, fns):
+        self._fns = fns
+
+    def __enter__(self):
+        self._saved = [fn.x.array.copy() for fn in self._fns]
+        for fn in self._fns:
+            fn.x.array[:] = 0.0
+
+    def __exit__(self, *exc):
+        for fn, saved in zip(self._fns, self._saved):
+            fn.x.array[:] = saved
+
+
+def _set_owned(fn, values: np.ndarray, n_owned: int) -> None:
+    """Write owned DOF values into a Function and update its ghosts."""
+    fn.x.array[:n_owned] = values
+    fn.x.scatter_forward()
+
+
+def _fingerprint(inputs) -> tuple:
+    return tuple(_value_of(obj).copy() for obj in inputs)
+
+
+def _fingerprint_matches(fp: tuple, inputs) -> bool:
+    return len(fp) == len(inputs) and all(
+        np.array_equal(old, _value_of(obj)) for old, obj in zip(fp, inputs))
+
+
+def _value_of(obj) -> np.ndarray:
+    """The values an assembled form depends on: a Function's array or a Constant's value."""
+    if hasattr(obj, "x"):
+        return obj.x.array
+    return np.asarray(obj.value)
