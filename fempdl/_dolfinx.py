@@ -1,11 +1,14 @@
 """The one place that touches DOLFINx names that changed after 0.5.
 
 DOLFINx 0.6+ renamed or moved several calls used here (``FunctionSpace`` ->
-``functionspace``, ``gmshio`` return values, ``create_vector`` / ``assemble_*``
+``functionspace``, ``gmshio`` return values (and 0.5.2's ``read_from_msh`` is
+broken in Debian's build, so .msh files are read through ``model_to_mesh``), ``create_vector`` / ``assemble_*``
 signatures). Everything else in fempdl goes through this module, so a port to a
 newer DOLFINx touches this file only.
 """
 from __future__ import annotations
+
+import signal
 
 import dolfinx
 import dolfinx.fem
@@ -14,6 +17,11 @@ import dolfinx.io.gmshio
 import dolfinx.mesh
 import numpy as np
 from petsc4py import PETSc
+
+# Importing gmsh (through gmshio) resets SIGINT to the OS default, so Ctrl-C
+# would kill the process without unwinding (no final checkpoint, no cleanup).
+# Restore Python's KeyboardInterrupt.
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 DOLFINX_VERSION = dolfinx.__version__
 
@@ -28,15 +36,6 @@ def function_space(msh, family: str, degree: int, shape: tuple | None = None):
 def compile_form(ufl_form):
     """JIT-compile a UFL form (cached on disk by FFCx)."""
     return dolfinx.fem.form(ufl_form)
-
-
-def read_msh(path: str, comm, rank: int = 0, gdim: int = 3):
-    """Read a gmsh ``.msh`` file on ``rank`` and distribute it over ``comm``.
-
-    Returns:
-        (mesh, cell_tags, facet_tags)
-    """
-    return dolfinx.io.gmshio.read_from_msh(str(path), comm, rank, gdim=gdim)
 
 
 def model_to_mesh(model, comm, rank: int = 0, gdim: int = 3):

@@ -1,0 +1,335 @@
+"""Gmsh geometry of the bundled meshes, and the script that regenerates them.
+
+Three unstructured meshes ship with fempdl (in ``fempdl/meshes/``); each is
+built here from a gmsh (OpenCASCADE) geometry for a target mesh size ``h``.
+
+``"lshape"``
+    2D L-shape ``[-1, 1]^2`` minus ``[0, 1] x [-1, 0]``, with the reentrant
+    corner at the origin (the classic corner-singularity domain). Uniform size.
+``"obstacle"``
+    2D channel ``[0, 2.2] x [0, 0.41]`` with a circular hole of radius 0.05
+    centred at ``(0.2, 0.2)`` (the DFG flow-around-a-cylinder benchmark).
+    The size falls from ``h`` to ``h / 3`` towards the circle.
+``"box"``
+    3D unit cube ``[0, 1]^3`` in tetrahedra. Uniform size.
+
+Physical groups (the integer tags DOLFINx reads into ``cell_tags`` and
+``facet_tags``)::
+
+    CELL_TAG = 1   # every cell of every bundled mesh
+    FACET_TAGS = {
+        "lshape":   {"outer": 1, "reentrant": 2},
+        "obstacle": {"inlet": 1, "outlet": 2, "walls": 3, "obstacle": 4},
+        "box":      {"bottom": 1, "top": 2, "sides": 3},
+    }
+
+"reentrant" is the two edges meeting at the origin (``x = 0, y <= 0`` and
+``y = 0, x >= 0``), "outer" the other four; "inlet" is ``x = 0``, "outlet"
+``x = 2.2``, "walls" ``y = 0`` and ``y = 0.41``; "bottom" is ``z = 0``, "top"
+``z = 1``, "sides" the four vertical faces. Every exterior facet carries
+exactly one facet tag; interior facets carry none.
+
+Sizes measured with gmsh 4.8.4 (P1 DOFs = vertices; the committed files use
+the defaults marked ``*``)::
+
+    name      h        cells   P1 DOFs
+    lshape    0.1        734       408
+    lshape    0.05*     2800      1481
+    lshape    0.04      4410      2306
+    lshape    0.03      7870      4071   <- the ~4k DOF benchmark size
+    lshape    0.02     17464      8933
+    lshape    0.0073  130018     65558   <- the ~66k DOF benchmark size (4 s)
+    obstacle  0.05      1275       705
+    obstacle  0.035*    2555      1373
+    obstacle  0.02      7723      4028
+    obstacle  0.01     30569     15616
+    box       0.15      1624       464
+    box       0.1*      4923      1187
+    box       0.08      9566      2166
+    box       0.05     37312      7450
+
+Regenerate the committed files with ``python -m fempdl.meshgen`` (options
+``--out DIR``, ``--name NAME``, ``--h H``). Meshing runs on one thread with
+the user's gmsh configuration files ignored, so the output is reproducible
+for a given gmsh version.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import numbers
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+import gmsh
+from mpi4py import MPI
+
+from fempdl import _dolfinx
+
+CELL_TAG = 1
+FACET_TAGS: dict[str, dict[str, int]] = {
+    "lshape": {"outer": 1, "reentrant": 2},
+    "obstacle": {"inlet": 1, "outlet": 2, "walls": 3, "obstacle": 4},
+    "box": {"bottom": 1, "top": 2, "sides": 3},
+}
+
+BUNDLED_DIR = Path(__file__).resolve().parent / "meshes"
+
+# Tolerance for classifying boundary pieces by their bounding box: OpenCASCADE
+# enlarges every bounding box by its 1e-7 confusion tolerance.
+_TOL = 1e-6
+
+_CHANNEL_LENGTH = 2.2
+_CHANNEL_HEIGHT = 0.41
+_OBSTACLE_CENTRE = (0.2, 0.2)
+_OBSTACLE_RADIUS = 0.05
+
+
+@dataclass(frozen=True)
+class _MeshSpec:
+    """How to build one bundled mesh: its dimension, default size and geometry."""
+
+    dim: int
+    default_h: float
+    build: Callable[[float], None]
+
+
+def _set_max_size(h: float) -> None:
+    """Cap the mesh size at ``h``, with no other size source but a background field.
+
+    Point sizes, curvature and extension from the boundary are off, so without
+    a field the mesh is uniform at size ``h``.
+    """
+    gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeMax", h)
+
+
+def _add_physical_groups(dim: int, cells: list[int], pieces: dict[str, list[int]],
+                         tags: dict[str, int]) -> None:
+    """Tag the cells with ``CELL_TAG`` and each boundary piece with its tag."""
+    gmsh.model.addPhysicalGroup(dim, cells, CELL_TAG)
+    gmsh.model.setPhysicalName(dim, CELL_TAG, "domain")
+    for label, tag in tags.items():
+        gmsh.model.addPhysicalGroup(dim - 1, pieces[label], tag)
+        gmsh.model.setPhysicalName(dim - 1, tag, label)
+
+
+def _classify_boundary(dim: int, classify: Callable[[tuple[float, ...]], str],
+                       labels: dict[str, int]) -> dict[str, list[int]]:
+    """Group the boundary entities of the (single) domain by ``classify(bbox)``."""
+    pieces: dict[str, list[int]] = {label: [] for label in labels}
+    for _, tag in gmsh.model.getEntities(dim - 1):
+        pieces[classify(gmsh.model.getBoundingBox(dim - 1, tag))].append(tag)
+    empty = [label for label, tags in pieces.items() if not tags]
+    if empty:
+        raise RuntimeError(f"gmsh geometry has no boundary entity for {empty}")
+    return pieces
+
+
+def _build_lshape(h: float) -> None:
+    occ = gmsh.model.occ
+    square = occ.addRectangle(-1.0, -1.0, 0.0, 2.0, 2.0)
+    cut_out = occ.addRectangle(0.0, -1.0, 0.0, 1.0, 1.0)
+    domain, _ = occ.cut([(2, square)], [(2, cut_out)])
+    occ.synchronize()
+
+    def classify(bbox):
+        xmin, ymin, _, xmax, ymax, _ = bbox
+        on_x_axis_right = abs(ymin) < _TOL and abs(ymax) < _TOL and xmin > -_TOL
+        on_y_axis_below = abs(xmin) < _TOL and abs(xmax) < _TOL and ymax < _TOL
+        return "reentrant" if on_x_axis_right or on_y_axis_below else "outer"
+
+    tags = FACET_TAGS["lshape"]
+    pieces = _classify_boundary(2, classify, tags)
+    _add_physical_groups(2, [tag for _, tag in domain], pieces, tags)
+    _set_max_size(h)
+
+
+def _build_obstacle(h: float) -> None:
+    occ = gmsh.model.occ
+    channel = occ.addRectangle(0.0, 0.0, 0.0, _CHANNEL_LENGTH, _CHANNEL_HEIGHT)
+    hole = occ.addDisk(*_OBSTACLE_CENTRE, 0.0, _OBSTACLE_RADIUS, _OBSTACLE_RADIUS)
+    domain, _ = occ.cut([(2, channel)], [(2, hole)])
+    occ.synchronize()
+
+    def classify(bbox):
+        xmin, ymin, _, xmax, ymax, _ = bbox
+        if xmax < _TOL:
+            return "inlet"
+        if xmin > _CHANNEL_LENGTH - _TOL:
+            return "outlet"
+        if ymax < _TOL or ymin > _CHANNEL_HEIGHT - _TOL:
+            return "walls"
+        return "obstacle"
+
+    tags = FACET_TAGS["obstacle"]
+    pieces = _classify_boundary(2, classify, tags)
+    _add_physical_groups(2, [tag for _, tag in domain], pieces, tags)
+    _set_max_size(h)
+
+    # Resolve the circle and the start of the wake, where the flow varies most.
+    field = gmsh.model.mesh.field
+    distance = field.add("Distance")
+    field.setNumbers(distance, "CurvesList", pieces["obstacle"])
+    field.setNumber(distance, "NumPointsPerCurve", 100)
+    threshold = field.add("Threshold")
+    field.setNumber(threshold, "InField", distance)
+    field.setNumber(threshold, "SizeMin", h / 3.0)
+    field.setNumber(threshold, "SizeMax", h)
+    field.setNumber(threshold, "DistMin", 0.0)
+    field.setNumber(threshold, "DistMax", 0.3)
+    field.setAsBackgroundMesh(threshold)
+
+
+def _build_box(h: float) -> None:
+    occ = gmsh.model.occ
+    cube = occ.addBox(0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+    occ.synchronize()
+
+    def classify(bbox):
+        _, _, zmin, _, _, zmax = bbox
+        if zmax < _TOL:
+            return "bottom"
+        if zmin > 1.0 - _TOL:
+            return "top"
+        return "sides"
+
+    tags = FACET_TAGS["box"]
+    pieces = _classify_boundary(3, classify, tags)
+    _add_physical_groups(3, [cube], pieces, tags)
+    _set_max_size(h)
+
+
+_SPECS: dict[str, _MeshSpec] = {
+    "lshape": _MeshSpec(dim=2, default_h=0.05, build=_build_lshape),
+    "obstacle": _MeshSpec(dim=2, default_h=0.035, build=_build_obstacle),
+    "box": _MeshSpec(dim=3, default_h=0.1, build=_build_box),
+}
+
+DEFAULT_H: dict[str, float] = {name: spec.default_h for name, spec in _SPECS.items()}
+GEOMETRIC_DIM: dict[str, int] = {name: spec.dim for name, spec in _SPECS.items()}
+
+
+def names() -> list[str]:
+    """Names of the bundled meshes."""
+    return list(_SPECS)
+
+
+def check_h(h) -> float | None:
+    """Validate a mesh size: ``None`` (use the default) or a finite float > 0.
+
+    Raises:
+        TypeError: ``h`` is not a real number.
+        ValueError: ``h`` is not finite or not positive.
+    """
+    if h is None:
+        return None
+    if isinstance(h, bool) or not isinstance(h, numbers.Real):
+        raise TypeError(f"h must be a positive float or None, got {type(h).__name__} {h!r}")
+    if not math.isfinite(h) or h <= 0:
+        raise ValueError(f"h must be a finite mesh size > 0, got {h!r}; "
+                         "pass e.g. h=0.05, or h=None for the bundled default")
+    return float(h)
+
+
+def _spec(name) -> _MeshSpec:
+    if not isinstance(name, str):
+        raise TypeError(f"name must be a str, got {type(name).__name__} {name!r}")
+    if name not in _SPECS:
+        raise ValueError(f"name must be one of the bundled meshes {names()}, got {name!r}")
+    return _SPECS[name]
+
+
+@contextlib.contextmanager
+def gmsh_session(active: bool = True) -> Iterator[None]:
+    """Initialize the gmsh API for the duration of the block, quietly.
+
+    The block owns the gmsh session: gmsh 4.8 cannot report whether it is
+    already initialized, so a session the caller opened earlier also ends
+    here. With ``active=False`` (MPI ranks that do not mesh) nothing happens.
+    """
+    if not active:
+        yield
+        return
+    # Ignoring gmshrc / gmsh-options keeps meshes reproducible across users.
+    gmsh.initialize(readConfigFiles=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        yield
+    finally:
+        gmsh.finalize()
+
+
+def _mesh_model(name: str, h: float | None) -> None:
+    """Build and mesh bundled geometry ``name`` in a fresh gmsh model."""
+    spec = _SPECS[name]
+    gmsh.model.add(name)
+    spec.build(spec.default_h if h is None else h)
+    gmsh.model.mesh.generate(spec.dim)
+
+
+def generate(name: str, h: float | None = None, comm=MPI.COMM_WORLD, rank: int = 0):
+    """Mesh a bundled geometry with gmsh on ``rank`` and distribute it over ``comm``.
+
+    Collective on ``comm``.
+
+    Args:
+        name: One of :func:`names`.
+        h: Target mesh size; ``None`` uses :data:`DEFAULT_H` (the committed file's).
+        comm: Communicator the mesh is distributed over.
+        rank: The rank that runs gmsh.
+
+    Returns:
+        ``(mesh, cell_tags, facet_tags)`` with the tags of :data:`CELL_TAG` and
+        :data:`FACET_TAGS`; 2D meshes have 2D coordinates (gdim 2).
+    """
+    spec = _spec(name)
+    h = check_h(h)
+    with gmsh_session(active=comm.rank == rank):
+        if comm.rank == rank:
+            _mesh_model(name, h)
+        return _dolfinx.model_to_mesh(gmsh.model, comm, rank, gdim=spec.dim)
+
+
+def write_msh(name: str, path, h: float | None = None) -> Path:
+    """Mesh a bundled geometry and write it as a gmsh 4.1 ASCII ``.msh`` file.
+
+    Only elements in physical groups are written, which is what DOLFINx reads.
+
+    Returns:
+        The path written.
+    """
+    _spec(name)
+    h = check_h(h)
+    path = Path(path)
+    with gmsh_session():
+        _mesh_model(name, h)
+        gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
+        gmsh.option.setNumber("Mesh.Binary", 0)
+        gmsh.write(str(path))
+    return path
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Command line: regenerate the bundled ``.msh`` files."""
+    parser = argparse.ArgumentParser(prog="python -m fempdl.meshgen", description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=BUNDLED_DIR,
+                        help="directory to write NAME.msh into (default: %(default)s)")
+    parser.add_argument("--name", choices=names(), action="append",
+                        help="mesh to write (repeatable; default: all)")
+    parser.add_argument("--h", type=float, default=None,
+                        help="mesh size (default: each mesh's bundled size)")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name in args.name or names():
+        path = write_msh(name, args.out / f"{name}.msh", h=args.h)
+        print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

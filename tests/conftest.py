@@ -1,0 +1,68 @@
+"""Shared meshes, problems and the solver x form configurations the tests run over."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from mpi4py import MPI
+
+from fempdl import forms, mesh
+from fempdl.ksp_adjoint import KSPOptions
+
+# Converged solvers: gradients must be exact (gradcheck, Taylor test).
+CONVERGED = {
+    "lu": KSPOptions.preset("lu"),
+    "cg": KSPOptions.preset("cg", rtol=1e-13),
+}
+# Capped solvers: exact iteration counts; implicit gradients exact for Jacobi (RHS
+# controls), approximate for Krylov methods.
+CAPPED = {
+    "jacobi": lambda k: KSPOptions(ksp_type="richardson", pc_type="jacobi", max_it=k),
+    "gmres": lambda k: KSPOptions.preset("gmres", max_it=k, gmres_restart=5),
+    "cg": lambda k: KSPOptions.preset("cg", max_it=k),
+}
+# Every control of every form module.
+FORM_CONTROLS = {
+    "poisson": ("f", "kappa"),
+    "heat": ("u0", "f", "kappa"),
+}
+FORM_CONTROL_PAIRS = [(form, c) for form, cs in FORM_CONTROLS.items() for c in cs]
+
+
+def smooth(x):
+    return 1.0 + 0.5 * np.sin(np.pi * x[0]) * np.cos(np.pi * x[1])
+
+
+def build(form: str, msh, controls=None, **kw):
+    """A problem of the named form module with every control (or the given ones)."""
+    controls = FORM_CONTROLS[form] if controls is None else controls
+    if form == "poisson":
+        return forms.poisson.problem(msh, controls=controls, kappa=smooth, **kw)
+    return forms.heat.problem(msh, controls=controls, dt=0.05, kappa=smooth,
+                              u0=lambda x: np.sin(np.pi * x[0]), **kw)
+
+
+@pytest.fixture(scope="session")
+def coarse_lshape():
+    """About 100 P1 DOFs: small enough for full float64 gradcheck."""
+    return mesh.load("lshape", MPI.COMM_WORLD, h=0.25)
+
+
+@pytest.fixture(scope="session")
+def lshape():
+    """The bundled L-shape (about 1.5k P1 DOFs)."""
+    return mesh.load("lshape", MPI.COMM_WORLD)
+
+
+@pytest.fixture(scope="session")
+def coarse_problems(coarse_lshape):
+    return {form: build(form, coarse_lshape) for form in FORM_CONTROLS}
+
+
+def control_values(prob, name: str, batch: int, seed: int = 0) -> torch.Tensor:
+    """A positive, smooth-plus-noise control batch (kappa stays well away from 0)."""
+    gen = torch.Generator().manual_seed(seed)
+    n = prob.control_size(name)
+    base = torch.as_tensor(prob.interpolate(smooth, name))
+    noise = 0.2 * torch.rand(batch, n, generator=gen, dtype=torch.float64)
+    return (base + noise) if name == "kappa" else (base - 1.0 + noise)
