@@ -172,8 +172,9 @@ class _SolveFunction(torch.autograd.Function):
     def forward(ctx, layer: SolveLayer, names: tuple, batch: int, *tensors):
         t0 = time.perf_counter()
         arrays = {n: np.broadcast_to(_to_numpy(t), (batch, t.shape[-1])) for n, t in zip(names, tensors)}
-        U = layer._system.solve(arrays, batch)
-        ctx.layer, ctx.names, ctx.arrays, ctx.U = layer, names, arrays, U
+        shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
+        U = layer._system.solve(arrays, batch, shared)
+        ctx.layer, ctx.names, ctx.arrays, ctx.U, ctx.shared = layer, names, arrays, U, shared
         ctx.inputs = [(t.shape, t.dtype, t.device) for t in tensors]
         layer.stats.layer_time += time.perf_counter() - t0
         return torch.from_numpy(U)
@@ -186,7 +187,7 @@ class _SolveFunction(torch.autograd.Function):
         wanted = [n for n, need in zip(names, ctx.needs_input_grad[3:]) if need]
         grads = {}
         if wanted:
-            grads = layer._system.adjoint(ctx.arrays, ctx.U, _to_numpy(grad_out), wanted)
+            grads = layer._system.adjoint(ctx.arrays, ctx.U, _to_numpy(grad_out), wanted, ctx.shared)
         out = []
         for name, (shape, dtype, device) in zip(names, ctx.inputs):
             g = grads.get(name)

@@ -70,17 +70,20 @@ class LinearSystem:
         return self._solver.stats
 
     # ----------------------------------------------------------------- solve
-    def solve(self, controls: Mapping[str, np.ndarray], batch: int) -> np.ndarray:
-        """Forward solves for ``batch`` samples; returns U of shape (batch, n)."""
+    def solve(self, controls: Mapping[str, np.ndarray], batch: int, shared=frozenset()) -> np.ndarray:
+        """Forward solves for ``batch`` samples; returns U of shape (batch, n).
+
+        ``shared`` names controls whose rows are all equal (one tensor for the
+        whole batch): a matrix that depends only on those is assembled once.
+        """
         p = self.problem
         names = frozenset(controls)
-        varies_matrix = bool(names & p.matrix_controls)
+        per_sample_matrix = bool((names - frozenset(shared)) & p.matrix_controls)
         # Matrix fixed and every passed control a pure RHS term: b_i = b_base + sum_m C_m m_i.
-        affine = not varies_matrix and names <= p.affine_rhs_controls
+        affine = not (names & p.matrix_controls) and names <= p.affine_rhs_controls
         U = np.empty((batch, p.output_size))
         with _ControlValues(p, controls) as ctl:
-            if not varies_matrix:
-                self._ensure_constant_matrix()
+            self._prepare_matrix(names, per_sample_matrix, ctl)
             if affine:
                 b_base = self._base_rhs(names, ctl)
             for i in range(batch):
@@ -88,7 +91,7 @@ class LinearSystem:
                     self._affine_rhs(b_base, sorted(names), controls, i)
                 else:
                     ctl.set_sample(i)
-                    if varies_matrix:
+                    if per_sample_matrix:
                         _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs)
                     _dolfinx.assemble_vector_into(self._b, p.L_form, p.a_form, p.bcs)
                 self._solver.solve(self._b, self._x)
@@ -96,14 +99,14 @@ class LinearSystem:
         return U
 
     def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
-                wanted) -> dict[str, np.ndarray]:
+                wanted, shared=frozenset()) -> dict[str, np.ndarray]:
         """Control gradients dJ/dm (batch, n_m) for m in ``wanted``, given the
         forward solutions U and incoming gradients G = dJ/du, both (batch, n)."""
         p = self.problem
         batch = G.shape[0]
         wanted = [n for n in p.control_names if n in set(wanted)]
         names = frozenset(controls)
-        varies_matrix = bool(names & p.matrix_controls)
+        per_sample_matrix = bool((names - frozenset(shared)) & p.matrix_controls)
         by_matrix = [n for n in wanted if n in p.affine_rhs_controls]
         by_form = [n for n in wanted if n not in p.affine_rhs_controls]
         grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
@@ -113,12 +116,11 @@ class LinearSystem:
             G[:, p.bc_dofs] = 0.0
         n_owned = p.output_size
         with _ControlValues(p, controls) as ctl:
-            if not varies_matrix:
-                self._ensure_constant_matrix()
+            self._prepare_matrix(names, per_sample_matrix, ctl)
             for i in range(batch):
-                if varies_matrix or by_form:
+                if per_sample_matrix or by_form:
                     ctl.set_sample(i)
-                if varies_matrix:
+                if per_sample_matrix:
                     _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs)
                 self._rhs.setArray(G[i])
                 self._solver.solve_transpose(self._rhs, self._x)
@@ -147,6 +149,18 @@ class LinearSystem:
         self._grad_vecs.clear()
 
     # ------------------------------------------------------- assembly caches
+    def _prepare_matrix(self, names: frozenset, per_sample: bool, ctl: "_ControlValues") -> None:
+        """Make A right for a call: the cached constant matrix, one assembly with
+        shared controls, or nothing (assembled per sample by the caller)."""
+        if not names & self.problem.matrix_controls:
+            self._ensure_constant_matrix()
+            return
+        # A is about to hold control-dependent values: the constant-matrix cache is stale.
+        self._A_inputs = None
+        if not per_sample:
+            ctl.set_sample(0)
+            _dolfinx.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
+
     def _ensure_constant_matrix(self) -> None:
         inputs = self.problem.matrix_inputs()
         if self._A_inputs is None or not _fingerprint_matches(self._A_inputs, inputs):

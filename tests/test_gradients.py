@@ -180,6 +180,23 @@ def test_only_what_the_call_needs_is_assembled(coarse_lshape, monkeypatch):
     layer(f=f, kappa=kappa).sum().backward()
     assert "kappa" not in prob._gradient_forms
     assert len([c for c in calls if c is prob.a_form]) == 1 + 2 * 4  # per sample, forward and backward
+    shared_kappa = kappa[0].clone().requires_grad_()                   # one kappa for the whole batch
+    layer(f=f, kappa=shared_kappa).sum().backward()
+    assert len([c for c in calls if c is prob.a_form]) == 1 + 2 * 4 + 2  # once forward, once backward
+    assert "kappa" in prob._gradient_forms
+
+
+def test_matrix_cache_is_not_stale_after_matrix_control_calls(coarse_lshape):
+    prob = build("poisson", coarse_lshape)
+    fresh = build("poisson", coarse_lshape)
+    layer, reference = SolveLayer(prob, CAPPED["jacobi"](7)), SolveLayer(fresh, CAPPED["jacobi"](7))
+    f = control_values(prob, "f", batch=2)
+    before = layer(f=f)
+    layer(f=f, kappa=5.0 * control_values(prob, "kappa", batch=2))
+    torch.testing.assert_close(layer(f=f), before, rtol=0, atol=0)
+    torch.testing.assert_close(layer(f=f), reference(f=f), rtol=0, atol=0)
+    prob.control("kappa").x.array[:] *= 2.0       # a user edit of the fixed coefficient is seen
+    torch.testing.assert_close(layer(f=f), reference(f=f) / 2.0, rtol=1e-12, atol=1e-14)
 
 
 def test_control_functions_are_restored_after_a_call(coarse_problems):
