@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch.autograd.function import once_differentiable
 
-from fempdl.ksp_adjoint import CumulativeStats, KSPOptions
+from fempdl.ksp_adjoint import CumulativeStats, KSPOptions, warn_at_caller
 from fempdl.problem import Problem
 from fempdl.system import LinearSystem
 
@@ -83,20 +83,28 @@ class SolveLayer(torch.nn.Module):
         self._system = LinearSystem(problem, options)
 
     @property
+    def system(self) -> LinearSystem:
+        """The assembled system (raises once the layer is closed)."""
+        if self._system is None:
+            raise RuntimeError("this SolveLayer was closed (close() freed its PETSc objects); "
+                               "create a new SolveLayer to solve again")
+        return self._system
+
+    @property
     def options(self) -> KSPOptions:
-        return self._system.options
+        return self.system.options
 
     @property
     def max_it(self) -> int | None:
-        return self._system.max_it
+        return self.system.max_it
 
     @max_it.setter
     def max_it(self, value: int | None) -> None:
-        self._system.max_it = value
+        self.system.max_it = value
 
     @property
     def stats(self) -> CumulativeStats:
-        return self._system.stats
+        return self.system.stats
 
     def forward(self, **controls: torch.Tensor) -> torch.Tensor:
         """Solve for the given controls (keyword per control name); see the module docstring."""
@@ -107,7 +115,17 @@ class SolveLayer(torch.nn.Module):
         device = tensors[0].device if tensors else torch.device("cpu")
         out = _SolveFunction.apply(self, names, batch, *tensors)
         out = out.to(device=device, dtype=dtype)
+        if dtype != torch.float64 and not bool(torch.isfinite(out).all()):
+            self._report_overflow(dtype)
         return out if batched else out[0]
+
+    def _report_overflow(self, dtype) -> None:
+        message = (f"the solution is finite in float64 but overflows {dtype}; pass float64 controls "
+                   "or rescale the problem")
+        if self.options.on_failure == "warn":
+            warn_at_caller(message, RuntimeWarning)
+        else:
+            raise OverflowError(message)
 
     def close(self) -> None:
         """Free the PETSc objects now (otherwise on garbage collection)."""
@@ -122,6 +140,8 @@ class SolveLayer(torch.nn.Module):
             pass
 
     def extra_repr(self) -> str:
+        if self._system is None:
+            return "closed"
         o = self.options
         return (f"controls={list(self.problem.control_names)}, n={self.problem.output_size}, "
                 f"ksp={o.ksp_type}+{o.pc_type}, max_it={o.max_it}, diff={self.diff!r}")
@@ -173,7 +193,7 @@ class _SolveFunction(torch.autograd.Function):
         t0 = time.perf_counter()
         arrays = {n: np.broadcast_to(_to_numpy(t), (batch, t.shape[-1])) for n, t in zip(names, tensors)}
         shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
-        U = layer._system.solve(arrays, batch, shared)
+        U = layer.system.solve(arrays, batch, shared)
         ctx.layer, ctx.names, ctx.arrays, ctx.U, ctx.shared = layer, names, arrays, U, shared
         ctx.inputs = [(t.shape, t.dtype, t.device) for t in tensors]
         layer.stats.layer_time += time.perf_counter() - t0
@@ -187,7 +207,12 @@ class _SolveFunction(torch.autograd.Function):
         wanted = [n for n, need in zip(names, ctx.needs_input_grad[3:]) if need]
         grads = {}
         if wanted:
-            grads = layer._system.adjoint(ctx.arrays, ctx.U, _to_numpy(grad_out), wanted, ctx.shared)
+            G = _to_numpy(grad_out)
+            bad = int((~np.isfinite(G)).sum())
+            if bad:
+                raise ValueError(f"the gradient flowing back into SolveLayer contains {bad} NaN/inf "
+                                 "value(s); the loss or the layers after this one produced them")
+            grads = layer.system.adjoint(ctx.arrays, ctx.U, G, wanted, ctx.shared)
         out = []
         for name, (shape, dtype, device) in zip(names, ctx.inputs):
             g = grads.get(name)

@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import sys
 import time
 import types
 import warnings
@@ -43,6 +44,7 @@ __all__ = [
     "SolveStats",
     "CumulativeStats",
     "SolverFailedError",
+    "SolverWarning",
     "PRESETS",
 ]
 
@@ -69,9 +71,14 @@ _RESERVED_OPTIONS = {
     "ksp_atol": "atol",
     "ksp_divtol": "divtol",
     "ksp_gmres_restart": "gmres_restart",
-    "ksp_initial_guess_nonzero": "(always a zero initial guess)",
+}
+# Keys that would break the documented semantics outright.
+_FORBIDDEN_OPTIONS = {
+    "ksp_initial_guess_nonzero": "capped solves always start from a zero initial guess",
 }
 DEFAULT_RTOL = 1e-10
+DEFAULT_CAP = 20  # max_it when not given, for iterative methods (direct ones get None)
+_UNSET = "unset"
 DEFAULT_CONVERGED_MAX_IT = 10_000
 
 
@@ -96,7 +103,8 @@ class KSPOptions:
             ``"preonly"``, ...).
         pc_type: any PETSc PC type name (``"jacobi"``, ``"none"``, ``"lu"``, ...).
         max_it: the iteration cap K (int >= 1), or ``None`` to run to ``rtol``.
-            Must be ``None`` for direct solves (``ksp_type="preonly"``).
+            Default 20 for iterative methods and ``None`` for direct solves
+            (``ksp_type="preonly"``), where a cap has no meaning.
         rtol: relative tolerance. With a cap it applies only if given; without a
             cap it defaults to 1e-10.
         atol: absolute tolerance (default 0 with a cap, PETSc's 1e-50 without).
@@ -106,7 +114,8 @@ class KSPOptions:
         petsc_options: further PETSc options without the leading ``-`` and
             without a prefix, e.g. ``{"ksp_gmres_modifiedgramschmidt": None}`` or
             ``{"ksp_richardson_scale": 0.8}``; applied under a private prefix and
-            removed from the global database right after.
+            removed from the global database right after. PETSc does not
+            report unknown names here: a misspelled option is ignored.
         adjoint: options of the transposed (adjoint) solve. ``None`` means the
             same solver with the same cap (PRDP moves both together); given
             options decouple the adjoint, including its cap.
@@ -117,7 +126,7 @@ class KSPOptions:
 
     ksp_type: str = "richardson"
     pc_type: str = "jacobi"
-    max_it: int | None = 20
+    max_it: int | None = _UNSET  # type: ignore[assignment]
     rtol: float | None = None
     atol: float | None = None
     divtol: float | None = None
@@ -129,6 +138,8 @@ class KSPOptions:
     def __post_init__(self):
         _check_choice("ksp_type", self.ksp_type, _KSP_TYPES)
         _check_choice("pc_type", self.pc_type, _PC_TYPES)
+        if self.max_it is _UNSET:
+            object.__setattr__(self, "max_it", None if self.ksp_type in _DIRECT_KSP_TYPES else DEFAULT_CAP)
         if self.max_it is not None:
             _check_int("max_it", self.max_it, minimum=1,
                        hint="use max_it=None to run to rtol instead of capping")
@@ -140,8 +151,10 @@ class KSPOptions:
             value = getattr(self, name)
             if value is None:
                 continue
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise TypeError(f"{name} must be a finite float or None, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise TypeError(f"{name} must be a float or None, got {value!r}")
+            if not math.isfinite(value):
+                raise ValueError(f"{name} must be finite, got {value!r}")
         if self.rtol is not None and not 0.0 <= self.rtol < 1.0:
             raise ValueError(f"rtol must be in [0, 1), got {self.rtol!r}")
         if self.atol is not None and self.atol < 0.0:
@@ -401,26 +414,43 @@ class CappedSolver:
         return stats
 
 
+class SolverWarning(RuntimeWarning):
+    """A solve failed and ``on_failure="warn"`` asked for the iterate anyway."""
+
+
 def _report_failure(options: KSPOptions, stats: SolveStats, finite: bool, transpose: bool) -> None:
     what = "transposed solve" if transpose else "solve"
     if not finite:
         cause = "produced NaN or inf"
-        fix = ("check the inputs and the operator (e.g. a zero or negative coefficient), "
-               "or use a more robust solver such as KSPOptions.preset('lu')")
+        if options.direct:
+            fix = ("check for a zero coefficient (e.g. kappa = 0) or a missing Dirichlet condition: "
+                   "the matrix is probably singular")
+        else:
+            fix = ("check the inputs and the operator (e.g. a zero or negative coefficient, or an "
+                   "unstable damping), or use a more robust solver such as KSPOptions.preset('lu')")
     elif stats.reason == _DIVERGED_MAX_IT:
         cause = f"did not reach rtol={options.petsc_tolerances()['rtol']:g} in {stats.iterations} iterations"
-        fix = "try increasing max_it, a stronger pc_type, or set max_it to cap the solve on purpose"
+        fix = "try a stronger pc_type or ksp_type, a larger rtol, or cap the solve on purpose with max_it=K"
     else:
         cause = f"stopped with {stats.reason_name} after {stats.iterations} iterations"
         fix = ("the operator may be singular or indefinite for this method; try ksp_type='gmres', "
-               "pc_type='lu', or a larger divtol")
+               "KSPOptions.preset('lu'), or a larger divtol")
     message = (f"{options.ksp_type}+{options.pc_type} {what} {cause}"
                + (f" (residual norm {stats.residual_norm:.3e})" if stats.residual_norm is not None else "")
                + f"; {fix}. Pass on_failure='warn' to get the iterate with a warning instead.")
     if options.on_failure == "warn":
-        warnings.warn(message, RuntimeWarning, stacklevel=4)
+        warn_at_caller(message, SolverWarning)
     else:
         raise SolverFailedError(message, stats)
+
+
+def warn_at_caller(message: str, category: type[Warning]) -> None:
+    """Warn with the location of the first frame outside fempdl and torch, so the
+    warning points at the user's line (the call stack runs through autograd)."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_globals.get("__name__", "").split(".")[0] in ("fempdl", "torch"):
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, category, stacklevel=level + 1)
 
 
 def _create_ksp(A: PETSc.Mat, options: KSPOptions, prefix: str) -> PETSc.KSP:
@@ -464,6 +494,8 @@ def _frozen_petsc_options(options) -> Mapping[str, Any]:
     for key, value in options.items():
         if not isinstance(key, str) or not key or key.startswith("-"):
             raise ValueError(f"petsc_options keys are option names without the leading '-', got {key!r}")
+        if key in _FORBIDDEN_OPTIONS:
+            raise ValueError(f"petsc_options[{key!r}] is not supported: {_FORBIDDEN_OPTIONS[key]}")
         if key in _RESERVED_OPTIONS:
             raise ValueError(f"petsc_options[{key!r}] conflicts with a KSPOptions field; "
                              f"set {_RESERVED_OPTIONS[key]} instead")

@@ -78,7 +78,10 @@ def _tagged_facets(tagged: TaggedMesh, parts: tuple) -> np.ndarray:
     if tagged.facet_tags is None:
         raise ValueError(f"dirichlet={list(parts)} needs facet tags, but this mesh has none; "
                          "pass dirichlet=None for the whole boundary or load a tagged .msh file")
-    values = [tagged.facet_tag(p) if isinstance(p, str) else int(p) for p in parts]
+    try:
+        values = [tagged.facet_tag(p) if isinstance(p, str) else int(p) for p in parts]
+    except ValueError as err:
+        raise ValueError(f"dirichlet={list(parts)}: {err}") from None
     ft = tagged.facet_tags
     # Under MPI a rank may own no facet of a tag: a tag is unknown only if no rank has it.
     present = set().union(*tagged.mesh.comm.allgather(set(np.unique(ft.values).tolist())))
