@@ -191,13 +191,17 @@ class _SolveFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, layer: SolveLayer, names: tuple, batch: int, *tensors):
         t0 = time.perf_counter()
-        arrays = {n: np.broadcast_to(_to_numpy(t), (batch, t.shape[-1])) for n, t in zip(names, tensors)}
         shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
-        U = layer.system.solve(arrays, batch, shared)
-        ctx.layer, ctx.names, ctx.arrays, ctx.U, ctx.shared = layer, names, arrays, U, shared
+        U = layer.system.solve(_batched_arrays(names, tensors, batch), batch, shared)
+        out = torch.from_numpy(U)
+        # Saved through autograd so that an in-place change of an input or of the
+        # output before backward raises autograd's error instead of corrupting
+        # the gradient (backward re-assembles with the controls and u).
+        ctx.save_for_backward(*tensors, out)
+        ctx.layer, ctx.names, ctx.batch, ctx.shared = layer, names, batch, shared
         ctx.inputs = [(t.shape, t.dtype, t.device) for t in tensors]
         layer.stats.layer_time += time.perf_counter() - t0
-        return torch.from_numpy(U)
+        return out
 
     @staticmethod
     @once_differentiable
@@ -212,7 +216,9 @@ class _SolveFunction(torch.autograd.Function):
             if bad:
                 raise ValueError(f"the gradient flowing back into SolveLayer contains {bad} NaN/inf "
                                  "value(s); the loss or the layers after this one produced them")
-            grads = layer.system.adjoint(ctx.arrays, ctx.U, G, wanted, ctx.shared)
+            *tensors, out = ctx.saved_tensors
+            arrays = _batched_arrays(names, tensors, ctx.batch)
+            grads = layer.system.adjoint(arrays, out.numpy(), G, wanted, ctx.shared)
         out = []
         for name, (shape, dtype, device) in zip(names, ctx.inputs):
             g = grads.get(name)
@@ -224,6 +230,11 @@ class _SolveFunction(torch.autograd.Function):
             out.append(g.to(device=device, dtype=dtype))
         layer.stats.layer_time += time.perf_counter() - t0
         return (None, None, None, *out)
+
+
+def _batched_arrays(names, tensors, batch: int) -> dict:
+    """float64 arrays (batch, n_m) per control; shared (n_m,) controls as broadcast views."""
+    return {n: np.broadcast_to(_to_numpy(t), (batch, t.shape[-1])) for n, t in zip(names, tensors)}
 
 
 def _to_numpy(t: torch.Tensor) -> np.ndarray:

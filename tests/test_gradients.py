@@ -232,3 +232,19 @@ def test_dirichlet_values_are_kept_and_have_no_gradient(coarse_lshape):
     np.testing.assert_allclose(u.detach().numpy()[prob.bc_dofs], 1.0 + xy[prob.bc_dofs, 0], rtol=1e-12)
     # The lifting term makes the interior depend on kappa through the boundary data.
     assert torch.autograd.gradcheck(lambda k: layer(kappa=k), (kappa,), eps=1e-6, atol=1e-7, rtol=1e-5)
+
+
+def test_in_place_changes_before_backward_are_caught(coarse_problems):
+    """backward re-assembles with u and kappa: changing either in place must raise, not corrupt."""
+    prob = coarse_problems["poisson"]
+    layer = SolveLayer(prob, CONVERGED["lu"])
+    kappa = control_values(prob, "kappa", batch=2).requires_grad_()
+    u = layer(kappa=kappa)
+    u.mul_(2.0)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        u.sum().backward()
+    k = kappa * 1.0
+    u = layer(kappa=k)
+    k.mul_(2.0)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        u.sum().backward()

@@ -1,0 +1,469 @@
+"""Benchmark: what SolveLayer costs over hand-written PETSc, and what batching saves.
+
+Setup: Poisson's equation -div(grad u) = f on the bundled L-shape, meshed at
+two sizes (``small`` h=0.03, about 4k P1 DOFs; ``large`` h=0.0073, about 66k),
+with u = g on the whole boundary and the source f as the only control
+(``fempdl.forms.poisson.problem(msh, controls=("f",), g=...)``). The solver is
+capped at K iterations: Richardson + Jacobi (``KSPOptions(max_it=K)``) and
+GMRES(30) + Jacobi (``KSPOptions.preset("gmres", max_it=K)``). Each sample of
+a batch of B random sources is solved, and the loss sum(u * W) is
+backpropagated to the sources.
+
+Measured per (size, solver, K):
+
+(a) layer overhead = time of ``u = layer(f=F); (u * W).sum().backward()`` for
+    F of shape (B, n) divided by the time of a raw petsc4py loop doing the same
+    work by hand (b_i = M f_i + b0, a KSP solve with the same options, copy
+    out; then per sample A^T lam_i = w_i and M^T lam_i). The raw loop's
+    matrices, Dirichlet condition and KSP are built with dolfinx/petsc4py
+    directly, not through fempdl, and its solutions and gradients are compared
+    with the layer's: the max relative difference is recorded (0 or round-off:
+    both run the same floating-point operations), beside the change one more
+    iteration makes, to show the comparison would catch a different solve.
+    Target: ratio <= 1.15.
+(b) batching speed-up = time of B separate layer calls with (1, n) tensors
+    divided by the time of one call with the (B, n) tensor (forward and
+    backward, the same total work). Target: >= 1.5.
+
+Also recorded: DOFs, K, B, absolute times in seconds, the layer's forward and
+backward iteration counts for one batched call, a breakdown of the batched
+call (KSP time, other time inside the layer, time outside it: torch and
+autograd), the raw loop's KSP time, the layer's fixed cost per call, the
+machine and its load average.
+
+Timing: every configuration is warmed up once (form JIT compilation, KSP
+setup) before it is timed; the three timed variants (batched layer call, raw
+loop, B single calls) are interleaved within each repeat so that load from
+other processes affects them alike. Each runs ``--repeats`` times, and cheap
+configurations more often (up to 100 times, until the batched calls add up
+to ``--min-time`` seconds). The reported time of each variant is the
+**minimum** over its repeats: other processes only ever add time, so the
+minimum is the least disturbed estimate (every repeat is in the JSON).
+torch runs with one thread (``torch.set_num_threads(1)``) because the PETSc
+side is single-threaded and the only torch work here is elementwise; the
+setting is recorded. Runs serially (one MPI rank).
+
+Run (from the repository root)::
+
+    .venv/bin/python scripts/bench_layer.py                 # full: both sizes, K=10,50,200, B=32, 3 repeats
+    .venv/bin/python scripts/bench_layer.py --quick         # smoke test: small mesh, K=10,50, B=8, 1 repeat
+    .venv/bin/python scripts/bench_layer.py --sizes small --ks 10 --solvers jacobi --out /tmp/b.json
+
+Figures go to ``bench-results/bench_layer.json`` (``--out`` to change); a
+short table is printed.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import dolfinx
+import dolfinx.fem
+import dolfinx.fem.petsc
+import dolfinx.mesh
+import numpy as np
+import petsc4py
+import torch
+import ufl
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import fempdl
+from fempdl.bridge_torch import SolveLayer
+from fempdl.ksp_adjoint import KSPOptions
+
+MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.meshgen)
+TARGET_OVERHEAD = 1.15
+TARGET_BATCH_SPEEDUP = 1.5
+STATISTIC = "min"
+MAX_REPEATS = 100
+
+
+def boundary_values(x):
+    # Non-zero Dirichlet data, so the constant part b0 of the right-hand side
+    # (lifting and BC rows) is exercised by the comparison.
+    return 1.0 + x[0] * x[1]
+
+
+@dataclass(frozen=True)
+class Solver:
+    """One solver configuration, spelled both ways: fempdl options and raw PETSc settings."""
+
+    name: str
+    ksp_type: str
+    pc_type: str
+    gmres_restart: int | None
+    norm_none: bool   # fempdl skips the residual norm for a pure cap of Richardson
+
+    def layer_options(self, max_it: int) -> KSPOptions:
+        if self.name == "jacobi":
+            return KSPOptions(max_it=max_it)
+        return KSPOptions.preset(self.name, max_it=max_it)
+
+
+SOLVERS = {
+    "jacobi": Solver("jacobi", "richardson", "jacobi", None, norm_none=True),
+    "gmres": Solver("gmres", "gmres", "jacobi", 30, norm_none=False),
+}
+
+
+class RawLoop:
+    """The layer's work for an affine source control, written by hand.
+
+    Built from dolfinx and petsc4py only, on the same function space (so the
+    DOF order matches): A with the Dirichlet rows and columns replaced by the
+    identity, the mass matrix M = dL/df with its Dirichlet rows zeroed (those
+    rows of b come from the boundary data alone), and b0 = the lifted boundary
+    data. Per sample: b = M f + b0, a capped KSP solve; backward: the BC
+    entries of dJ/du zeroed, A^T lam = dJ/du, dJ/df = M^T lam.
+    """
+
+    def __init__(self, V, solver: Solver, max_it: int):
+        msh = V.mesh
+        fdim = msh.topology.dim - 1
+        msh.topology.create_connectivity(fdim, msh.topology.dim)
+        facets = dolfinx.mesh.exterior_facet_indices(msh.topology)
+        self.bc_dofs = dolfinx.fem.locate_dofs_topological(V, fdim, facets)
+        g = dolfinx.fem.Function(V)
+        g.interpolate(boundary_values)
+        bc = dolfinx.fem.dirichletbc(g, self.bc_dofs)
+
+        u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+        a = dolfinx.fem.form(ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx)
+        self.A = dolfinx.fem.petsc.assemble_matrix(a, bcs=[bc])
+        self.A.assemble()
+        self.M = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(u * v * ufl.dx))
+        self.M.assemble()
+        self.M.zeroRows(self.bc_dofs, diag=0.0)
+        # A Constant, not 0.0 * form: UFL collapses the latter to an empty form.
+        L0 = dolfinx.fem.form(dolfinx.fem.Constant(msh, 0.0) * v * ufl.dx)
+        b0 = dolfinx.fem.petsc.assemble_vector(L0)
+        dolfinx.fem.petsc.apply_lifting(b0, [a], bcs=[[bc]])
+        b0.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        dolfinx.fem.petsc.set_bc(b0, [bc])
+        self.n = V.dofmap.index_map.size_local
+        self.b0 = self.A.createVecLeft()
+        self.b0.setArray(b0.array_r[: self.n])
+        b0.destroy()
+
+        self.f, self.b = self.M.createVecs()
+        self.x, self.rhs = self.A.createVecs()
+        self.ksp = PETSc.KSP().create(msh.comm)
+        self.ksp.setOperators(self.A)
+        self.ksp.setType(solver.ksp_type)
+        self.ksp.getPC().setType(solver.pc_type)
+        if solver.gmres_restart is not None:
+            self.ksp.setGMRESRestart(solver.gmres_restart)
+        if solver.norm_none:
+            self.ksp.setNormType(PETSc.KSP.NormType.NONE)
+        self.ksp.setInitialGuessNonzero(False)
+        self.set_max_it(max_it)
+        self.ksp_time = 0.0
+
+    def set_max_it(self, max_it: int) -> None:
+        # rtol = atol = 0 and no divergence test: exactly max_it iterations.
+        self.ksp.setTolerances(rtol=0.0, atol=0.0, divtol=1e300, max_it=max_it)
+
+    def forward(self, F: np.ndarray) -> np.ndarray:
+        U = np.empty((F.shape[0], self.n))
+        for i in range(F.shape[0]):
+            self.f.setArray(F[i])
+            self.M.mult(self.f, self.b)
+            self.b.axpy(1.0, self.b0)
+            t0 = time.perf_counter()
+            self.ksp.solve(self.b, self.x)
+            self.ksp_time += time.perf_counter() - t0
+            U[i] = self.x.getArray(readonly=True)
+        return U
+
+    def backward(self, W: np.ndarray) -> np.ndarray:
+        G = W.copy()
+        G[:, self.bc_dofs] = 0.0  # u = g there does not depend on f
+        grads = np.empty((W.shape[0], self.M.getSize()[1]))
+        for i in range(W.shape[0]):
+            self.rhs.setArray(G[i])
+            t0 = time.perf_counter()
+            self.ksp.solveTranspose(self.rhs, self.x)
+            self.ksp_time += time.perf_counter() - t0
+            self.M.multTranspose(self.x, self.f)
+            grads[i] = self.f.getArray(readonly=True)
+        return grads
+
+    def destroy(self) -> None:
+        for obj in (self.ksp, self.A, self.M, self.b0, self.f, self.b, self.x, self.rhs):
+            obj.destroy()
+
+
+# ---------------------------------------------------------------- timed work
+def layer_call(layer: SolveLayer, F: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
+    F.grad = None
+    u = layer(f=F)
+    (u * W).sum().backward()
+    return u
+
+
+def time_layer_call(layer, F, W) -> dict:
+    """Wall time of one batched call, split into KSP, rest of the layer, and torch/autograd."""
+    stats = layer.stats
+    ksp0, inside0 = stats.solve_time, stats.layer_time
+    t0 = time.perf_counter()
+    layer_call(layer, F, W)
+    wall = time.perf_counter() - t0
+    ksp, inside = stats.solve_time - ksp0, stats.layer_time - inside0
+    return {"wall": wall, "ksp": ksp, "layer_other": inside - ksp, "outside_layer": wall - inside}
+
+
+def time_raw_loop(raw: RawLoop, F: np.ndarray, W: np.ndarray) -> dict:
+    raw.ksp_time = 0.0
+    t0 = time.perf_counter()
+    raw.forward(F)
+    raw.backward(W)
+    wall = time.perf_counter() - t0
+    return {"wall": wall, "ksp": raw.ksp_time}
+
+
+def time_per_sample_calls(layer, rows: list, W_rows: list) -> float:
+    t0 = time.perf_counter()
+    for f, w in zip(rows, W_rows):
+        layer_call(layer, f, w)
+    return time.perf_counter() - t0
+
+
+# --------------------------------------------------------------- correctness
+def max_relative_difference(X: np.ndarray, Y: np.ndarray) -> float:
+    """max over samples of ||x_i - y_i|| / ||y_i||."""
+    return float(np.max(np.linalg.norm(X - Y, axis=1) / np.linalg.norm(Y, axis=1)))
+
+
+def check_against_raw(layer, raw: RawLoop, F, W, max_it: int) -> tuple[dict, dict]:
+    """Compare layer and raw loop, and count the layer's iterations (this is also
+    the warm-up of both)."""
+    layer.stats.reset()
+    u = layer_call(layer, F, W).detach().numpy()
+    iterations = {"forward": layer.stats.forward_iterations, "backward": layer.stats.backward_iterations}
+    U_raw = raw.forward(F.detach().numpy())
+    grads_raw = raw.backward(W.numpy())
+    # What one more iteration changes: the scale the differences above must be far below.
+    raw.set_max_it(max_it + 1)
+    U_more = raw.forward(F.detach().numpy()[:1])
+    raw.set_max_it(max_it)
+    check = {
+        "max_rel_diff_u": max_relative_difference(u, U_raw),
+        "max_rel_diff_grad": max_relative_difference(F.grad.numpy(), grads_raw),
+        "rel_change_one_more_iteration": max_relative_difference(U_more, U_raw[:1]),
+    }
+    return check, iterations
+
+
+# --------------------------------------------------------------- one config
+def bench_config(layer, raw: RawLoop, F, W, max_it: int, repeats: int, min_time: float) -> dict:
+    """Time the three variants, interleaved, ``repeats`` times, and more often (up
+    to MAX_REPEATS) while the batched calls have run for less than ``min_time`` s."""
+    layer.max_it = max_it
+    raw.set_max_it(max_it)
+    check, iterations = check_against_raw(layer, raw, F, W, max_it)
+    rows = [F[i:i + 1].detach().clone().requires_grad_() for i in range(F.shape[0])]
+    W_rows = [W[i:i + 1] for i in range(W.shape[0])]
+    F_np, W_np = F.detach().numpy(), W.numpy()
+    batched, reference, per_sample = [], [], []
+    while len(batched) < repeats or (sum(t["wall"] for t in batched) < min_time
+                                     and len(batched) < MAX_REPEATS):
+        batched.append(time_layer_call(layer, F, W))
+        reference.append(time_raw_loop(raw, F_np, W_np))
+        per_sample.append(time_per_sample_calls(layer, rows, W_rows))
+    fastest = min(batched, key=lambda t: t["wall"])
+    fastest_raw = min(reference, key=lambda t: t["wall"])
+    layer_s, raw_s, per_sample_s = fastest["wall"], fastest_raw["wall"], min(per_sample)
+    return {
+        "K": max_it,
+        "B": F.shape[0],
+        "repeats": len(batched),
+        "times_s": {
+            "layer_batched": layer_s,
+            "raw_loop": raw_s,
+            "layer_per_sample_loop": per_sample_s,
+            "all_repeats": {
+                "layer_batched": [t["wall"] for t in batched],
+                "raw_loop": [t["wall"] for t in reference],
+                "layer_per_sample_loop": per_sample,
+            },
+        },
+        # Of the fastest repeat of each.
+        "breakdown_s": {
+            "layer_batched": {k: fastest[k] for k in ("ksp", "layer_other", "outside_layer")},
+            "raw_loop": {"ksp": fastest_raw["ksp"], "other": raw_s - fastest_raw["ksp"]},
+        },
+        "ratios": {
+            "layer_overhead": layer_s / raw_s,
+            "batching_speedup": per_sample_s / layer_s,
+        },
+        # B single calls do the batched call's work plus B - 1 calls' fixed costs.
+        "per_call_fixed_cost_s": (per_sample_s - layer_s) / (F.shape[0] - 1),
+        "targets_met": {
+            "layer_overhead": layer_s / raw_s <= TARGET_OVERHEAD,
+            "batching_speedup": per_sample_s / layer_s >= TARGET_BATCH_SPEEDUP,
+        },
+        "iterations_per_batched_call": iterations,
+        "check": check,
+    }
+
+
+def bench_size(size: str, args: argparse.Namespace, rng) -> tuple[dict, list]:
+    h = MESH_SIZES[size]
+    msh = fempdl.mesh.load("lshape", h=h)
+    prob = fempdl.forms.poisson.problem(msh, controls=("f",), g=boundary_values)
+    n = prob.control_size("f")
+    mesh_info = {"h": h, "dofs": prob.output_size,
+                 "cells": msh.mesh.topology.index_map(msh.tdim).size_local}
+    F = torch.from_numpy(rng.standard_normal((args.batch, n))).requires_grad_()
+    W = torch.from_numpy(rng.standard_normal((args.batch, prob.output_size)))
+    results = []
+    for name in args.solvers:
+        solver = SOLVERS[name]
+        layer = SolveLayer(prob, solver.layer_options(args.ks[0]))
+        raw = RawLoop(prob.V, solver, args.ks[0])
+        for k in args.ks:
+            row = bench_config(layer, raw, F, W, k, args.repeats, args.min_time)
+            row.update(size=size, dofs=prob.output_size, solver=name)
+            results.append(row)
+            print_row(row, flush=True)
+        layer.close()
+        raw.destroy()
+    return mesh_info, results
+
+
+# ------------------------------------------------------------------- output
+HEADER = (f"{'size':<6}{'dofs':>7} {'solver':<7}{'K':>4}{'B':>4} {'layer s':>9}{'raw s':>9}"
+          f"{'overhead':>9} {'1-by-1 s':>9}{'speedup':>8} {'its f+b':>8} {'rel diff u':>11}{'reps':>5}")
+
+
+def print_row(row: dict, flush: bool = False) -> None:
+    t, r = row["times_s"], row["ratios"]
+    its = row["iterations_per_batched_call"]
+    print(f"{row['size']:<6}{row['dofs']:>7} {row['solver']:<7}{row['K']:>4}{row['B']:>4} "
+          f"{t['layer_batched']:>9.4f}{t['raw_loop']:>9.4f}{r['layer_overhead']:>9.3f} "
+          f"{t['layer_per_sample_loop']:>9.4f}{r['batching_speedup']:>8.3f} "
+          f"{its['forward'] + its['backward']:>8} {row['check']['max_rel_diff_u']:>11.1e}{row['repeats']:>5}",
+          flush=flush)
+
+
+def machine_info() -> dict:
+    return {
+        "cpu_count": os.cpu_count(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "torch_num_threads": torch.get_num_threads(),  # set to 1 in main()
+        "dolfinx": dolfinx.__version__,
+        "petsc": ".".join(map(str, PETSc.Sys.getVersion())),
+        "petsc4py": petsc4py.__version__,
+        "numpy": np.__version__,
+        "fempdl": fempdl.__version__,
+        "mpi_ranks": MPI.COMM_WORLD.size,
+    }
+
+
+def write_json_atomically(data: dict, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=path.name, suffix=".tmp",
+                                     delete=False) as tmp:
+        json.dump(data, tmp, indent=2)
+    os.replace(tmp.name, path)
+
+
+# ---------------------------------------------------------------------- CLI
+def comma_list(kind):
+    def parse(text: str) -> list:
+        return [kind(item) for item in text.split(",") if item]
+    return parse
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", type=comma_list(str), help="mesh sizes: small,large (default both)")
+    parser.add_argument("--ks", type=comma_list(int), help="iteration caps K (default 10,50,200)")
+    parser.add_argument("--batch", type=int, help="batch size B (default 32)")
+    parser.add_argument("--repeats", type=int,
+                        help="timed repeats, at least; the minimum is reported (default 3)")
+    parser.add_argument("--min-time", type=float,
+                        help="repeat cheap configurations until the batched calls add up to this "
+                             "many seconds (default 1.0; 0 with --quick)")
+    parser.add_argument("--solvers", type=comma_list(str),
+                        help="jacobi (Richardson+Jacobi) and/or gmres (GMRES(30)+Jacobi); default both")
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke test: small mesh, K=10,50, B=8, 1 repeat (explicit flags still win)")
+    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_layer.json"),
+                        help="JSON output file (default bench-results/bench_layer.json)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random sources and weights")
+    args = parser.parse_args(argv)
+    defaults = ({"sizes": ["small"], "ks": [10, 50], "batch": 8, "repeats": 1, "min_time": 0.0,
+                 "solvers": ["jacobi", "gmres"]} if args.quick
+                else {"sizes": ["small", "large"], "ks": [10, 50, 200], "batch": 32, "repeats": 3,
+                      "min_time": 1.0, "solvers": ["jacobi", "gmres"]})
+    for key, value in defaults.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    for size in args.sizes:
+        if size not in MESH_SIZES:
+            parser.error(f"--sizes: unknown size {size!r}; choose from {sorted(MESH_SIZES)}")
+    for name in args.solvers:
+        if name not in SOLVERS:
+            parser.error(f"--solvers: unknown solver {name!r}; choose from {sorted(SOLVERS)}")
+    if not args.ks or min(args.ks) < 1:
+        parser.error(f"--ks must be integers >= 1, got {args.ks}")
+    if args.batch < 2 or args.repeats < 1 or args.min_time < 0:
+        parser.error("--batch must be >= 2 (batching is compared with B single calls), --repeats >= 1 "
+                     "and --min-time >= 0")
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if MPI.COMM_WORLD.size > 1:
+        print("bench_layer.py compares against a serial PETSc loop; run it without mpirun", file=sys.stderr)
+        return 2
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(args.seed)
+    started = datetime.datetime.now(datetime.timezone.utc)
+    report = {
+        "benchmark": "bench_layer",
+        "timestamp": started.isoformat(timespec="seconds"),
+        "machine": machine_info(),
+        "load_average_start": os.getloadavg(),
+        "settings": {
+            "sizes": args.sizes, "ks": args.ks, "batch": args.batch, "repeats": args.repeats,
+            "min_time_s": args.min_time, "max_repeats": MAX_REPEATS, "solvers": args.solvers,
+            "seed": args.seed, "statistic": STATISTIC,
+            "problem": "poisson on lshape, control f, g = 1 + x*y on the whole boundary",
+            "loss": "sum(u * W), W standard normal",
+        },
+        "targets": {"layer_overhead_max": TARGET_OVERHEAD, "batching_speedup_min": TARGET_BATCH_SPEEDUP},
+        "meshes": {},
+        "results": [],
+    }
+    print(HEADER)
+    for size in args.sizes:
+        mesh_info, rows = bench_size(size, args, rng)
+        report["meshes"][size] = mesh_info
+        report["results"].extend(rows)
+    report["load_average_end"] = os.getloadavg()
+    report["duration_s"] = (datetime.datetime.now(datetime.timezone.utc) - started).total_seconds()
+    write_json_atomically(report, args.out)
+    print(f"overhead = layer / raw loop (target <= {TARGET_OVERHEAD}); speedup = B single calls / "
+          f"one batched call (target >= {TARGET_BATCH_SPEEDUP}); times are the {STATISTIC} over "
+          f"repeats (column 'reps'); wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
