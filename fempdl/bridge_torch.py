@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch.autograd.function import once_differentiable
 
+from fempdl.batched import BatchedJacobi
 from fempdl.ksp_adjoint import CumulativeStats, KSPOptions, warn_at_caller
 from fempdl.problem import Problem
 from fempdl.system import LinearSystem
@@ -80,7 +81,8 @@ class SolveLayer(torch.nn.Module):
             raise ValueError(f"diff must be one of {list(DIFF_MODES)}, got {diff!r}")
         self.problem = problem
         self.diff = diff
-        self._system = LinearSystem(problem, options)
+        engine = None if options.engine == "petsc" else BatchedJacobi()
+        self._system = LinearSystem(problem, options, batched_engine=engine)
 
     @property
     def system(self) -> LinearSystem:

@@ -76,6 +76,7 @@ _RESERVED_OPTIONS = {
 _FORBIDDEN_OPTIONS = {
     "ksp_initial_guess_nonzero": "capped solves always start from a zero initial guess",
 }
+ENGINES = ("auto", "petsc", "batched")
 DEFAULT_RTOL = 1e-10
 DEFAULT_CAP = 20  # max_it when not given, for iterative methods (direct ones get None)
 _UNSET = "unset"
@@ -122,6 +123,14 @@ class KSPOptions:
         on_failure: ``"raise"`` (default) raises :class:`SolverFailedError` when a
             solve diverges, breaks down or produces NaN/inf; ``"warn"`` returns
             the iterate with a warning (never NaN without a warning).
+        engine: who runs the iterations of a layer's batch. ``"petsc"``: one KSP
+            solve per sample (any KSP/PC, MPI). ``"batched"``: all samples at
+            once, one sparse-times-dense product per iteration
+            (:mod:`fempdl.batched`; capped Richardson with Jacobi or no
+            preconditioner, serial; used whenever the call's matrix is shared
+            by the batch). ``"auto"`` (default): batched where supported and
+            faster (B >= 2, and two or more torch threads or n * B <= 2^20),
+            PETSc otherwise. ``SolveStats.engine`` reports which ran.
     """
 
     ksp_type: str = "richardson"
@@ -134,6 +143,7 @@ class KSPOptions:
     petsc_options: Mapping[str, Any] = field(default_factory=dict)
     adjoint: "KSPOptions | None" = None
     on_failure: str = "raise"
+    engine: str = "auto"
 
     def __post_init__(self):
         _check_choice("ksp_type", self.ksp_type, _KSP_TYPES)
@@ -175,6 +185,8 @@ class KSPOptions:
                 raise ValueError("adjoint options must not have an adjoint of their own")
         if self.on_failure not in ("raise", "warn"):
             raise ValueError(f"on_failure must be 'raise' or 'warn', got {self.on_failure!r}")
+        if self.engine not in ENGINES:
+            raise ValueError(f"engine must be one of {list(ENGINES)}, got {self.engine!r}")
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "KSPOptions":
@@ -242,6 +254,8 @@ class SolveStats:
         time: wall time of the KSP solve in seconds.
         capped: True when the solve stopped because it reached ``max_it``.
         ok: False when the solve diverged, broke down or produced NaN/inf.
+        engine: ``"petsc"`` (a KSP solve) or ``"batched"`` (one column of a
+            batched iteration; ``time`` is its share of the batch).
     """
 
     iterations: int
@@ -251,6 +265,7 @@ class SolveStats:
     time: float
     capped: bool
     ok: bool
+    engine: str = "petsc"
 
 
 @dataclass
@@ -270,6 +285,7 @@ class CumulativeStats:
     backward_time: float = 0.0
     layer_time: float = 0.0
     failures: int = 0
+    solves_by_engine: dict = field(default_factory=dict)
     last: SolveStats | None = None
 
     def record(self, direction: str, stats: SolveStats) -> None:
@@ -285,6 +301,7 @@ class CumulativeStats:
         else:
             raise ValueError(f"direction must be 'forward' or 'backward', got {direction!r}")
         self.failures += not stats.ok
+        self.solves_by_engine[stats.engine] = self.solves_by_engine.get(stats.engine, 0) + 1
         self.last = stats
 
     @property
@@ -296,11 +313,13 @@ class CumulativeStats:
         return self.forward_time + self.backward_time
 
     def reset(self) -> None:
+        fresh = CumulativeStats()
         for f in dataclasses.fields(self):
-            setattr(self, f.name, f.default)
+            setattr(self, f.name, getattr(fresh, f.name))
 
     def as_dict(self) -> dict:
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "last"}
+        out["solves_by_engine"] = dict(self.solves_by_engine)
         out["total_iterations"] = self.total_iterations
         out["solve_time"] = self.solve_time
         return out
@@ -408,18 +427,38 @@ class CappedSolver:
         stats = SolveStats(iterations=iterations, reason=reason,
                            reason_name=_REASON_NAMES.get(reason, str(reason)),
                            residual_norm=rnorm, time=elapsed, capped=capped, ok=ok)
+        return self.record(direction, stats, finite=finite)
+
+    def record(self, direction: str, stats: SolveStats, *, finite: bool = True) -> SolveStats:
+        """Count a solve (also one run outside this KSP, e.g. by the batched
+        engine) and raise or warn per the options if it failed."""
         self.stats.record(direction, stats)
-        if not ok:
-            _report_failure(options, stats, finite, transpose)
+        if not stats.ok:
+            self.report_failure(direction, stats, finite=finite)
         return stats
+
+    def report_failure(self, direction: str, stats: SolveStats, *, finite: bool, samples: int = 1) -> None:
+        """Raise :class:`SolverFailedError` or warn (per ``on_failure``) for a failed solve."""
+        options = self._options if direction == "forward" else self._options.adjoint_options
+        _report_failure(options, stats, finite, direction == "backward", samples)
+
+
+def capped_solve_stats(options: KSPOptions, seconds: float, finite: bool, engine: str) -> SolveStats:
+    """Stats of a pure-cap solve that ran ``options.max_it`` iterations outside PETSc."""
+    reason = PETSc.KSP.ConvergedReason.CONVERGED_ITS
+    return SolveStats(iterations=options.max_it, reason=reason, reason_name=_REASON_NAMES[reason],
+                      residual_norm=None, time=seconds, capped=True, ok=finite, engine=engine)
 
 
 class SolverWarning(RuntimeWarning):
     """A solve failed and ``on_failure="warn"`` asked for the iterate anyway."""
 
 
-def _report_failure(options: KSPOptions, stats: SolveStats, finite: bool, transpose: bool) -> None:
+def _report_failure(options: KSPOptions, stats: SolveStats, finite: bool, transpose: bool,
+                    samples: int = 1) -> None:
     what = "transposed solve" if transpose else "solve"
+    if samples > 1:
+        what += f" of {samples} samples"
     if not finite:
         cause = "produced NaN or inf"
         if options.direct:

@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
 import math
 import numbers
 from dataclasses import dataclass
@@ -255,6 +256,11 @@ def gmsh_session(active: bool = True) -> Iterator[None]:
     if not active:
         yield
         return
+    # gmsh sets the process-wide OpenMP thread count (to 1) when it starts; torch
+    # shares that runtime, so without this every torch kernel after a mesh load
+    # would run on one thread.
+    openmp = _openmp_runtime()
+    threads = openmp.omp_get_max_threads() if openmp is not None else None
     # Ignoring gmshrc / gmsh-options keeps meshes reproducible across users.
     gmsh.initialize(readConfigFiles=False)
     try:
@@ -263,6 +269,16 @@ def gmsh_session(active: bool = True) -> Iterator[None]:
         yield
     finally:
         gmsh.finalize()
+        if threads is not None:
+            openmp.omp_set_num_threads(threads)
+
+
+def _openmp_runtime():
+    """The OpenMP runtime gmsh uses (the process's libgomp), or None."""
+    try:
+        return ctypes.CDLL("libgomp.so.1")
+    except OSError:
+        return None
 
 
 def _mesh_model(name: str, h: float | None) -> None:

@@ -27,7 +27,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from fempdl import _dolfinx
-from fempdl.ksp_adjoint import CappedSolver, CumulativeStats, KSPOptions
+from fempdl.ksp_adjoint import CappedSolver, CumulativeStats, KSPOptions, capped_solve_stats
 from fempdl.problem import Problem
 
 __all__ = ["LinearSystem"]
@@ -39,18 +39,31 @@ class LinearSystem:
     Args:
         problem: the variational problem.
         options: solver options (the cap can be moved later via ``max_it``).
+        batched_engine: an engine that solves all samples of a call at once
+            (:class:`fempdl.batched.BatchedJacobi`), used where ``options.engine``
+            and the call allow it; ``None`` runs every solve through PETSc.
     """
 
-    def __init__(self, problem: Problem, options: KSPOptions):
+    def __init__(self, problem: Problem, options: KSPOptions, *, batched_engine=None):
         self.problem = problem
         self._A = _dolfinx.create_matrix(problem.a_form)
         self._b = _dolfinx.create_vector(problem.L_form)       # ghosted: assembly target
         self._x, self._rhs = self._A.createVecs()              # solution / transposed RHS
         self._solver = CappedSolver(self._A, options)
         self._A_inputs = None                                  # fingerprint of the assembled A
+        self._A_version = 0                                    # bumped at every assembly of A
         self._b_base: dict = {}                                # frozenset(names) -> (Vec, fingerprint)
-        self._rhs_mats: dict = {}                              # name -> (Mat, vec in, fingerprint)
+        self._rhs_mats: dict = {}                              # name -> (Mat, vec in, vec out, fingerprint)
         self._grad_vecs: dict = {}                             # name -> ghosted Vec on M
+        self._comm_size = self._A.getComm().getSize()
+        self._batched = None if options.engine == "petsc" else batched_engine
+        if options.engine == "batched":
+            reason = ("no batched engine was given" if batched_engine is None
+                      else batched_engine.unsupported_reason(options, self._comm_size))
+            if reason is not None:
+                raise ValueError(f"engine='batched' cannot run these options: {reason}; "
+                                 "use engine='auto' or engine='petsc'")
+        self._batched_version = -1                             # A version the batched copy holds
 
     # ------------------------------------------------------------ properties
     @property
@@ -81,21 +94,26 @@ class LinearSystem:
         per_sample_matrix = bool((names - frozenset(shared)) & p.matrix_controls)
         # Matrix fixed and every passed control a pure RHS term: b_i = b_base + sum_m C_m m_i.
         affine = not (names & p.matrix_controls) and names <= p.affine_rhs_controls
+        use_batched = self._use_batched(batch, per_sample_matrix)
         U = np.empty((batch, p.output_size))
         with _ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
-            if affine:
-                b_base = self._base_rhs(names, ctl)
+            b_base = self._base_rhs(names, ctl) if affine else None
             for i in range(batch):
                 if affine:
                     self._affine_rhs(b_base, sorted(names), controls, i)
                 else:
                     ctl.set_sample(i)
                     if per_sample_matrix:
-                        _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs)
+                        self._assemble_matrix()
                     _dolfinx.assemble_vector_into(self._b, p.L_form, p.a_form, p.bcs)
-                self._solver.solve(self._b, self._x)
-                U[i] = self._x.getArray(readonly=True)
+                if use_batched:
+                    U[i] = self._b.getArray(readonly=True)     # the RHS; solved below
+                else:
+                    self._solver.solve(self._b, self._x)
+                    U[i] = self._x.getArray(readonly=True)
+        if use_batched:
+            U = self._batched_solve(U, "forward")
         return U
 
     def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
@@ -107,6 +125,7 @@ class LinearSystem:
         wanted = [n for n in p.control_names if n in set(wanted)]
         names = frozenset(controls)
         per_sample_matrix = bool((names - frozenset(shared)) & p.matrix_controls)
+        use_batched = self._use_batched(batch, per_sample_matrix)
         by_matrix = [n for n in wanted if n in p.affine_rhs_controls]
         by_form = [n for n in wanted if n not in p.affine_rhs_controls]
         grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
@@ -117,13 +136,17 @@ class LinearSystem:
         n_owned = p.output_size
         with _ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
+            Lam = self._batched_solve(G, "backward") if use_batched else None
             for i in range(batch):
                 if per_sample_matrix or by_form:
                     ctl.set_sample(i)
-                if per_sample_matrix:
-                    _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs)
-                self._rhs.setArray(G[i])
-                self._solver.solve_transpose(self._rhs, self._x)
+                if use_batched:
+                    self._x.setArray(Lam[i])
+                else:
+                    if per_sample_matrix:
+                        self._assemble_matrix()
+                    self._rhs.setArray(G[i])
+                    self._solver.solve_transpose(self._rhs, self._x)
                 for name in by_matrix:
                     C, _, out, _ = self._rhs_matrix(name)
                     C.multTranspose(self._x, out)
@@ -134,6 +157,31 @@ class LinearSystem:
                     for name in by_form:
                         grads[name][i] = self._assemble_gradient(name)
         return grads
+
+    # ------------------------------------------------------------ engines
+    def _use_batched(self, batch: int, per_sample_matrix: bool) -> bool:
+        """Whether this call runs on the batched engine (see KSPOptions.engine)."""
+        if self._batched is None or per_sample_matrix:
+            return False
+        if self._batched.unsupported_reason(self.options, self._comm_size) is not None:
+            return False  # e.g. the cap was lifted to max_it=None after construction
+        return self.options.engine == "batched" or self._batched.faster_than_petsc(batch, self.problem.output_size)
+
+    def _batched_solve(self, R: np.ndarray, direction: str) -> np.ndarray:
+        """All rows of R at once on the batched engine; stats recorded per sample."""
+        if self._batched_version != self._A_version:
+            self._batched.load(self._A)
+            self._batched_version = self._A_version
+        opts = self.options if direction == "forward" else self.options.adjoint_options
+        X, seconds = self._batched.solve(R, opts, transpose=direction == "backward")
+        finite = np.isfinite(X).all(axis=1)
+        per_sample = [capped_solve_stats(opts, seconds / len(X), bool(ok), "batched") for ok in finite]
+        for stats in per_sample:
+            self.stats.record(direction, stats)
+        if not finite.all():
+            failed = next(st for st in per_sample if not st.ok)
+            self._solver.report_failure(direction, failed, finite=False, samples=int((~finite).sum()))
+        return X
 
     def destroy(self) -> None:
         """Free the PETSc objects (the system is unusable afterwards)."""
@@ -159,12 +207,16 @@ class LinearSystem:
         self._A_inputs = None
         if not per_sample:
             ctl.set_sample(0)
-            _dolfinx.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
+            self._assemble_matrix()
+
+    def _assemble_matrix(self) -> None:
+        _dolfinx.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
+        self._A_version += 1
 
     def _ensure_constant_matrix(self) -> None:
         inputs = self.problem.matrix_inputs()
         if self._A_inputs is None or not _fingerprint_matches(self._A_inputs, inputs):
-            _dolfinx.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
+            self._assemble_matrix()
             self._A_inputs = _fingerprint(inputs)
 
     def _base_rhs(self, names: frozenset, ctl: "_ControlValues") -> PETSc.Vec:

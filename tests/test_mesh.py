@@ -294,3 +294,12 @@ def test_bundled_mesh_loads_from_the_unpacked_wheel(wheel, tmp_path):
     module_file, cells = result.stdout.split()
     assert Path(module_file).is_relative_to(site)
     assert int(cells) == global_cells(mesh.load("obstacle", COMM).mesh)
+
+
+def test_loading_a_mesh_keeps_the_openmp_thread_count():
+    """gmsh resets OpenMP's thread count when it starts; torch shares that runtime."""
+    torch = pytest.importorskip("torch")
+    torch.set_num_threads(2)
+    mesh.load("lshape", COMM, h=0.3)
+    mesh.load("lshape", COMM)
+    assert torch.get_num_threads() == 2
