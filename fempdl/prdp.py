@@ -1,0 +1,172 @@
+"""PRDP: raise a solver's iteration cap K only when the validation metric plateaus.
+
+The controller of the PRDP paper (Algorithm 4). After every validation, call
+:meth:`PRDP.step` with the metric (lower is better, e.g. the validation nMSE):
+
+1. The metric history m is smoothed by an exponential moving average with
+   alpha = 2 / (ema_window + 1) and ema[0] = m[0].
+2. No decision is made while the history holds at most ``delta`` entries.
+3. r = ema[-1] / ema[-delta] (Python indexing) measures the recent progress.
+   If r > tau_step, training has plateaued at the current K:
+
+   * rc = ema[-1] / c compares the plateau with the checkpoint c of the
+     previous plateau. If rc < tau_stop (the last refinement still improved the
+     metric by more than 1 - tau_stop) or rc > 1 (the metric got worse), set
+     c = ema[-1] and refine: K += dk, never above ``k_cap``.
+   * Otherwise hold: more solver accuracy no longer helps (K_max reached).
+     Holding is not permanent: if the metric later improves by more than
+     1 - tau_stop against c, or worsens, and plateaus again, refinement resumes.
+
+The checkpoint c starts at the first metric (the paper's reference code uses a
+large constant or the initial validation error; with the first metric, a run
+that plateaus at once within tau_stop of where it started holds its K rather
+than refining blindly). The only state is c, K and the history.
+
+The controller sets ``max_it`` of the layers it drives (one or several
+:class:`~fempdl.bridge_torch.SolveLayer`, or anything with a ``max_it``
+attribute), or calls a user callback with the new K. Its interface follows
+``torch.optim.lr_scheduler.ReduceLROnPlateau``: ``step(metric) -> bool``,
+``state_dict()`` / ``load_state_dict()``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable, Iterable
+
+__all__ = ["PRDP", "PRDPRecord"]
+
+
+@dataclasses.dataclass(frozen=True)
+class PRDPRecord:
+    """One call of :meth:`PRDP.step`: the K in force while ``metric`` was
+    measured, the smoothed metric, the ratios (None before a decision is
+    possible or when not computed) and whether K was raised afterwards."""
+
+    step: int
+    k: int
+    metric: float
+    ema: float
+    r: float | None
+    rc: float | None
+    refined: bool
+
+
+class PRDP:
+    """Progressive refinement of an iteration cap K.
+
+    Args:
+        target: a layer (anything with a ``max_it`` attribute), a list of them,
+            a callable ``f(k)``, or ``None`` (read :attr:`k` yourself). Its cap is
+            set to ``k0`` at construction.
+        k0: the starting cap (>= 1).
+        dk: increment per refinement (>= 1).
+        tau_step: plateau threshold on r in (0, 1].
+        tau_stop: stagnation threshold on rc in (0, 1].
+        delta: grace interval (>= 2): r compares with delta - 1 steps earlier.
+        ema_window: EMA window (alpha = 2 / (ema_window + 1)); >= 1.
+        k_cap: upper bound for K (``None``: unbounded).
+    """
+
+    def __init__(self, target=None, *, k0: int = 1, dk: int = 1, tau_step: float = 0.95,
+                 tau_stop: float = 0.9, delta: int = 3, ema_window: int = 6, k_cap: int | None = None):
+        _check_int("k0", k0, 1)
+        _check_int("dk", dk, 1)
+        _check_int("delta", delta, 2)
+        _check_int("ema_window", ema_window, 1)
+        if k_cap is not None:
+            _check_int("k_cap", k_cap, k0)
+        for name, value in (("tau_step", tau_step), ("tau_stop", tau_stop)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value <= 1.0:
+                raise ValueError(f"{name} must be a number in (0, 1], got {value!r}")
+        self._apply = _setter(target)
+        self.k0, self.dk, self.k_cap = k0, dk, k_cap
+        self.tau_step, self.tau_stop = float(tau_step), float(tau_stop)
+        self.delta, self.ema_window = delta, ema_window
+        self.alpha = 2.0 / (ema_window + 1.0)
+        self.k = k0
+        self.checkpoint: float | None = None
+        self.history: list[PRDPRecord] = []
+        self._apply(self.k)
+
+    @property
+    def ema(self) -> list[float]:
+        return [rec.ema for rec in self.history]
+
+    def step(self, metric: float) -> bool:
+        """Record a validation metric; returns True if K was raised."""
+        if isinstance(metric, bool) or not isinstance(metric, (int, float)) and not hasattr(metric, "__float__"):
+            raise TypeError(f"metric must be a number, got {type(metric).__name__}")
+        metric = float(metric)
+        if not math.isfinite(metric) or metric <= 0.0:
+            raise ValueError(f"metric must be finite and > 0 (a validation error), got {metric!r}")
+        ema = metric if not self.history else self.alpha * metric + (1.0 - self.alpha) * self.history[-1].ema
+        if self.checkpoint is None:
+            self.checkpoint = metric
+        k_used = self.k
+        r = rc = None
+        refine = False
+        if len(self.history) + 1 > self.delta:
+            emas = self.ema + [ema]
+            r = emas[-1] / emas[-self.delta]
+            if r > self.tau_step:
+                rc = emas[-1] / self.checkpoint
+                if rc < self.tau_stop or rc > 1.0:
+                    self.checkpoint = emas[-1]
+                    refine = self.k_cap is None or self.k < self.k_cap
+        self.history.append(PRDPRecord(step=len(self.history), k=k_used, metric=metric, ema=ema,
+                                       r=r, rc=rc, refined=refine))
+        if refine:
+            self.k = self.k + self.dk if self.k_cap is None else min(self.k + self.dk, self.k_cap)
+            self._apply(self.k)
+        return refine
+
+    def state_dict(self) -> dict:
+        """Everything needed to continue: K, the checkpoint, the history and the settings."""
+        return {
+            "k": self.k, "checkpoint": self.checkpoint,
+            "history": [dataclasses.asdict(rec) for rec in self.history],
+            "settings": {"k0": self.k0, "dk": self.dk, "tau_step": self.tau_step, "tau_stop": self.tau_stop,
+                         "delta": self.delta, "ema_window": self.ema_window, "k_cap": self.k_cap},
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore from :meth:`state_dict` (and set the target's cap to the saved K)."""
+        settings = state["settings"]
+        mine = self.state_dict()["settings"]
+        if settings != mine:
+            changed = {k: (settings.get(k), v) for k, v in mine.items() if settings.get(k) != v}
+            raise ValueError(f"saved PRDP settings differ from this controller's (saved, current): {changed}")
+        self.k = int(state["k"])
+        self.checkpoint = state["checkpoint"]
+        self.history = [PRDPRecord(**rec) for rec in state["history"]]
+        self._apply(self.k)
+
+    def __repr__(self) -> str:
+        return (f"PRDP(k={self.k}, k0={self.k0}, dk={self.dk}, tau_step={self.tau_step}, "
+                f"tau_stop={self.tau_stop}, delta={self.delta}, ema_window={self.ema_window}, "
+                f"k_cap={self.k_cap}, steps={len(self.history)})")
+
+
+def _setter(target) -> Callable[[int], None]:
+    if target is None:
+        return lambda k: None
+    if callable(target) and not hasattr(target, "max_it"):
+        return target
+    targets = list(target) if isinstance(target, Iterable) and not hasattr(target, "max_it") else [target]
+    for i, t in enumerate(targets):
+        if not hasattr(t, "max_it"):
+            raise TypeError(f"PRDP target {i} ({type(t).__name__}) has no max_it attribute; pass SolveLayers, "
+                            "a callable f(k), or None")
+
+    def apply(k: int) -> None:
+        for t in targets:
+            t.max_it = k
+    return apply
+
+
+def _check_int(name: str, value, minimum: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an int, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
