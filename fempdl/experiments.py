@@ -1,0 +1,256 @@
+"""Scene -> training task, and the runs that compare capped, PRDP and converged physics.
+
+Two tasks, chosen by the scene's ``task``:
+
+* ``emulator`` (the PRDP paper's mixed chain): a network maps u0 to u1, the
+  capped heat layer maps u1 to u2, and the training loss is the nMSE of u2
+  against two converged heat steps. The validation metric is the same chain on
+  held-out states with *converged* physics (LU) in place of the capped layer,
+  so every K is judged alike: a network that learned to lean on an
+  unconverged solver shows it here.
+* ``inverse`` (the paper's Poisson inverse problem): the source is a sum of P
+  smooth modes f = Phi theta; gradient descent on theta minimises the nMSE of
+  the capped Poisson solution against the solution for theta_ref. The
+  validation metric is ||theta - theta_ref||^2 / ||theta_ref||^2.
+
+Training data are float32 (as in the paper); references are computed with LU.
+K_eps, the "converged" cap, is the largest number of Richardson-Jacobi
+iterations needed to reach the scene's ``k_eps_rtol`` (default 1e-5) on the
+reference data.
+
+A run mode is ``("fixed", K)``, ``("converged", None)`` (fixed K = K_eps) or
+``("prdp", None)`` (K from the scene's [prdp] block, refined on plateaus).
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import torch
+from mpi4py import MPI
+
+from fempdl import forms, mesh
+from fempdl.batched import petsc_to_scipy
+from fempdl.bridge_torch import SolveLayer
+from fempdl.ksp_adjoint import KSPOptions
+from fempdl.networks import GraphConvNet, ResidualMLP, normalised_adjacency
+from fempdl.prdp import PRDP
+from fempdl.scene import Scene
+from fempdl.training import Trainer, nmse
+
+__all__ = ["build_task", "k_eps", "run", "RunResult", "MODES"]
+
+MODES = ("fixed", "converged", "prdp")
+
+
+@dataclasses.dataclass
+class RunResult:
+    """What a run produced; ``rows`` are the per-epoch metrics of :class:`Trainer`."""
+
+    scene: str
+    mode: str
+    k_eps: int
+    rows: list
+    out_dir: str | None
+
+    @property
+    def final_metric(self) -> float:
+        return self.rows[-1]["val_metric"]
+
+    @property
+    def total_iterations(self) -> int:
+        return self.rows[-1]["total_iterations"]
+
+    @property
+    def wall_time(self) -> float:
+        return self.rows[-1]["wall_time"]
+
+    @property
+    def k_schedule(self) -> list[tuple[int, int]]:
+        """(first epoch, K) for every K used."""
+        out = []
+        for row in self.rows:
+            if not out or out[-1][1] != row["k"]:
+                out.append((row["epoch"], row["k"]))
+        return out
+
+
+def smooth_fields(coords: np.ndarray, count: int, modes: int, rng: np.random.Generator) -> np.ndarray:
+    """(count, n) random sums of sine modes over the bounding box, amplitudes ~ 1/|mode|^2."""
+    lo, hi = coords.min(axis=0), coords.max(axis=0)
+    dims = [d for d in range(coords.shape[1]) if hi[d] > lo[d]]
+    unit = (coords[:, dims] - lo[dims]) / (hi[dims] - lo[dims])
+    out = np.zeros((count, len(coords)))
+    for index in np.ndindex(*([modes] * len(dims))):
+        wave = np.array(index) + 1
+        shape = np.prod(np.sin(np.pi * wave[None, :] * unit), axis=1)
+        out += (rng.standard_normal(count) / float(wave @ wave))[:, None] * shape[None, :]
+    return out
+
+
+def source_modes(coords: np.ndarray, count: int) -> np.ndarray:
+    """(n, P) smooth modes phi_p(x) = prod_d sin(p pi x_d) over the bounding box."""
+    lo, hi = coords.min(axis=0), coords.max(axis=0)
+    dims = [d for d in range(coords.shape[1]) if hi[d] > lo[d]]
+    unit = (coords[:, dims] - lo[dims]) / (hi[dims] - lo[dims])
+    return np.stack([np.prod(np.sin(np.pi * p * unit), axis=1) for p in range(1, count + 1)], axis=1)
+
+
+class EmulatorTask:
+    """Network step u0 -> u1, capped heat layer u1 -> u2, loss nMSE(u2, u2_ref)."""
+
+    def __init__(self, scene: Scene, options: KSPOptions):
+        torch.manual_seed(scene.data["seed"])
+        rng = np.random.default_rng(scene.data["seed"])
+        msh = mesh.load(scene.mesh["name"], MPI.COMM_SELF, h=scene.mesh["h"])
+        pde = scene.pde
+        self.problem = forms.heat.problem(msh, controls=("u0",), dt=pde["dt"], theta=pde["theta"],
+                                          kappa=pde["kappa"], degree=pde["degree"])
+        coords = self.problem.dof_coordinates()
+        n_train, n_val = scene.data["train"], scene.data["validation"]
+        u0 = torch.as_tensor(smooth_fields(coords, n_train + n_val, scene.data["modes"], rng))
+        # Converged physics: reference data and validation (not counted in layers' iterations).
+        self.reference = SolveLayer(self.problem, KSPOptions.preset("lu"))
+        with torch.no_grad():
+            u1 = self.reference(u0=u0)
+            u2 = self.reference(u0=u1)
+        self.reference_states = u1
+        self.train_u0, self.train_u2 = u0[:n_train].float(), u2[:n_train].float()
+        self.val_u0, self.val_u2 = u0[n_train:].float(), u2[n_train:].float()
+        self.train_size = n_train
+        self.layer = SolveLayer(self.problem, options)
+        self.layers = [self.layer]
+        self.model = self._network(scene.network)
+        self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
+
+    def _network(self, spec: dict) -> torch.nn.Module:
+        n = self.problem.output_size
+        if spec["type"] == "mlp":
+            return ResidualMLP(n, spec["hidden"], spec["layers"])
+        A = self.layer.system._A  # the assembled heat matrix: its pattern is the DOF graph
+        adjacency = normalised_adjacency(petsc_to_scipy(A)).to(torch.float32)
+        return GraphConvNet(adjacency, self.problem.dof_coordinates()[:, :self.problem.V.mesh.geometry.dim],
+                            spec["hidden"], spec["layers"])
+
+    def train_step(self, idx) -> float:
+        u2 = self.layer(u0=self.model(self.train_u0[idx]))
+        loss = nmse(u2, self.train_u2[idx])
+        self.optimizer.zero_grad()
+        loss.backward()
+        self.optimizer.step()
+        return loss.item()
+
+    def validate(self) -> float:
+        with torch.no_grad():
+            return float(nmse(self.reference(u0=self.model(self.val_u0)), self.val_u2))
+
+    def close(self) -> None:
+        self.layer.close()
+        self.reference.close()
+
+    def k_eps_rhs(self) -> dict:
+        """Inputs on which K_eps is measured: the validation states (u1 -> u2 solves)."""
+        return {"u0": self.reference_states[self.train_size:]}
+
+
+class _Theta(torch.nn.Module):
+    def __init__(self, init):
+        super().__init__()
+        self.theta = torch.nn.Parameter(torch.tensor(init, dtype=torch.float64))
+
+
+class InverseTask:
+    """Gradient descent on the source amplitudes theta through the capped Poisson layer."""
+
+    train_size = 1
+
+    def __init__(self, scene: Scene, options: KSPOptions):
+        msh = mesh.load(scene.mesh["name"], MPI.COMM_SELF, h=scene.mesh["h"])
+        pde = scene.pde
+        self.problem = forms.poisson.problem(msh, controls=("f",), kappa=pde["kappa"], degree=pde["degree"])
+        self.theta_ref = torch.tensor(scene.inverse["theta_ref"], dtype=torch.float64)
+        self.modes = torch.as_tensor(source_modes(self.problem.dof_coordinates(), len(self.theta_ref)))
+        reference = SolveLayer(self.problem, KSPOptions.preset("lu"))
+        with torch.no_grad():
+            self.u_ref = reference(f=self.modes @ self.theta_ref)
+        reference.close()
+        self.layer = SolveLayer(self.problem, options)
+        self.layers = [self.layer]
+        self.model = _Theta(scene.inverse["theta_init"])
+        self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
+
+    def train_step(self, idx) -> float:
+        u = self.layer(f=self.modes @ self.model.theta)
+        loss = nmse(u, self.u_ref)
+        self.optimizer.zero_grad()
+        loss.backward()
+        self.optimizer.step()
+        return loss.item()
+
+    def validate(self) -> float:
+        with torch.no_grad():
+            err = self.model.theta - self.theta_ref
+            return float((err @ err) / (self.theta_ref @ self.theta_ref))
+
+    def k_eps_rhs(self) -> dict:
+        return {"f": self.modes @ self.theta_ref}
+
+    def close(self) -> None:
+        self.layer.close()
+
+
+def make_optimizer(spec: dict, params):
+    params = list(params)
+    if spec["type"] == "adam":
+        optimizer = torch.optim.Adam(params, lr=spec["lr"])
+    else:
+        optimizer = torch.optim.SGD(params, lr=spec["lr"])
+    scheduler = None if spec["decay"] == 1.0 else torch.optim.lr_scheduler.ExponentialLR(optimizer, spec["decay"])
+    return optimizer, scheduler
+
+
+def build_task(scene: Scene, options: KSPOptions):
+    """The training task of a scene, with its layer solving under ``options``."""
+    return (EmulatorTask if scene.task == "emulator" else InverseTask)(scene, options)
+
+
+def k_eps(task, rtol: float) -> int:
+    """Largest Richardson-Jacobi iteration count to reach ``rtol`` on the task's reference inputs."""
+    probe = SolveLayer(task.problem, KSPOptions.preset("jacobi", rtol=rtol, engine="petsc"))
+    inputs = {name: torch.atleast_2d(value) for name, value in task.k_eps_rhs().items()}
+    most = 0
+    with torch.no_grad():
+        for i in range(next(iter(inputs.values())).shape[0]):
+            probe(**{name: value[i] for name, value in inputs.items()})
+            most = max(most, probe.stats.last.iterations)
+    probe.close()
+    return most
+
+
+def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None = None, resume: bool = False,
+        epochs: int | None = None, progress: bool = False, k_eps_value: int | None = None,
+        stop_after: int | None = None) -> RunResult:
+    """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp")."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
+    if (mode == "fixed") != (k is not None):
+        raise ValueError("give k exactly when mode='fixed'")
+    task = build_task(scene, KSPOptions(max_it=k or 1))
+    keps = k_eps_value if k_eps_value is not None else k_eps(task, scene.data["k_eps_rtol"])
+    prdp = None
+    if mode == "converged":
+        task.layer.max_it = keps
+    elif mode == "prdp":
+        p = scene.prdp
+        prdp = PRDP(task.layers, k0=p["k0"], dk=p["dk"], tau_step=p["tau_step"], tau_stop=p["tau_stop"],
+                    delta=p["delta"], ema_window=p["ema_window"], k_cap=p["k_cap"] or keps)
+    trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer["batch"],
+                      out_dir=out_dir, prdp=prdp, seed=scene.data["seed"], progress=progress,
+                      stop_after=stop_after)
+    try:
+        rows = trainer.run(resume=resume)
+    finally:
+        task.close()
+    return RunResult(scene=scene.name, mode=mode, k_eps=keps, rows=rows,
+                     out_dir=None if out_dir is None else str(out_dir))

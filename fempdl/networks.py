@@ -1,0 +1,79 @@
+"""Networks on DOF vectors: a residual MLP and a graph convolution over the mesh.
+
+Both map a batch of fields (B, n) on the owned DOFs of a space to (B, n) and
+learn a correction: ``u + net(u)``, so an untrained network is close to the
+identity (one heat step changes a field only a little).
+
+The graph network uses the mesh's connectivity: two DOFs are neighbours when
+they share a cell, i.e. when the assembled stiffness matrix couples them.
+Each layer mixes features over the symmetrically normalised adjacency
+(with self loops), D^{-1/2} (A + I) D^{-1/2} H W, as in a graph convolutional
+network, in torch only (one sparse-times-dense product per layer).
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from fempdl.batched import sparse_to_torch
+
+__all__ = ["ResidualMLP", "GraphConvNet", "normalised_adjacency"]
+
+
+class ResidualMLP(torch.nn.Module):
+    """u + MLP(u): ``layers`` hidden layers of width ``hidden`` with GELU."""
+
+    def __init__(self, n: int, hidden: int = 128, layers: int = 2):
+        super().__init__()
+        widths = [n] + [hidden] * layers
+        blocks = []
+        for a, b in zip(widths[:-1], widths[1:]):
+            blocks += [torch.nn.Linear(a, b), torch.nn.GELU()]
+        blocks.append(torch.nn.Linear(widths[-1], n))
+        self.net = torch.nn.Sequential(*blocks)
+
+    def forward(self, u: torch.Tensor) -> torch.Tensor:
+        return u + self.net(u)
+
+
+def normalised_adjacency(pattern: sp.spmatrix) -> torch.Tensor:
+    """D^{-1/2} (S + I) D^{-1/2} for the 0/1 pattern S of a (n, n) sparse matrix, as torch CSR."""
+    S = sp.csr_matrix(pattern, dtype=np.float64, copy=True)
+    S.data[:] = 1.0
+    S = (S + sp.identity(S.shape[0], format="csr")).tocsr()
+    S.data[:] = 1.0
+    d = np.asarray(S.sum(axis=1)).ravel()
+    scale = sp.diags(1.0 / np.sqrt(d))
+    N = (scale @ S @ scale).tocsr()
+    N.sort_indices()
+    return sparse_to_torch(N)
+
+
+class GraphConvNet(torch.nn.Module):
+    """u + GCN(u) on the DOF graph; features: the field value and the DOF coordinates.
+
+    Args:
+        adjacency: normalised (n, n) adjacency (:func:`normalised_adjacency`).
+        coordinates: (n, d) DOF coordinates (fixed input features).
+        hidden: channels per layer; layers: number of graph convolutions.
+    """
+
+    def __init__(self, adjacency: torch.Tensor, coordinates: np.ndarray, hidden: int = 32, layers: int = 4):
+        super().__init__()
+        self.register_buffer("coords", torch.as_tensor(coordinates, dtype=torch.float32))
+        self._adjacency = adjacency
+        widths = [1 + coordinates.shape[1]] + [hidden] * layers
+        self.convs = torch.nn.ModuleList(torch.nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
+        self.head = torch.nn.Linear(hidden, 1)
+
+    def forward(self, u: torch.Tensor) -> torch.Tensor:
+        batch, n = u.shape
+        coords = self.coords.to(u.dtype).expand(batch, n, -1)
+        h = torch.cat([u.unsqueeze(-1), coords], dim=-1)                     # (B, n, c)
+        adjacency = self._adjacency if self._adjacency.dtype == u.dtype else self._adjacency.to(u.dtype)
+        for conv in self.convs:
+            h = conv(h)                                                        # (B, n, hidden)
+            mixed = adjacency @ h.transpose(0, 1).reshape(n, -1)               # (n, B * hidden)
+            h = torch.nn.functional.gelu(mixed.reshape(n, batch, -1).transpose(0, 1))
+        return u + self.head(h).squeeze(-1)

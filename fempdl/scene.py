@@ -1,0 +1,201 @@
+"""Scenes: TOML files that declare a training experiment, validated against a schema.
+
+A scene declares only what its task needs. Sections and keys (defaults in
+brackets; ``required`` has none)::
+
+    [scene]      name (required), description [""], task (required: "emulator" | "inverse")
+    [mesh]       name (required: bundled name or path to a .msh), h [bundled default]
+    [pde]        type (required: "heat" | "poisson"), dt [0.01], theta [1.0], kappa [1.0], degree [1]
+    [data]       train [64], validation [16], modes [4], seed [0], reference_rtol [1e-10],
+                 k_eps_rtol [1e-5]
+    [network]    type ["mlp"] ("mlp" | "graph"), hidden [128], layers [2]      (emulator only)
+    [inverse]    theta_ref (required), theta_init (required)                  (inverse only)
+    [optimizer]  type ["adam"] ("adam" | "sgd"), lr [1e-3], decay [1.0], epochs [30], batch [16]
+    [solver]     preset ["jacobi"], k [8], diff ["implicit"]
+    [prdp]       k0 [1], dk [1], tau_step [0.95], tau_stop [0.9], delta [3], ema_window [6], k_cap [none]
+
+Unknown sections or keys, wrong types and missing required keys raise
+:class:`SceneError` naming the key and the allowed values. Values are data:
+strings are never evaluated.
+
+Bundled scenes live in ``fempdl/scenes/``; :func:`load` takes a bundled name
+or a path.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+__all__ = ["Scene", "SceneError", "load", "available", "parse"]
+
+_REQUIRED = object()
+
+
+@dataclasses.dataclass(frozen=True)
+class _Key:
+    kind: type | tuple
+    default: Any = _REQUIRED
+    choices: tuple | None = None
+    minimum: float | None = None
+
+
+_POSITIVE = 1e-300
+SCHEMA: dict[str, dict[str, _Key]] = {
+    "scene": {"name": _Key(str), "description": _Key(str, ""),
+              "task": _Key(str, choices=("emulator", "inverse"))},
+    "mesh": {"name": _Key(str), "h": _Key(float, None, minimum=_POSITIVE)},
+    "pde": {"type": _Key(str, choices=("heat", "poisson")), "dt": _Key(float, 0.01, minimum=_POSITIVE),
+            "theta": _Key(float, 1.0, minimum=0.0), "kappa": _Key(float, 1.0, minimum=_POSITIVE),
+            "degree": _Key(int, 1, minimum=1)},
+    "data": {"train": _Key(int, 64, minimum=1), "validation": _Key(int, 16, minimum=1),
+             "modes": _Key(int, 4, minimum=1), "seed": _Key(int, 0),
+             "reference_rtol": _Key(float, 1e-10, minimum=_POSITIVE),
+             "k_eps_rtol": _Key(float, 1e-5, minimum=_POSITIVE)},
+    "network": {"type": _Key(str, "mlp", choices=("mlp", "graph")), "hidden": _Key(int, 128, minimum=1),
+                "layers": _Key(int, 2, minimum=1)},
+    "inverse": {"theta_ref": _Key(list), "theta_init": _Key(list)},
+    "optimizer": {"type": _Key(str, "adam", choices=("adam", "sgd")), "lr": _Key(float, 1e-3, minimum=_POSITIVE),
+                  "decay": _Key(float, 1.0, minimum=_POSITIVE), "epochs": _Key(int, 30, minimum=1),
+                  "batch": _Key(int, 16, minimum=1)},
+    "solver": {"preset": _Key(str, "jacobi", choices=("jacobi",)), "k": _Key(int, 8, minimum=1),
+               "diff": _Key(str, "implicit", choices=("implicit",))},
+    "prdp": {"k0": _Key(int, 1, minimum=1), "dk": _Key(int, 1, minimum=1),
+             "tau_step": _Key(float, 0.95, minimum=_POSITIVE), "tau_stop": _Key(float, 0.9, minimum=_POSITIVE),
+             "delta": _Key(int, 3, minimum=2), "ema_window": _Key(int, 6, minimum=1),
+             "k_cap": _Key(int, None, minimum=1)},
+}
+# Sections each task needs (others must be absent) and may omit (then all defaults).
+_TASK_SECTIONS = {
+    "emulator": {"required": {"scene", "mesh", "pde"}, "optional": {"data", "network", "optimizer", "solver", "prdp"}},
+    "inverse": {"required": {"scene", "mesh", "pde", "inverse"}, "optional": {"data", "optimizer", "solver", "prdp"}},
+}
+
+
+class SceneError(ValueError):
+    """A scene file is malformed; the message names the section, key and what is allowed."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    """A validated scene: one dict per section with every default filled in."""
+
+    name: str
+    task: str
+    description: str
+    mesh: dict
+    pde: dict
+    data: dict
+    optimizer: dict
+    solver: dict
+    prdp: dict
+    network: dict | None = None
+    inverse: dict | None = None
+    source: str = ""
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def available() -> list[str]:
+    """Names of the bundled scenes."""
+    return sorted(p.name[:-5] for p in resources.files("fempdl.scenes").iterdir() if p.name.endswith(".toml"))
+
+
+def load(name_or_path) -> Scene:
+    """A bundled scene by name, or any scene file by path."""
+    if not isinstance(name_or_path, (str, Path)):
+        raise TypeError(f"scene must be a bundled name or a path, got {type(name_or_path).__name__}")
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        if str(name_or_path) not in available():
+            raise SceneError(f"unknown scene {str(name_or_path)!r}; bundled scenes are {available()}, "
+                             "or pass a path to a .toml file")
+        text = resources.files("fempdl.scenes").joinpath(f"{name_or_path}.toml").read_text()
+        return parse(text, source=f"bundled:{name_or_path}")
+    if not path.is_file():
+        raise FileNotFoundError(f"scene file {str(path)!r} does not exist")
+    return parse(path.read_text(), source=str(path))
+
+
+def parse(text: str, source: str = "<string>") -> Scene:
+    """Validate TOML text as a scene."""
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise SceneError(f"{source}: not valid TOML: {err}") from None
+    unknown = sorted(set(raw) - set(SCHEMA))
+    if unknown:
+        raise SceneError(f"{source}: unknown section(s) {unknown}; allowed sections are {sorted(SCHEMA)}")
+    if "scene" not in raw:
+        raise SceneError(f"{source}: missing section [scene] (with name and task)")
+    header = _section(raw, "scene", source)
+    task = header["task"]
+    sections = _TASK_SECTIONS[task]
+    missing = sorted(sections["required"] - set(raw))
+    if missing:
+        raise SceneError(f"{source}: task {task!r} needs section(s) {missing}")
+    extra = sorted(set(raw) - sections["required"] - sections["optional"])
+    if extra:
+        raise SceneError(f"{source}: section(s) {extra} do not apply to task {task!r}; "
+                         f"allowed: {sorted(sections['required'] | sections['optional'])}")
+    values = {name: _section(raw, name, source) for name in SCHEMA if name in sections["required"] | sections["optional"]}
+    if task == "inverse":
+        _check_inverse(values["inverse"], source)
+    return Scene(name=header["name"], task=task, description=header["description"],
+                 mesh=values["mesh"], pde=values["pde"], data=values["data"], optimizer=values["optimizer"],
+                 solver=values["solver"], prdp=values["prdp"], network=values.get("network"),
+                 inverse=values.get("inverse"), source=source)
+
+
+def _section(raw: dict, name: str, source: str) -> dict:
+    given = raw.get(name, {})
+    if not isinstance(given, dict):
+        raise SceneError(f"{source}: [{name}] must be a table, got {type(given).__name__}")
+    schema = SCHEMA[name]
+    unknown = sorted(set(given) - set(schema))
+    if unknown:
+        raise SceneError(f"{source}: unknown key(s) {unknown} in [{name}]; allowed keys are {sorted(schema)}")
+    out = {}
+    for key, spec in schema.items():
+        where = f"{source}: [{name}] {key}"
+        if key not in given:
+            if spec.default is _REQUIRED:
+                raise SceneError(f"{where} is required")
+            out[key] = spec.default
+            continue
+        out[key] = _checked(given[key], spec, where)
+    return out
+
+
+def _checked(value, spec: _Key, where: str):
+    kind = spec.kind
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if isinstance(value, bool) or not isinstance(value, kind):
+        raise SceneError(f"{where} must be of type {kind.__name__}, got {value!r} ({type(value).__name__})")
+    if kind is float and not math.isfinite(value):
+        raise SceneError(f"{where} must be finite, got {value!r}")
+    if spec.choices is not None and value not in spec.choices:
+        raise SceneError(f"{where} must be one of {list(spec.choices)}, got {value!r}")
+    if spec.minimum is not None and value < spec.minimum:
+        bound = "> 0" if spec.minimum == _POSITIVE else f">= {spec.minimum:g}"
+        raise SceneError(f"{where} must be {bound}, got {value!r}")
+    return value
+
+
+def _check_inverse(section: dict, source: str) -> None:
+    lengths = set()
+    for key in ("theta_ref", "theta_init"):
+        values = section[key]
+        if not values or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                 and math.isfinite(v) for v in values):
+            raise SceneError(f"{source}: [inverse] {key} must be a non-empty list of finite numbers, got {values!r}")
+        section[key] = [float(v) for v in values]
+        lengths.add(len(values))
+    if len(lengths) != 1:
+        raise SceneError(f"{source}: [inverse] theta_ref and theta_init must have the same length "
+                         f"(the number of source modes P), got {section['theta_ref']} and {section['theta_init']}")
