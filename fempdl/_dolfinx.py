@@ -9,21 +9,23 @@ newer DOLFINx touches this file only.
 from __future__ import annotations
 
 import signal
+import threading
 
 import dolfinx
 import dolfinx.fem
 import dolfinx.fem.petsc
-import dolfinx.io.gmshio
 import dolfinx.mesh
 import numpy as np
 from petsc4py import PETSc
 
 # Importing gmsh (through gmshio) resets SIGINT to the OS default, so Ctrl-C
-# would kill the process without unwinding (no final checkpoint, no cleanup).
-# Restore Python's KeyboardInterrupt.
-signal.signal(signal.SIGINT, signal.default_int_handler)
+# would kill the process without unwinding (no cleanup, no final checkpoint).
+# Put back whatever handler was in place (Python's KeyboardInterrupt by default).
+_sigint = signal.getsignal(signal.SIGINT)
+import dolfinx.io.gmshio  # noqa: E402
 
-DOLFINX_VERSION = dolfinx.__version__
+if threading.current_thread() is threading.main_thread() and _sigint is not None:
+    signal.signal(signal.SIGINT, _sigint)
 
 
 def function_space(msh, family: str, degree: int, shape: tuple | None = None):
@@ -109,12 +111,13 @@ def bc_dofs_owned(bcs, n_owned: int) -> np.ndarray:
     """Owned local indices of all DOFs constrained by ``bcs`` (sorted, unique)."""
     if not bcs:
         return np.empty(0, dtype=np.int32)
-    parts = []
-    for bc in bcs:
-        dofs, first_ghost = bc.dof_indices()
-        parts.append(dofs[:first_ghost])
-    idx = np.unique(np.concatenate(parts))
-    return idx[idx < n_owned].astype(np.int32)
+    # dof_indices() lists owned DOFs first; the ones before first_ghost are owned.
+    owned = [dofs[:first_ghost] for dofs, first_ghost in (bc.dof_indices() for bc in bcs)]
+    return np.unique(np.concatenate(owned)).astype(np.int32)
+
+
+def is_dirichlet_bc(obj) -> bool:
+    return isinstance(obj, dolfinx.fem.DirichletBCMetaClass)
 
 
 def bc_on_space(bc, V) -> bool:

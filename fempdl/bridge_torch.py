@@ -81,8 +81,7 @@ class SolveLayer(torch.nn.Module):
             raise ValueError(f"diff must be one of {list(DIFF_MODES)}, got {diff!r}")
         self.problem = problem
         self.diff = diff
-        engine = None if options.engine == "petsc" else BatchedJacobi()
-        self._system = LinearSystem(problem, options, batched_engine=engine)
+        self._system = LinearSystem(problem, options, batched_engine=BatchedJacobi())
 
     @property
     def system(self) -> LinearSystem:
@@ -117,7 +116,7 @@ class SolveLayer(torch.nn.Module):
         device = tensors[0].device if tensors else torch.device("cpu")
         out = _SolveFunction.apply(self, names, batch, *tensors)
         out = out.to(device=device, dtype=dtype)
-        if dtype != torch.float64 and not bool(torch.isfinite(out).all()):
+        if dtype != torch.float64 and _count_on_all_ranks(~torch.isfinite(out), self.problem):
             self._report_overflow(dtype)
         return out if batched else out[0]
 
@@ -173,7 +172,7 @@ class SolveLayer(torch.nn.Module):
                 if t.shape[0] == 0:
                     raise ValueError(f"control {name!r} has an empty batch (shape {tuple(t.shape)})")
                 batch_sizes[name] = t.shape[0]
-            bad = int((~torch.isfinite(t.detach())).sum())
+            bad = _count_on_all_ranks(~torch.isfinite(t.detach()), p)
             if bad:
                 raise ValueError(f"control {name!r} contains {bad} NaN/inf value(s); "
                                  "check the upstream network or data")
@@ -214,7 +213,7 @@ class _SolveFunction(torch.autograd.Function):
         grads = {}
         if wanted:
             G = _to_numpy(grad_out)
-            bad = int((~np.isfinite(G)).sum())
+            bad = _count_on_all_ranks(~np.isfinite(G), layer.problem)
             if bad:
                 raise ValueError(f"the gradient flowing back into SolveLayer contains {bad} NaN/inf "
                                  "value(s); the loss or the layers after this one produced them")
@@ -232,6 +231,12 @@ class _SolveFunction(torch.autograd.Function):
             out.append(g.to(device=device, dtype=dtype))
         layer.stats.layer_time += time.perf_counter() - t0
         return (None, None, None, *out)
+
+
+def _count_on_all_ranks(mask, problem: Problem) -> int:
+    """Number of True entries over all ranks: every rank must take the same branch
+    (raise, or go on into collective solves)."""
+    return problem.V.mesh.comm.allreduce(int(mask.sum()))
 
 
 def _batched_arrays(names, tensors, batch: int) -> dict:

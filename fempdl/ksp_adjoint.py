@@ -79,7 +79,7 @@ _FORBIDDEN_OPTIONS = {
 ENGINES = ("auto", "petsc", "batched")
 DEFAULT_RTOL = 1e-10
 DEFAULT_CAP = 20  # max_it when not given, for iterative methods (direct ones get None)
-_UNSET = "unset"
+_UNSET = object()  # max_it not given
 DEFAULT_CONVERGED_MAX_IT = 10_000
 
 
@@ -116,7 +116,11 @@ class KSPOptions:
             without a prefix, e.g. ``{"ksp_gmres_modifiedgramschmidt": None}`` or
             ``{"ksp_richardson_scale": 0.8}``; applied under a private prefix and
             removed from the global database right after. PETSc does not
-            report unknown names here: a misspelled option is ignored.
+            report unknown names here: a misspelled option is ignored. Note
+            that Dirichlet rows are identity rows: a Richardson scale omega != 1
+            moves boundary values towards g by a factor (1 - omega) per
+            iteration (exact after one iteration only for omega = 1 with Jacobi),
+            and diverges for omega outside (0, 2) with nonzero boundary data.
         adjoint: options of the transposed (adjoint) solve. ``None`` means the
             same solver with the same cap (PRDP moves both together); given
             options decouple the adjoint, including its cap.
@@ -187,6 +191,11 @@ class KSPOptions:
             raise ValueError(f"on_failure must be 'raise' or 'warn', got {self.on_failure!r}")
         if self.engine not in ENGINES:
             raise ValueError(f"engine must be one of {list(ENGINES)}, got {self.engine!r}")
+
+    def __hash__(self):
+        # petsc_options is a read-only mapping: hash its items.
+        return hash(tuple((f.name, tuple(sorted(v.items())) if f.name == "petsc_options" else v)
+                          for f in dataclasses.fields(self) for v in (getattr(self, f.name),)))
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "KSPOptions":
@@ -351,7 +360,6 @@ class CappedSolver:
     def __init__(self, A: PETSc.Mat, options: KSPOptions, *, prefix: str | None = None):
         if not isinstance(options, KSPOptions):
             raise TypeError(f"options must be KSPOptions, got {type(options).__name__}")
-        self._A = A
         self._options = options
         base = prefix or f"fempdl_ksp{next(self._counter)}_"
         self._ksp = _create_ksp(A, options, base)

@@ -72,7 +72,7 @@ class Problem:
         self.L = L
         self.bcs = tuple(bcs)
         for i, bc in enumerate(self.bcs):
-            if not isinstance(bc, dolfinx.fem.DirichletBCMetaClass):
+            if not _dolfinx.is_dirichlet_bc(bc):
                 raise TypeError(f"bcs[{i}] must be a dolfinx.fem.dirichletbc, got {type(bc).__name__}")
             if not _dolfinx.bc_on_space(bc, self.V):
                 raise ValueError(f"bcs[{i}] is not defined on the trial space of a (or a subspace of it); "
@@ -91,7 +91,7 @@ class Problem:
         self._rhs_derivatives = {n: self._rhs_derivative(n) for n in self.rhs_controls}
         self.affine_rhs_controls = frozenset(
             n for n, dL in self._rhs_derivatives.items()
-            if n not in self.matrix_controls and not self._depends_on_state(dL))
+            if n not in self.matrix_controls and not self._depends_on_controls(dL))
         self._gradient_forms: dict = {}
         self._rhs_matrix_forms: dict = {}
 
@@ -173,7 +173,7 @@ class Problem:
         m = self._controls[name]
         return expand_derivatives(ufl.derivative(self.L, m, ufl.TrialFunction(m.function_space)))
 
-    def _depends_on_state(self, form: ufl.Form) -> bool:
+    def _depends_on_controls(self, form: ufl.Form) -> bool:
         coeffs = set(form.coefficients())
         return any(fn in coeffs for fn in self._controls.values())
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 from typing import Mapping
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from fempdl import _dolfinx
@@ -45,7 +46,16 @@ class LinearSystem:
     """
 
     def __init__(self, problem: Problem, options: KSPOptions, *, batched_engine=None):
+        self._comm = problem.V.mesh.comm
+        if options.engine == "batched":
+            reason = ("no batched engine was given" if batched_engine is None
+                      else batched_engine.unsupported_reason(options, self._comm.size))
+            if reason is not None:
+                raise ValueError(f"engine='batched' cannot run these options: {reason}; "
+                                 "use engine='auto' or engine='petsc'")
         self.problem = problem
+        self._batched = None if options.engine == "petsc" else batched_engine
+        self._batched_version = -1                             # A version the batched copy holds
         self._A = _dolfinx.create_matrix(problem.a_form)
         self._b = _dolfinx.create_vector(problem.L_form)       # ghosted: assembly target
         self._x, self._rhs = self._A.createVecs()              # solution / transposed RHS
@@ -53,17 +63,8 @@ class LinearSystem:
         self._A_inputs = None                                  # fingerprint of the assembled A
         self._A_version = 0                                    # bumped at every assembly of A
         self._b_base: dict = {}                                # frozenset(names) -> (Vec, fingerprint)
-        self._rhs_mats: dict = {}                              # name -> (Mat, vec in, vec out, fingerprint)
+        self._rhs_mats: dict = {}                              # name -> (Mat, vec on m, vec on V, fingerprint)
         self._grad_vecs: dict = {}                             # name -> ghosted Vec on M
-        self._comm_size = self._A.getComm().getSize()
-        self._batched = None if options.engine == "petsc" else batched_engine
-        if options.engine == "batched":
-            reason = ("no batched engine was given" if batched_engine is None
-                      else batched_engine.unsupported_reason(options, self._comm_size))
-            if reason is not None:
-                raise ValueError(f"engine='batched' cannot run these options: {reason}; "
-                                 "use engine='auto' or engine='petsc'")
-        self._batched_version = -1                             # A version the batched copy holds
 
     # ------------------------------------------------------------ properties
     @property
@@ -99,9 +100,10 @@ class LinearSystem:
         with _ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             b_base = self._base_rhs(names, ctl) if affine else None
+            rhs_mats = {name: self._rhs_matrix(name) for name in sorted(names)} if affine else {}
             for i in range(batch):
                 if affine:
-                    self._affine_rhs(b_base, sorted(names), controls, i)
+                    self._affine_rhs(b_base, rhs_mats, controls, i)
                 else:
                     ctl.set_sample(i)
                     if per_sample_matrix:
@@ -136,6 +138,7 @@ class LinearSystem:
         n_owned = p.output_size
         with _ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
+            rhs_mats = {name: self._rhs_matrix(name) for name in by_matrix}
             Lam = self._batched_solve(G, "backward") if use_batched else None
             for i in range(batch):
                 if per_sample_matrix or by_form:
@@ -147,10 +150,9 @@ class LinearSystem:
                         self._assemble_matrix()
                     self._rhs.setArray(G[i])
                     self._solver.solve_transpose(self._rhs, self._x)
-                for name in by_matrix:
-                    C, _, out, _ = self._rhs_matrix(name)
-                    C.multTranspose(self._x, out)
-                    grads[name][i] = out.getArray(readonly=True)
+                for name, (C, on_control, _, _) in rhs_mats.items():
+                    C.multTranspose(self._x, on_control)       # C_m^T lam lives on m's space
+                    grads[name][i] = on_control.getArray(readonly=True)
                 if by_form:
                     _set_owned(p.lam, self._x.getArray(readonly=True), n_owned)
                     _set_owned(p.u, U[i], n_owned)
@@ -163,7 +165,7 @@ class LinearSystem:
         """Whether this call runs on the batched engine (see KSPOptions.engine)."""
         if self._batched is None or per_sample_matrix:
             return False
-        if self._batched.unsupported_reason(self.options, self._comm_size) is not None:
+        if self._batched.unsupported_reason(self.options, self._comm.size) is not None:
             return False  # e.g. the cap was lifted to max_it=None after construction
         return self.options.engine == "batched" or self._batched.faster_than_petsc(batch, self.problem.output_size)
 
@@ -195,6 +197,7 @@ class LinearSystem:
         self._b_base.clear()
         self._rhs_mats.clear()
         self._grad_vecs.clear()
+        self._batched = None
 
     # ------------------------------------------------------- assembly caches
     def _prepare_matrix(self, names: frozenset, per_sample: bool, ctl: "_ControlValues") -> None:
@@ -215,7 +218,7 @@ class LinearSystem:
 
     def _ensure_constant_matrix(self) -> None:
         inputs = self.problem.matrix_inputs()
-        if self._A_inputs is None or not _fingerprint_matches(self._A_inputs, inputs):
+        if self._A_inputs is None or not _fingerprint_matches(self._A_inputs, inputs, self._comm):
             self._assemble_matrix()
             self._A_inputs = _fingerprint(inputs)
 
@@ -224,19 +227,18 @@ class LinearSystem:
         p = self.problem
         with ctl.zeroed(names):
             cached = self._b_base.get(names)
-            if cached is not None and _fingerprint_matches(cached[1], p.rhs_inputs()):
+            if cached is not None and _fingerprint_matches(cached[1], p.rhs_inputs(), self._comm):
                 return cached[0]
             vec = cached[0] if cached is not None else self._b.duplicate()
             _dolfinx.assemble_vector_into(vec, p.L_form, p.a_form, p.bcs)
             self._b_base[names] = (vec, _fingerprint(p.rhs_inputs()))
         return vec
 
-    def _affine_rhs(self, b_base: PETSc.Vec, names, controls, i: int) -> None:
+    def _affine_rhs(self, b_base: PETSc.Vec, rhs_mats: dict, controls, i: int) -> None:
         """self._b = b_base + sum_m C_m m_i, with BC rows of the control part zeroed."""
         b_base.copy(self._b)
         bc = self.problem.bc_dofs
-        for name in names:
-            C, vin, out, _ = self._rhs_matrix(name)
+        for name, (C, vin, out, _) in rhs_mats.items():
             vin.setArray(controls[name][i])
             C.mult(vin, out)
             if len(bc):
@@ -248,7 +250,7 @@ class LinearSystem:
         p = self.problem
         inputs = p.rhs_matrix_inputs(name)
         cached = self._rhs_mats.get(name)
-        if cached is not None and _fingerprint_matches(cached[3], inputs):
+        if cached is not None and _fingerprint_matches(cached[3], inputs, self._comm):
             return cached
         form = p.rhs_matrix_form(name)
         if cached is None:
@@ -323,9 +325,11 @@ def _fingerprint(inputs) -> tuple:
     return tuple(_value_of(obj).copy() for obj in inputs)
 
 
-def _fingerprint_matches(fp: tuple, inputs) -> bool:
-    return len(fp) == len(inputs) and all(
-        np.array_equal(old, _value_of(obj)) for old, obj in zip(fp, inputs))
+def _fingerprint_matches(fp: tuple, inputs, comm) -> bool:
+    """Whether every input still has its fingerprinted value, on every rank (the
+    answer decides on collective reassembly, so all ranks must agree)."""
+    local = len(fp) == len(inputs) and all(np.array_equal(old, _value_of(obj)) for old, obj in zip(fp, inputs))
+    return comm.allreduce(local, op=MPI.LAND)
 
 
 def _value_of(obj) -> np.ndarray:

@@ -21,10 +21,23 @@ CAPPED = {
     "gmres": lambda k: KSPOptions.preset("gmres", max_it=k, gmres_restart=5),
     "cg": lambda k: KSPOptions.preset("cg", max_it=k),
 }
-# Every control of every form module.
+# Every control of every form module, and the variants that change which
+# controls enter the matrix or the right-hand side (theta < 1 puts kappa into L;
+# theta = 0 makes kappa an affine RHS control on its own DG0 space) or the
+# sizes of the spaces (P2 solution, DG0 coefficient).
 FORM_CONTROLS = {
     "poisson": ("f", "kappa"),
+    "poisson-p2-dg0": ("f", "kappa"),
     "heat": ("u0", "f", "kappa"),
+    "heat-cn": ("u0", "f", "kappa"),
+    "heat-explicit-dg0": ("u0", "f", "kappa"),
+}
+FORM_VARIANTS = {
+    "poisson": {},
+    "poisson-p2-dg0": {"degree": 2, "kappa_space": "DG0"},
+    "heat": {},
+    "heat-cn": {"theta": 0.5},
+    "heat-explicit-dg0": {"theta": 0.0, "kappa_space": "DG0"},
 }
 FORM_CONTROL_PAIRS = [(form, c) for form, cs in FORM_CONTROLS.items() for c in cs]
 
@@ -34,9 +47,10 @@ def smooth(x):
 
 
 def build(form: str, msh, controls=None, **kw):
-    """A problem of the named form module with every control (or the given ones)."""
+    """A problem of the named form variant with every control (or the given ones)."""
     controls = FORM_CONTROLS[form] if controls is None else controls
-    if form == "poisson":
+    kw = {**FORM_VARIANTS[form], **kw}
+    if form.startswith("poisson"):
         return forms.poisson.problem(msh, controls=controls, kappa=smooth, **kw)
     return forms.heat.problem(msh, controls=controls, dt=0.05, kappa=smooth,
                               u0=lambda x: np.sin(np.pi * x[0]), **kw)

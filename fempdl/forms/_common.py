@@ -27,6 +27,12 @@ def check_controls(requested, allowed: tuple, pde: str) -> tuple:
     return requested
 
 
+def check_degree(degree) -> int:
+    if isinstance(degree, bool) or not isinstance(degree, int) or degree < 1:
+        raise ValueError(f"degree must be an int >= 1, got {degree!r}")
+    return degree
+
+
 def coefficient_space(msh, kind: str):
     """The space of a scalar coefficient: ``"P1"`` or ``"DG0"``."""
     if kind not in COEFFICIENT_SPACES:

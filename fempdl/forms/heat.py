@@ -11,10 +11,12 @@ V_g such that for all v in V_0
     ∫ u1 v + theta dt kappa ∇u1·∇v dx = ∫ u0 v - (1 - theta) dt kappa ∇u0·∇v + dt f v dx.
 
 Controls: ``"u0"`` and ``"f"`` (both in the solution space V, so a step's output
-feeds the next step's ``u0``) and ``"kappa"`` (P1 or DG0). For theta = 1, u0 and
-f enter the right-hand side affinely (b = M u0 + dt M f: one sparse product per
-sample); kappa enters the matrix. ``dt`` is a ``fem.Constant``
-(``problem.dt.value``) so it can change without recompiling.
+feeds the next step's ``u0``) and ``"kappa"`` (P1 or DG0). f always enters the
+right-hand side affinely (one sparse product per sample), and so does u0
+unless kappa is a control and theta < 1 (then the u0 term depends on kappa).
+kappa enters the matrix for theta > 0 and the right-hand side for theta < 1.
+``dt`` is a ``fem.Constant`` (``problem.dt.value``) so it can change without
+recompiling.
 """
 from __future__ import annotations
 
@@ -23,8 +25,8 @@ import math
 import ufl
 
 from fempdl import _dolfinx
-from fempdl.forms._common import (check_controls, coefficient_space, dirichlet_bcs, make_function,
-                                  positive_constant)
+from fempdl.forms._common import (check_controls, check_degree, coefficient_space, dirichlet_bcs,
+                                  make_function, positive_constant)
 from fempdl.mesh import as_tagged
 from fempdl.problem import Problem
 
@@ -54,8 +56,7 @@ def problem(msh, controls=("u0",), *, dt: float = 0.01, theta: float = 1.0, degr
     if isinstance(theta, bool) or not isinstance(theta, (int, float)) or not (0.0 <= theta <= 1.0) \
             or not math.isfinite(theta):
         raise ValueError(f"theta must be in [0, 1], got {theta!r}")
-    if isinstance(degree, bool) or not isinstance(degree, int) or degree < 1:
-        raise ValueError(f"degree must be an int >= 1, got {degree!r}")
+    check_degree(degree)
     msh_ = tagged.mesh
     V = _dolfinx.function_space(msh_, "Lagrange", degree)
     dt_c = positive_constant(msh_, dt, "dt")

@@ -17,7 +17,7 @@ from __future__ import annotations
 import ufl
 
 from fempdl import _dolfinx
-from fempdl.forms._common import check_controls, coefficient_space, dirichlet_bcs, make_function
+from fempdl.forms._common import check_controls, check_degree, coefficient_space, dirichlet_bcs, make_function
 from fempdl.mesh import as_tagged
 from fempdl.problem import Problem
 
@@ -42,8 +42,7 @@ def problem(msh, controls=("f",), *, degree: int = 1, kappa_space: str = "P1",
     """
     controls = check_controls(controls, CONTROLS, "poisson")
     tagged = as_tagged(msh)
-    if isinstance(degree, bool) or not isinstance(degree, int) or degree < 1:
-        raise ValueError(f"degree must be an int >= 1, got {degree!r}")
+    check_degree(degree)
     V = _dolfinx.function_space(tagged.mesh, "Lagrange", degree)
     f_fn = make_function(V, f, "f")
     kappa_fn = make_function(coefficient_space(tagged.mesh, kappa_space), kappa, "kappa")
