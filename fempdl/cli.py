@@ -1,59 +1,116 @@
 """The ``fempdl`` command.
 
-``fempdl run`` trains the default example, a network through a capped heat
-layer (see :mod:`fempdl.heat_demo`), for a few caps K and with the converged
-solver, and prints a table of the iterations used and the validation error.
+``fempdl run [SCENE]`` trains a scene with PRDP (or a fixed ``--k``, or the
+converged cap) and, unless ``--no-baseline``, with the converged baseline too,
+then prints the K schedule, final metric, inner iterations and wall time of
+each. ``fempdl tradeoff SCENE`` sweeps fixed caps, runs the baseline and PRDP,
+and writes a table, plots and the IC/PR savings split. ``fempdl scenes`` lists
+the bundled scenes.
 """
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
+from pathlib import Path
 
 from fempdl import __version__
 
+DEFAULT_SCENE = "heat-emulator-2d"
+
 
 def _positive_int(text: str) -> int:
-    value = int(text)
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
 
 
 def _k_list(text: str) -> list[int]:
-    try:
-        return [_positive_int(part) for part in text.split(",") if part.strip()]
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"expected comma-separated ints >= 1, got {text!r}") from err
+    values = [_positive_int(part) for part in text.split(",") if part.strip()]
+    if not values:
+        raise argparse.ArgumentTypeError(f"expected comma-separated ints >= 1, got {text!r}")
+    return values
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fempdl", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"fempdl {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    run = sub.add_parser("run", help="train a network through a capped heat-step layer")
-    run.add_argument("--k", type=_k_list, default=[4, 8, 16],
-                     help="comma-separated Jacobi caps K to train with (default 4,8,16)")
-    run.add_argument("--no-baseline", action="store_true",
-                     help="skip the run trained with the converged solver")
-    run.add_argument("--epochs", type=_positive_int, default=30)
-    run.add_argument("--seed", type=int, default=0)
-    run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+    run = sub.add_parser("run", help="train a scene (default: heat-emulator-2d with PRDP)")
+    run.add_argument("scene", nargs="?", default=DEFAULT_SCENE, help="bundled scene name or path to a .toml file")
+    mode = run.add_mutually_exclusive_group()
+    mode.add_argument("--k", type=_positive_int, help="train with a fixed iteration cap K")
+    mode.add_argument("--prdp", action="store_true", help="train with PRDP (the default)")
+    mode.add_argument("--converged", action="store_true", help="train with the converged cap K_eps only")
+    run.add_argument("--out", type=Path, help="output directory (default runs/SCENE)")
+    run.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
+    run.add_argument("--epochs", type=_positive_int, help="override the scene's number of epochs")
+    run.add_argument("--no-baseline", action="store_true", help="skip the converged baseline run")
+    run.add_argument("--no-progress", action="store_true", help="hide progress bars")
+
+    trade = sub.add_parser("tradeoff", help="sweep fixed K, the converged baseline and PRDP; table and plots")
+    trade.add_argument("scene", help="bundled scene name or path to a .toml file")
+    trade.add_argument("--ks", type=_k_list, help="fixed caps to sweep (default 1, 2, 4, ... below K_eps)")
+    trade.add_argument("--out", type=Path, help="output directory (default runs/SCENE/tradeoff)")
+    trade.add_argument("--epochs", type=_positive_int, help="override the scene's number of epochs")
+    trade.add_argument("--no-progress", action="store_true")
+
+    sub.add_parser("scenes", help="list the bundled scenes")
     return parser
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    if args.command == "run":
-        from fempdl import heat_demo
+    from fempdl import experiments, scene, tradeoff
 
-        ks = list(args.k) + ([] if args.no_baseline else [None])
-        progress = not args.no_progress and sys.stderr.isatty()
-        results = [heat_demo.run(dataclasses.replace(heat_demo.HeatDemoConfig(), k=k, epochs=args.epochs,
-                                                     seed=args.seed), progress=progress)
-                   for k in ks]
-        print(heat_demo.report(results))
+    if args.command == "scenes":
+        for name in scene.available():
+            print(f"{name:<22} {scene.load(name).description}")
+        return 0
+    try:
+        sc = scene.load(args.scene)
+    except (scene.SceneError, FileNotFoundError) as err:
+        print(f"fempdl: {err}", file=sys.stderr)
+        return 2
+    if args.epochs is not None:
+        sc.optimizer["epochs"] = args.epochs
+    progress = not args.no_progress and sys.stderr.isatty()
+    if args.command == "tradeoff":
+        out = args.out or Path("runs") / sc.name / "tradeoff"
+        runs = tradeoff.sweep(sc, ks=args.ks, out_dir=out, progress=progress)
+        split = tradeoff.savings(runs, stop_at=sc.optimizer["stop_at"])
+        paths = tradeoff.write_report(sc, runs, split, out)
+        print(tradeoff.comparison_table(runs))
+        print("\n".join(tradeoff.summary_lines(split)))
+        print("wrote " + ", ".join(str(p) for p in paths))
+        return 0
+
+    out = args.out or Path("runs") / sc.name
+    runs = {}
+    baseline = None
+    if not args.no_baseline or args.converged:
+        baseline = experiments.run(sc, "converged", out_dir=out / "converged", resume=_can_resume(args, out / "converged"),
+                                   progress=progress)
+    if not args.converged:
+        mode, k, label = ("fixed", args.k, f"K={args.k}") if args.k else ("prdp", None, "PRDP")
+        sub = out / (f"k{args.k}" if args.k else "prdp")
+        runs[label] = experiments.run(sc, mode, k, out_dir=sub, resume=_can_resume(args, sub), progress=progress,
+                                      k_eps_value=None if baseline is None else baseline.k_eps)
+    if baseline is not None:
+        runs[f"K_eps={baseline.k_eps}"] = baseline
+    print(f"scene {sc.name}: {sc.description}")
+    print(tradeoff.comparison_table(runs))
+    print(f"metrics and checkpoints in {out}")
     return 0
+
+
+def _can_resume(args, run_dir: Path) -> bool:
+    """--resume continues every run that has a checkpoint (a finished run is not repeated)."""
+    return args.resume and (run_dir / "checkpoint.pt").exists()
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from mpi4py import MPI
 
-from fempdl import forms, mesh
+from fempdl import _dolfinx, forms, mesh
 from fempdl.batched import petsc_to_scipy
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
@@ -128,8 +128,7 @@ class EmulatorTask:
         n = self.problem.output_size
         if spec["type"] == "mlp":
             return ResidualMLP(n, spec["hidden"], spec["layers"])
-        A = self.layer.system._A  # the assembled heat matrix: its pattern is the DOF graph
-        adjacency = normalised_adjacency(petsc_to_scipy(A)).to(torch.float32)
+        adjacency = normalised_adjacency(operator_pattern(self.problem)).to(torch.float32)
         return GraphConvNet(adjacency, self.problem.dof_coordinates()[:, :self.problem.V.mesh.geometry.dim],
                             spec["hidden"], spec["layers"])
 
@@ -200,6 +199,16 @@ class InverseTask:
         self.layer.close()
 
 
+def operator_pattern(problem) -> "sp.csr_matrix":
+    """The assembled operator without boundary conditions: its pattern is the DOF graph."""
+    A = _dolfinx.create_matrix(problem.a_form)
+    try:
+        _dolfinx.assemble_matrix_into(A, problem.a_form)
+        return petsc_to_scipy(A)
+    finally:
+        A.destroy()
+
+
 def make_optimizer(spec: dict, params):
     params = list(params)
     if spec["type"] == "adam":
@@ -247,7 +256,7 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
                     delta=p["delta"], ema_window=p["ema_window"], k_cap=p["k_cap"] or keps)
     trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer["batch"],
                       out_dir=out_dir, prdp=prdp, seed=scene.data["seed"], progress=progress,
-                      stop_after=stop_after)
+                      stop_after=stop_after, stop_at=scene.optimizer["stop_at"])
     try:
         rows = trainer.run(resume=resume)
     finally:

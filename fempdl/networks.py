@@ -6,9 +6,10 @@ identity (one heat step changes a field only a little).
 
 The graph network uses the mesh's connectivity: two DOFs are neighbours when
 they share a cell, i.e. when the assembled stiffness matrix couples them.
-Each layer mixes features over the symmetrically normalised adjacency
-(with self loops), D^{-1/2} (A + I) D^{-1/2} H W, as in a graph convolutional
-network, in torch only (one sparse-times-dense product per layer).
+Each layer adds to its features a mix over the symmetrically normalised
+adjacency (with self loops), H + GELU(D^{-1/2} (A + I) D^{-1/2} H W), as in a
+residual graph convolutional network, in torch only (one sparse-times-dense
+product per layer).
 """
 from __future__ import annotations
 
@@ -63,17 +64,17 @@ class GraphConvNet(torch.nn.Module):
         super().__init__()
         self.register_buffer("coords", torch.as_tensor(coordinates, dtype=torch.float32))
         self._adjacency = adjacency
-        widths = [1 + coordinates.shape[1]] + [hidden] * layers
-        self.convs = torch.nn.ModuleList(torch.nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
+        self.lift = torch.nn.Linear(1 + coordinates.shape[1], hidden)
+        self.convs = torch.nn.ModuleList(torch.nn.Linear(hidden, hidden) for _ in range(layers))
         self.head = torch.nn.Linear(hidden, 1)
 
     def forward(self, u: torch.Tensor) -> torch.Tensor:
         batch, n = u.shape
         coords = self.coords.to(u.dtype).expand(batch, n, -1)
-        h = torch.cat([u.unsqueeze(-1), coords], dim=-1)                     # (B, n, c)
+        h = self.lift(torch.cat([u.unsqueeze(-1), coords], dim=-1))           # (B, n, hidden)
         adjacency = self._adjacency if self._adjacency.dtype == u.dtype else self._adjacency.to(u.dtype)
         for conv in self.convs:
-            h = conv(h)                                                        # (B, n, hidden)
-            mixed = adjacency @ h.transpose(0, 1).reshape(n, -1)               # (n, B * hidden)
-            h = torch.nn.functional.gelu(mixed.reshape(n, batch, -1).transpose(0, 1))
+            mixed = adjacency @ conv(h).transpose(0, 1).reshape(n, -1)         # (n, B * hidden)
+            # Residual blocks: each layer adds a neighbourhood-mixed update.
+            h = h + torch.nn.functional.gelu(mixed.reshape(n, batch, -1).transpose(0, 1))
         return u + self.head(h).squeeze(-1)

@@ -10,7 +10,8 @@ brackets; ``required`` has none)::
                  k_eps_rtol [1e-5]
     [network]    type ["mlp"] ("mlp" | "graph"), hidden [128], layers [2]      (emulator only)
     [inverse]    theta_ref (required), theta_init (required)                  (inverse only)
-    [optimizer]  type ["adam"] ("adam" | "sgd"), lr [1e-3], decay [1.0], epochs [30], batch [16]
+    [optimizer]  type ["adam"] ("adam" | "sgd"), lr [1e-3], decay [1.0], epochs [30], batch [16],
+                 stop_at [none]: end training once the validation metric is at or below it
     [solver]     preset ["jacobi"], k [8], diff ["implicit"]
     [prdp]       k0 [1], dk [1], tau_step [0.95], tau_stop [0.9], delta [3], ema_window [6], k_cap [none]
 
@@ -60,7 +61,7 @@ SCHEMA: dict[str, dict[str, _Key]] = {
     "inverse": {"theta_ref": _Key(list), "theta_init": _Key(list)},
     "optimizer": {"type": _Key(str, "adam", choices=("adam", "sgd")), "lr": _Key(float, 1e-3, minimum=_POSITIVE),
                   "decay": _Key(float, 1.0, minimum=_POSITIVE), "epochs": _Key(int, 30, minimum=1),
-                  "batch": _Key(int, 16, minimum=1)},
+                  "batch": _Key(int, 16, minimum=1), "stop_at": _Key(float, None, minimum=_POSITIVE)},
     "solver": {"preset": _Key(str, "jacobi", choices=("jacobi",)), "k": _Key(int, 8, minimum=1),
                "diff": _Key(str, "implicit", choices=("implicit",))},
     "prdp": {"k0": _Key(int, 1, minimum=1), "dk": _Key(int, 1, minimum=1),

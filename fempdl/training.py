@@ -76,6 +76,8 @@ class Trainer:
         seed: seeds the shuffling generator.
         progress: show a tqdm bar with epoch, loss, metric and K.
         stop_after: stop (as if interrupted) after this many epochs of this call.
+        stop_at: end training once the validation metric is at or below this
+            (the cost to reach a target accuracy is then the iterations used).
     """
 
     task: object
@@ -86,6 +88,7 @@ class Trainer:
     seed: int = 0
     progress: bool = False
     stop_after: int | None = None
+    stop_at: float | None = None
     rows: list = dataclasses.field(default_factory=list)
 
     def __post_init__(self):
@@ -102,6 +105,8 @@ class Trainer:
     def run(self, resume: bool = False) -> list[dict]:
         """Train; returns the metric rows (one per epoch, including resumed ones)."""
         start_epoch = self._restore() if resume else 0
+        if self._reached_target():
+            return self.rows
         bar = tqdm(range(start_epoch, self.epochs), initial=start_epoch, total=self.epochs,
                    disable=not self.progress, desc="epochs")
         done = 0
@@ -119,9 +124,12 @@ class Trainer:
             bar.set_postfix(loss=f"{self.rows[-1]['train_loss']:.2e}", val=f"{metric:.2e}", K=k_used)
             self._save(epoch)
             done += 1
-            if self.stop_after is not None and done >= self.stop_after:
+            if self._reached_target() or (self.stop_after is not None and done >= self.stop_after):
                 break
         return self.rows
+
+    def _reached_target(self) -> bool:
+        return self.stop_at is not None and bool(self.rows) and self.rows[-1]["val_metric"] <= self.stop_at
 
     # ------------------------------------------------------------------ steps
     def _batches(self):

@@ -7,9 +7,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 venv="${1:-.venv}"
-apt_pkgs="python3-dolfinx python3-petsc4py python3-mpi4py python3-gmsh python3-venv"
+apt_pkgs="python3-dolfinx python3-petsc4py python3-mpi4py python3-gmsh python3-matplotlib python3-venv"
 
-if ! /usr/bin/python3 -c "import dolfinx, petsc4py, mpi4py, gmsh" >/dev/null 2>&1 \
+if ! /usr/bin/python3 -c "import dolfinx, petsc4py, mpi4py, gmsh, matplotlib" >/dev/null 2>&1 \
    || ! /usr/bin/python3 -c "import ensurepip" >/dev/null 2>&1; then
     sudo=""
     [ "$(id -u)" -ne 0 ] && sudo="sudo"

@@ -1,0 +1,199 @@
+"""The speed-accuracy trade-off of a scene: fixed caps, the converged baseline, PRDP.
+
+:func:`sweep` trains a scene with fixed caps K = 1, 2, 4, ... below K_eps,
+with K_eps itself (the converged baseline) and with PRDP, and
+:func:`savings` splits PRDP's saving against the baseline the way the PRDP
+paper does:
+
+* K_max: the smallest fixed K whose final validation metric is within
+  ``tolerance`` (10%) of the baseline's;
+* incomplete-convergence (IC) savings: 1 - cost(K_max) / cost(K_eps), what
+  training at K_max from the start would save;
+* progressive-refinement (PR) savings: (cost(K_max) - cost(PRDP)) / cost(K_eps),
+  what PRDP saves on top by starting low;
+
+so that IC + PR is PRDP's total saving 1 - cost(PRDP) / cost(K_eps). Cost is
+cumulative forward + backward inner iterations (and, separately, wall time).
+For tasks trained to a target (``stop_at``), K_max is the smallest fixed K
+that reaches it.
+
+:func:`write_report` writes ``tradeoff.json``, ``tradeoff.csv`` and two PNG
+plots: the metric per epoch for every run with PRDP's K schedule, and the
+metric against cumulative iterations and against wall time.
+"""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+from fempdl import experiments
+from fempdl.experiments import RunResult
+from fempdl.scene import Scene
+from fempdl.training import write_atomically
+
+__all__ = ["sweep", "savings", "comparison_table", "write_report", "geometric_caps", "summary_lines"]
+
+
+def geometric_caps(k_eps: int) -> list[int]:
+    """1, 2, 4, ... below K_eps."""
+    ks, k = [], 1
+    while k < k_eps:
+        ks.append(k)
+        k *= 2
+    return ks
+
+
+def sweep(scene: Scene, *, ks: list[int] | None = None, out_dir: Path | None = None,
+          progress: bool = False) -> dict[str, RunResult]:
+    """Train ``scene`` with every fixed K, the converged baseline and PRDP."""
+    baseline = experiments.run(scene, "converged", out_dir=_sub(out_dir, "converged"), progress=progress)
+    keps = baseline.k_eps
+    runs = {}
+    for k in ks or geometric_caps(keps):
+        runs[f"K={k}"] = experiments.run(scene, "fixed", k, out_dir=_sub(out_dir, f"k{k}"), progress=progress,
+                                         k_eps_value=keps)
+    runs[f"K_eps={keps}"] = baseline
+    runs["PRDP"] = experiments.run(scene, "prdp", out_dir=_sub(out_dir, "prdp"), progress=progress,
+                                   k_eps_value=keps)
+    return runs
+
+
+def savings(runs: dict[str, RunResult], tolerance: float = 0.1, stop_at: float | None = None) -> dict:
+    """K_max and the IC / PR / total savings of PRDP against the converged baseline."""
+    baseline = next(r for r in runs.values() if r.mode == "converged")
+    prdp = next(r for r in runs.values() if r.mode == "prdp")
+    fixed = sorted((r for r in runs.values() if r.mode == "fixed"), key=lambda r: r.rows[0]["k"])
+
+    def good_enough(run: RunResult) -> bool:
+        if stop_at is not None:
+            return run.final_metric <= stop_at
+        return run.final_metric <= (1.0 + tolerance) * baseline.final_metric
+
+    k_max_run = next((r for r in fixed if good_enough(r)), baseline)
+    cost = baseline.total_iterations
+    out = {
+        "k_eps": baseline.k_eps,
+        "k_max_sweep": k_max_run.rows[0]["k"],
+        "k_max_prdp": prdp.rows[-1]["k"],
+        "baseline_final_metric": baseline.final_metric,
+        "prdp_final_metric": prdp.final_metric,
+        "prdp_metric_ratio": prdp.final_metric / baseline.final_metric,
+        "ic_savings": 1.0 - k_max_run.total_iterations / cost,
+        "pr_savings": (k_max_run.total_iterations - prdp.total_iterations) / cost,
+        "total_savings": 1.0 - prdp.total_iterations / cost,
+        "wall_time_savings": 1.0 - prdp.wall_time / baseline.wall_time,
+        "tolerance": tolerance,
+    }
+    return out
+
+
+def comparison_table(runs: dict[str, RunResult]) -> str:
+    """Text table: K schedule, final metric, iterations and time against the converged baseline."""
+    baseline = next((r for r in runs.values() if r.mode == "converged"), None)
+    header = f"{'run':<14} {'K schedule':<26} {'final metric':>12} {'inner its':>11} {'wall s':>7} {'its vs base':>11} {'time vs base':>12}"
+    lines = [header, "-" * len(header)]
+    for label, r in runs.items():
+        schedule = _schedule_text(r.k_schedule)
+        rel_its = rel_time = ""
+        if baseline is not None:
+            rel_its = f"{r.total_iterations / baseline.total_iterations:.2f}x"
+            rel_time = f"{r.wall_time / baseline.wall_time:.2f}x"
+        lines.append(f"{label:<14} {schedule:<26} {r.final_metric:>12.3e} {r.total_iterations:>11,d} "
+                     f"{r.wall_time:>7.1f} {rel_its:>11} {rel_time:>12}")
+    return "\n".join(lines)
+
+
+def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir: Path) -> list[Path]:
+    """tradeoff.json, tradeoff.csv and the PNG plots in ``out_dir``; returns the paths."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summary = {
+        "scene": scene.as_dict(),
+        "savings": split,
+        "runs": {label: {"mode": r.mode, "k_schedule": r.k_schedule, "final_metric": r.final_metric,
+                         "total_iterations": r.total_iterations, "wall_time": r.wall_time, "rows": r.rows}
+                 for label, r in runs.items()},
+    }
+    paths = [out_dir / "tradeoff.json", out_dir / "tradeoff.csv", out_dir / "metric_per_epoch.png",
+             out_dir / "metric_vs_cost.png"]
+    write_atomically(paths[0], lambda p: p.write_text(json.dumps(summary, indent=1)))
+
+    def write_csv(p: Path) -> None:
+        with p.open("w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(["run", "mode", "k_schedule", "final_metric", "total_iterations", "wall_time"])
+            for label, r in runs.items():
+                writer.writerow([label, r.mode, _schedule_text(r.k_schedule), r.final_metric,
+                                 r.total_iterations, r.wall_time])
+    write_atomically(paths[1], write_csv)
+    _plot_per_epoch(runs, paths[2], scene.name)
+    _plot_against_cost(runs, paths[3], scene.name)
+    return paths
+
+
+def _schedule_text(schedule: list[tuple[int, int]]) -> str:
+    ks = [str(k) for _, k in schedule]
+    return ks[0] if len(ks) == 1 else (" ".join(ks) if len(ks) <= 6 else " ".join(ks[:3] + ["..."] + ks[-2:]))
+
+
+def _sub(out_dir: Path | None, name: str) -> Path | None:
+    return None if out_dir is None else Path(out_dir) / name
+
+
+def _plot_per_epoch(runs: dict[str, RunResult], path: Path, title: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for label, r in runs.items():
+        style = {"linewidth": 2.5, "color": "black"} if r.mode == "prdp" else {"linewidth": 1.2}
+        ax.semilogy([row["epoch"] for row in r.rows], [row["val_metric"] for row in r.rows], label=label, **style)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("validation metric")
+    ax.set_title(f"{title}: validation metric per epoch")
+    prdp = runs.get("PRDP")
+    if prdp is not None:
+        twin = ax.twinx()
+        twin.step([row["epoch"] for row in prdp.rows], [row["k"] for row in prdp.rows], where="post",
+                  color="tab:red", linestyle="--", label="PRDP K")
+        twin.set_ylabel("PRDP's K", color="tab:red")
+    ax.legend(fontsize=8, loc="upper right")
+    fig.tight_layout()
+    write_atomically(path, lambda p: fig.savefig(p, format="png", dpi=120))
+    plt.close(fig)
+
+
+def _plot_against_cost(runs: dict[str, RunResult], path: Path, title: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5), sharey=True)
+    for label, r in runs.items():
+        style = {"linewidth": 2.5, "color": "black"} if r.mode == "prdp" else {"linewidth": 1.2}
+        metric = [row["val_metric"] for row in r.rows]
+        axes[0].loglog([max(row["total_iterations"], 1) for row in r.rows], metric, label=label, **style)
+        axes[1].semilogy([row["wall_time"] for row in r.rows], metric, label=label, **style)
+    axes[0].set_xlabel("cumulative inner iterations (forward + backward)")
+    axes[1].set_xlabel("training wall time [s]")
+    axes[0].set_ylabel("validation metric")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"{title}: error against cost")
+    fig.tight_layout()
+    write_atomically(path, lambda p: fig.savefig(p, format="png", dpi=120))
+    plt.close(fig)
+
+
+def summary_lines(split: dict) -> list[str]:
+    return [
+        f"K_eps = {split['k_eps']}, K_max from the sweep = {split['k_max_sweep']}, "
+        f"PRDP's final K = {split['k_max_prdp']}",
+        f"PRDP final metric {split['prdp_final_metric']:.3e} = {split['prdp_metric_ratio']:.2f}x the converged "
+        f"baseline's {split['baseline_final_metric']:.3e}",
+        f"inner-iteration savings against the baseline: total {100 * split['total_savings']:.0f}% = "
+        f"IC {100 * split['ic_savings']:.0f}% + PR {100 * split['pr_savings']:.0f}%; "
+        f"wall time {100 * split['wall_time_savings']:.0f}%",
+    ]
+

@@ -1,0 +1,95 @@
+"""Training through a capped layer: PRDP end to end, metrics files, and exact resume."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from fempdl import experiments, scene
+
+TINY = """
+[scene]
+name = "tiny-heat"
+task = "emulator"
+
+[mesh]
+name = "lshape"
+h = 0.2
+
+[pde]
+type = "heat"
+dt = 0.002
+
+[data]
+train = 16
+validation = 4
+modes = 3
+
+[network]
+hidden = 16
+
+[optimizer]
+lr = 1e-2
+epochs = 30
+batch = 8
+
+[prdp]
+k0 = 1
+dk = 2
+tau_step = 0.95
+delta = 2
+ema_window = 2
+"""
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return scene.parse(TINY)
+
+
+@pytest.fixture(scope="module")
+def baseline(tiny):
+    return experiments.run(tiny, "converged")
+
+
+def test_prdp_uses_fewer_iterations_than_k_eps_at_a_bounded_error(tiny, baseline):
+    prdp = experiments.run(tiny, "prdp", k_eps_value=baseline.k_eps)
+    assert baseline.k_eps > 4
+    assert all(row["k"] == baseline.k_eps for row in baseline.rows)
+    # Each epoch passes the 16 training samples once through the layer, forward and backward.
+    expected = sum(16 * row["k"] for row in prdp.rows)
+    assert prdp.rows[-1]["forward_iterations"] == prdp.rows[-1]["backward_iterations"] == expected
+    assert prdp.total_iterations < 0.8 * baseline.total_iterations
+    ks = [row["k"] for row in prdp.rows]
+    assert ks == sorted(ks) and ks[0] == 1 and ks[-1] > 1 and ks[-1] <= baseline.k_eps
+    # Stated bound: within 5x of the converged baseline after 30 short epochs.
+    assert prdp.final_metric < 5.0 * baseline.final_metric
+
+
+def test_resume_after_an_interruption_gives_the_same_metrics(tiny, baseline, tmp_path):
+    whole = experiments.run(tiny, "prdp", out_dir=tmp_path / "whole", k_eps_value=baseline.k_eps)
+    first = experiments.run(tiny, "prdp", out_dir=tmp_path / "split", k_eps_value=baseline.k_eps, stop_after=5)
+    assert len(first.rows) == 5
+    saved = json.loads((tmp_path / "split" / "metrics.json").read_text())
+    assert [row["epoch"] for row in saved] == list(range(5))
+    resumed = experiments.run(tiny, "prdp", out_dir=tmp_path / "split", k_eps_value=baseline.k_eps, resume=True)
+    keys = ("epoch", "train_loss", "val_metric", "k", "forward_iterations", "backward_iterations")
+    assert [[row[k] for k in keys] for row in resumed.rows] == [[row[k] for k in keys] for row in whole.rows]
+    assert (tmp_path / "split" / "metrics.csv").read_text().count("\n") == len(whole.rows) + 1
+
+
+def test_resume_without_a_checkpoint_is_an_error(tiny, tmp_path):
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        experiments.run(tiny, "fixed", 2, out_dir=tmp_path / "empty", k_eps_value=10, resume=True)
+
+
+def test_stop_at_ends_training_at_the_target():
+    text = TINY.replace('task = "emulator"', 'task = "inverse"').replace("[network]\nhidden = 16\n", "")
+    text = text.replace("[data]\ntrain = 16\nvalidation = 4\nmodes = 3\n", "")
+    text = text.replace('type = "heat"\ndt = 0.002', 'type = "poisson"')
+    text += "\n[inverse]\ntheta_ref = [2.0]\ntheta_init = [5.0]\n"
+    text = text.replace("lr = 1e-2\nepochs = 30\nbatch = 8", 'type = "sgd"\nlr = 1.5\nepochs = 500\nstop_at = 1e-6')
+    inverse = scene.parse(text)
+    run = experiments.run(inverse, "converged")
+    assert run.final_metric <= 1e-6 < run.rows[-2]["val_metric"]
+    assert len(run.rows) < 500
