@@ -29,7 +29,7 @@ def _positive_int(text: str) -> int:
 
 
 def _k_list(text: str) -> list[int]:
-    values = [_positive_int(part) for part in text.split(",") if part.strip()]
+    values = sorted({_positive_int(part) for part in text.split(",") if part.strip()})
     if not values:
         raise argparse.ArgumentTypeError(f"expected comma-separated ints >= 1, got {text!r}")
     return values

@@ -14,9 +14,9 @@ Two tasks, chosen by the scene's ``task``:
   validation metric is ||theta - theta_ref||^2 / ||theta_ref||^2.
 
 Training data are float32 (as in the paper); references are computed with LU.
-K_eps, the "converged" cap, is the largest number of Richardson-Jacobi
-iterations needed to reach the scene's ``k_eps_rtol`` (default 1e-5) on the
-reference data.
+K_eps, the "converged" cap, is the largest number of iterations the scene's
+solver (``[solver] preset``) needs to reach the scene's ``k_eps_rtol``
+(default 1e-5) on the reference data.
 
 A run mode is ``("fixed", K)``, ``("converged", None)`` (fixed K = K_eps) or
 ``("prdp", None)`` (K from the scene's [prdp] block, refined on plateaus).
@@ -119,7 +119,7 @@ class EmulatorTask:
         self.train_u0, self.train_u2 = u0[:n_train].float(), u2[:n_train].float()
         self.val_u0, self.val_u2 = u0[n_train:].float(), u2[n_train:].float()
         self.train_size = n_train
-        self.layer = SolveLayer(self.problem, options)
+        self.layer = SolveLayer(self.problem, options, diff=scene.solver["diff"])
         self.layers = [self.layer]
         self.model = self._network(scene.network)
         self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
@@ -174,7 +174,7 @@ class InverseTask:
         with torch.no_grad():
             self.u_ref = reference(f=self.modes @ self.theta_ref)
         reference.close()
-        self.layer = SolveLayer(self.problem, options)
+        self.layer = SolveLayer(self.problem, options, diff=scene.solver["diff"])
         self.layers = [self.layer]
         self.model = _Theta(scene.inverse["theta_init"])
         self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
@@ -224,9 +224,14 @@ def build_task(scene: Scene, options: KSPOptions):
     return (EmulatorTask if scene.task == "emulator" else InverseTask)(scene, options)
 
 
-def k_eps(task, rtol: float) -> int:
-    """Largest Richardson-Jacobi iteration count to reach ``rtol`` on the task's reference inputs."""
-    probe = SolveLayer(task.problem, KSPOptions.preset("jacobi", rtol=rtol, engine="petsc"))
+def solver_options(scene: Scene, k: int | None, rtol: float | None = None) -> KSPOptions:
+    """The scene's capped solver: ``k`` iterations, or run to ``rtol`` when ``k`` is None."""
+    return KSPOptions.preset(scene.solver["preset"], max_it=k, rtol=rtol)
+
+
+def k_eps(task, options: KSPOptions) -> int:
+    """Largest iteration count the solver needs to reach its rtol on the task's reference inputs."""
+    probe = SolveLayer(task.problem, dataclasses.replace(options, engine="petsc"))
     inputs = {name: torch.atleast_2d(value) for name, value in task.k_eps_rhs().items()}
     most = 0
     with torch.no_grad():
@@ -245,8 +250,9 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
     if (mode == "fixed") != (k is not None):
         raise ValueError("give k exactly when mode='fixed'")
-    task = build_task(scene, KSPOptions(max_it=k or 1))
-    keps = k_eps_value if k_eps_value is not None else k_eps(task, scene.data["k_eps_rtol"])
+    task = build_task(scene, solver_options(scene, k or 1))
+    keps = k_eps_value if k_eps_value is not None else k_eps(task, solver_options(scene, None,
+                                                                                  scene.data["k_eps_rtol"]))
     prdp = None
     if mode == "converged":
         task.layer.max_it = keps

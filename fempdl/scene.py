@@ -5,19 +5,21 @@ brackets; ``required`` has none)::
 
     [scene]      name (required), description [""], task (required: "emulator" | "inverse")
     [mesh]       name (required: bundled name or path to a .msh), h [bundled default]
-    [pde]        type (required: "heat" | "poisson"), dt [0.01], theta [1.0], kappa [1.0], degree [1]
-    [data]       train [64], validation [16], modes [4], seed [0], reference_rtol [1e-10],
-                 k_eps_rtol [1e-5]
+    [pde]        type (required: "heat" | "poisson"), kappa [1.0], degree [1],
+                 dt [0.01] and theta [1.0] (heat only)
+    [data]       seed [0], k_eps_rtol [1e-5], and for emulators train [64], validation [16], modes [4]
     [network]    type ["mlp"] ("mlp" | "graph"), hidden [128], layers [2]      (emulator only)
     [inverse]    theta_ref (required), theta_init (required)                  (inverse only)
-    [optimizer]  type ["adam"] ("adam" | "sgd"), lr [1e-3], decay [1.0], epochs [30], batch [16],
-                 stop_at [none]: end training once the validation metric is at or below it
-    [solver]     preset ["jacobi"], k [8], diff ["implicit"]
+    [optimizer]  type ["adam"] ("adam" | "sgd"), lr [1e-3], decay [1.0], epochs [30],
+                 batch [16] (emulators), stop_at [none]: end once the validation metric is <= it
+    [solver]     preset ["jacobi"] ("jacobi" | "cg" | "gmres": the capped solver), diff ["implicit"]
     [prdp]       k0 [1], dk [1], tau_step [0.95], tau_stop [0.9], delta [3], ema_window [6], k_cap [none]
 
-Unknown sections or keys, wrong types and missing required keys raise
-:class:`SceneError` naming the key and the allowed values. Values are data:
-strings are never evaluated.
+Unknown sections or keys, keys that do not apply to the task or PDE, wrong
+types, out-of-range values and missing required keys raise :class:`SceneError`
+naming the key and the allowed values. Values are data: strings are never
+evaluated. The fixed cap of a run is not part of a scene: it is chosen per run
+(``fempdl run --k K``), as PRDP and the converged cap K_eps are.
 
 Bundled scenes live in ``fempdl/scenes/``; :func:`load` takes a bundled name
 or a path.
@@ -42,6 +44,7 @@ class _Key:
     default: Any = _REQUIRED
     choices: tuple | None = None
     minimum: float | None = None
+    maximum: float | None = None
 
 
 _POSITIVE = 1e-300
@@ -50,22 +53,22 @@ SCHEMA: dict[str, dict[str, _Key]] = {
               "task": _Key(str, choices=("emulator", "inverse"))},
     "mesh": {"name": _Key(str), "h": _Key(float, None, minimum=_POSITIVE)},
     "pde": {"type": _Key(str, choices=("heat", "poisson")), "dt": _Key(float, 0.01, minimum=_POSITIVE),
-            "theta": _Key(float, 1.0, minimum=0.0), "kappa": _Key(float, 1.0, minimum=_POSITIVE),
+            "theta": _Key(float, 1.0, minimum=0.0, maximum=1.0), "kappa": _Key(float, 1.0, minimum=_POSITIVE),
             "degree": _Key(int, 1, minimum=1)},
     "data": {"train": _Key(int, 64, minimum=1), "validation": _Key(int, 16, minimum=1),
-             "modes": _Key(int, 4, minimum=1), "seed": _Key(int, 0),
-             "reference_rtol": _Key(float, 1e-10, minimum=_POSITIVE),
-             "k_eps_rtol": _Key(float, 1e-5, minimum=_POSITIVE)},
+             "modes": _Key(int, 4, minimum=1), "seed": _Key(int, 0, minimum=0),
+             "k_eps_rtol": _Key(float, 1e-5, minimum=_POSITIVE, maximum=0.5)},
     "network": {"type": _Key(str, "mlp", choices=("mlp", "graph")), "hidden": _Key(int, 128, minimum=1),
                 "layers": _Key(int, 2, minimum=1)},
     "inverse": {"theta_ref": _Key(list), "theta_init": _Key(list)},
     "optimizer": {"type": _Key(str, "adam", choices=("adam", "sgd")), "lr": _Key(float, 1e-3, minimum=_POSITIVE),
                   "decay": _Key(float, 1.0, minimum=_POSITIVE), "epochs": _Key(int, 30, minimum=1),
                   "batch": _Key(int, 16, minimum=1), "stop_at": _Key(float, None, minimum=_POSITIVE)},
-    "solver": {"preset": _Key(str, "jacobi", choices=("jacobi",)), "k": _Key(int, 8, minimum=1),
+    "solver": {"preset": _Key(str, "jacobi", choices=("jacobi", "cg", "gmres")),
                "diff": _Key(str, "implicit", choices=("implicit",))},
     "prdp": {"k0": _Key(int, 1, minimum=1), "dk": _Key(int, 1, minimum=1),
-             "tau_step": _Key(float, 0.95, minimum=_POSITIVE), "tau_stop": _Key(float, 0.9, minimum=_POSITIVE),
+             "tau_step": _Key(float, 0.95, minimum=_POSITIVE, maximum=1.0),
+             "tau_stop": _Key(float, 0.9, minimum=_POSITIVE, maximum=1.0),
              "delta": _Key(int, 3, minimum=2), "ema_window": _Key(int, 6, minimum=1),
              "k_cap": _Key(int, None, minimum=1)},
 }
@@ -73,6 +76,13 @@ SCHEMA: dict[str, dict[str, _Key]] = {
 _TASK_SECTIONS = {
     "emulator": {"required": {"scene", "mesh", "pde"}, "optional": {"data", "network", "optimizer", "solver", "prdp"}},
     "inverse": {"required": {"scene", "mesh", "pde", "inverse"}, "optional": {"data", "optimizer", "solver", "prdp"}},
+}
+
+
+# Keys a task or PDE type does not use: setting them is an error, not a silent no-op.
+_NOT_FOR = {
+    ("task", "inverse"): {"data": {"train", "validation", "modes"}, "optimizer": {"batch"}},
+    ("pde", "poisson"): {"pde": {"dt", "theta"}},
 }
 
 
@@ -144,6 +154,17 @@ def parse(text: str, source: str = "<string>") -> Scene:
         raise SceneError(f"{source}: section(s) {extra} do not apply to task {task!r}; "
                          f"allowed: {sorted(sections['required'] | sections['optional'])}")
     values = {name: _section(raw, name, source) for name in SCHEMA if name in sections["required"] | sections["optional"]}
+    for (what, value), unused in _NOT_FOR.items():
+        if (task if what == "task" else values["pde"]["type"]) != value:
+            continue
+        for name, keys in unused.items():
+            given = sorted(keys & set(raw.get(name, {})))
+            if given:
+                raise SceneError(f"{source}: [{name}] {', '.join(given)} do(es) not apply to {what} {value!r}; "
+                                 "remove them")
+    prdp = values["prdp"]
+    if prdp["k_cap"] is not None and prdp["k_cap"] < prdp["k0"]:
+        raise SceneError(f"{source}: [prdp] k_cap must be >= k0 ({prdp['k0']}), got {prdp['k_cap']}")
     if task == "inverse":
         _check_inverse(values["inverse"], source)
     return Scene(name=header["name"], task=task, description=header["description"],
@@ -185,6 +206,8 @@ def _checked(value, spec: _Key, where: str):
     if spec.minimum is not None and value < spec.minimum:
         bound = "> 0" if spec.minimum == _POSITIVE else f">= {spec.minimum:g}"
         raise SceneError(f"{where} must be {bound}, got {value!r}")
+    if spec.maximum is not None and value > spec.maximum:
+        raise SceneError(f"{where} must be <= {spec.maximum:g}, got {value!r}")
     return value
 
 

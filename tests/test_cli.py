@@ -1,33 +1,340 @@
-"""The `fempdl run` command: iteration accounting of the default example and argument errors."""
+"""The `fempdl` command: scenes, run (PRDP / fixed K / converged / resume), tradeoff, and its errors.
+
+All runs use a tiny emulator scene (coarse L-shape, 16 training samples) and
+are shared between tests through module-scoped fixtures.
+"""
 from __future__ import annotations
 
+import contextlib
+import csv
+import io
+import json
+import math
 import re
+from pathlib import Path
 
 import pytest
 
-from fempdl import cli, heat_demo
+from fempdl import cli, scene
+
+TRAIN, BATCH, EPOCHS = 16, 8, 6
+TINY = f"""
+[scene]
+name = "tiny-emulator"
+task = "emulator"
+description = "tiny heat emulator for the CLI tests"
+
+[mesh]
+name = "lshape"
+h = 0.2
+
+[pde]
+type = "heat"
+dt = 0.002
+kappa = 1.0
+
+[data]
+train = {TRAIN}
+validation = 4
+modes = 2
+seed = 0
+
+[network]
+type = "mlp"
+hidden = 16
+layers = 2
+
+[optimizer]
+type = "adam"
+lr = 1e-3
+decay = 0.98
+epochs = {EPOCHS}
+batch = {BATCH}
+
+[solver]
+preset = "jacobi"
+
+[prdp]
+k0 = 1
+dk = 2
+tau_step = 0.95
+tau_stop = 0.9
+delta = 3
+ema_window = 4
+"""
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
-def test_run_reports_exact_iteration_counts(capsys):
-    assert cli.main(["run", "--k", "3", "--epochs", "2", "--no-baseline", "--no-progress"]) == 0
-    out = capsys.readouterr().out
-    # 64 training samples x 2 epochs x K=3, forward and backward.
-    samples = heat_demo.HeatDemoConfig().train_samples * 2
-    row = next(line for line in out.splitlines() if line.split() and line.split()[0] == "3")
-    assert f"{2 * samples * 3:,d}" in row
-    nmse = float(row.split()[3])
-    assert 0 < nmse < 10
+def call(argv) -> tuple[int, str, str]:
+    """cli.main(argv) with stdout and stderr captured (usable from module-scoped fixtures)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = cli.main([str(a) for a in argv])
+    return code, out.getvalue(), err.getvalue()
 
 
-def test_capped_training_beats_the_untrained_network_at_a_sufficient_cap():
-    result = heat_demo.run(heat_demo.HeatDemoConfig(k=16, epochs=10), progress=False)
-    assert result.val_nmse < 0.5 * result.val_nmse_untrained
-    assert result.forward_iterations == 10 * 64 * 16 == result.backward_iterations
-    assert result.converged_iterations_per_solve > 16
+ROW = re.compile(r"^(?P<label>\S+) +(?P<schedule>.*?) +(?P<metric>\S+e[+-]\d+) +(?P<its>[\d,]+) +(?P<wall>[\d.]+)"
+                 r"(?: +(?P<rel_its>[\d.]+x) +(?P<rel_time>[\d.]+x))? *$")
 
 
-@pytest.mark.parametrize("bad", ["0", "x", "3,-1"])
-def test_bad_k_is_rejected(bad, capsys):
-    with pytest.raises(SystemExit):
-        cli.main(["run", "--k", bad])
-    assert re.search(r"--k", capsys.readouterr().err)
+def table_rows(text: str) -> dict[str, dict]:
+    """The comparison table's rows by label: K schedule, metric, iterations, time, ratios to the baseline."""
+    lines = text.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("run ") and "K schedule" in line)
+    assert set(lines[start + 1]) == {"-"}
+    rows = {}
+    for line in lines[start + 2:]:
+        match = ROW.match(line)
+        if match is None:
+            break
+        rows[match["label"]] = {"schedule": match["schedule"].split(), "metric": float(match["metric"]),
+                                "its": int(match["its"].replace(",", "")), "wall": float(match["wall"]),
+                                "rel_its": match["rel_its"], "rel_time": match["rel_time"]}
+    return rows
+
+
+def metrics(run_dir: Path) -> list[dict]:
+    return json.loads((run_dir / "metrics.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("scene") / "tiny.toml"
+    path.write_text(TINY)
+    assert scene.load(path).optimizer["epochs"] == EPOCHS
+    return path
+
+
+@pytest.fixture(scope="module")
+def default_run(tiny, tmp_path_factory):
+    """`fempdl run tiny.toml`: PRDP plus the converged baseline."""
+    out = tmp_path_factory.mktemp("run") / "out"
+    code, stdout, stderr = call(["run", tiny, "--out", out, "--no-progress"])
+    return {"code": code, "stdout": stdout, "stderr": stderr, "out": out}
+
+
+@pytest.fixture(scope="module")
+def tradeoff_run(tiny, tmp_path_factory):
+    out = tmp_path_factory.mktemp("tmp") / "tr"
+    code, stdout, stderr = call(["tradeoff", tiny, "--ks", "1,2", "--epochs", "4", "--out", out, "--no-progress"])
+    return {"code": code, "stdout": stdout, "stderr": stderr, "out": out}
+
+
+# ------------------------------------------------------------------ scenes
+def test_scenes_lists_every_bundled_scene(capsys):
+    assert cli.main(["scenes"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    names = scene.available()
+    assert len(names) >= 4
+    assert [line.split()[0] for line in lines] == names
+    for line, name in zip(lines, names):
+        assert line.endswith(scene.load(name).description)
+
+
+# ------------------------------------------------------------------ run (PRDP + baseline)
+def test_run_prints_prdp_and_baseline_rows(default_run):
+    assert default_run["code"] == 0, default_run["stderr"]
+    stdout = default_run["stdout"]
+    assert stdout.startswith("scene tiny-emulator: tiny heat emulator for the CLI tests\n")
+    rows = table_rows(stdout)
+    keps = metrics(default_run["out"] / "converged")[-1]["k"]
+    assert list(rows) == ["PRDP", f"K_eps={keps}"]
+    prdp, base = rows["PRDP"], rows[f"K_eps={keps}"]
+    assert base["schedule"] == [str(keps)] and base["rel_its"] == "1.00x" and base["rel_time"] == "1.00x"
+    last_prdp = metrics(default_run["out"] / "prdp")[-1]
+    last_base = metrics(default_run["out"] / "converged")[-1]
+    assert prdp["its"] == last_prdp["total_iterations"]
+    assert base["its"] == last_base["total_iterations"]
+    assert prdp["metric"] == pytest.approx(last_prdp["val_metric"], rel=1e-3)
+    assert base["metric"] == pytest.approx(last_base["val_metric"], rel=1e-3)
+    assert prdp["rel_its"] == f"{last_prdp['total_iterations'] / last_base['total_iterations']:.2f}x"
+    assert f"metrics and checkpoints in {default_run['out']}" in stdout
+
+
+def test_run_writes_metrics_and_checkpoints(default_run):
+    out = default_run["out"]
+    assert sorted(p.name for p in out.iterdir()) == ["converged", "prdp"]
+    for sub in ("prdp", "converged"):
+        names = {p.name for p in (out / sub).iterdir()}
+        assert {"metrics.csv", "metrics.json", "checkpoint.pt"} <= names
+        assert not [n for n in names if n.startswith(".")], names  # no leftover temporary files
+        with (out / sub / "metrics.csv").open() as fh:
+            from_csv = list(csv.DictReader(fh))
+        from_json = metrics(out / sub)
+        assert [int(r["epoch"]) for r in from_csv] == [r["epoch"] for r in from_json] == list(range(EPOCHS))
+        assert [int(r["total_iterations"]) for r in from_csv] == [r["total_iterations"] for r in from_json]
+        assert [int(r["k"]) for r in from_csv] == [r["k"] for r in from_json]
+
+
+def test_prdp_iteration_accounting(default_run):
+    rows = metrics(default_run["out"] / "prdp")
+    keps = metrics(default_run["out"] / "converged")[-1]["k"]
+    assert [r["epoch"] for r in rows] == list(range(EPOCHS))
+    ks = [r["k"] for r in rows]
+    assert ks[0] == 1  # k0
+    assert ks == sorted(ks) and ks[-1] <= keps
+    assert all((b - a) in (0, 2) or b == keps for a, b in zip(ks, ks[1:]))  # dk = 2, capped at K_eps
+    for epoch, row in enumerate(rows):
+        # Every training sample passes the layer once per epoch, forward and backward.
+        expected = TRAIN * sum(ks[:epoch + 1])
+        assert row["forward_iterations"] == row["backward_iterations"] == expected
+        assert row["total_iterations"] == row["forward_iterations"] + row["backward_iterations"]
+        assert math.isfinite(row["train_loss"]) and row["train_loss"] > 0
+        assert math.isfinite(row["val_metric"]) and row["val_metric"] > 0
+    assert [r["wall_time"] for r in rows] == sorted(r["wall_time"] for r in rows)
+
+
+def test_converged_baseline_iteration_accounting(default_run):
+    rows = metrics(default_run["out"] / "converged")
+    keps = rows[0]["k"]
+    assert keps > 1
+    for epoch, row in enumerate(rows):
+        assert row["k"] == keps
+        assert row["forward_iterations"] == row["backward_iterations"] == TRAIN * keps * (epoch + 1)
+        assert row["total_iterations"] == 2 * TRAIN * keps * (epoch + 1)
+
+
+def test_resume_of_a_finished_run_does_not_train_again(default_run, tiny):
+    out = default_run["out"]
+    files = [out / sub / name for sub in ("prdp", "converged") for name in ("metrics.json", "metrics.csv",
+                                                                            "checkpoint.pt")]
+    before = {f: (f.read_bytes(), f.stat().st_mtime_ns) for f in files}
+    code, stdout, stderr = call(["run", tiny, "--out", out, "--resume", "--no-progress"])
+    assert code == 0, stderr
+    assert table_rows(stdout) == table_rows(default_run["stdout"])
+    for f in files:
+        assert (f.read_bytes(), f.stat().st_mtime_ns) == before[f], f
+
+
+# ------------------------------------------------------------------ other modes
+def test_fixed_k_run(tiny, tmp_path):
+    out = tmp_path / "out"
+    code, stdout, stderr = call(["run", tiny, "--k", "3", "--epochs", "3", "--no-baseline", "--out", out,
+                                 "--no-progress"])
+    assert code == 0, stderr
+    assert sorted(p.name for p in out.iterdir()) == ["k3"]
+    rows = metrics(out / "k3")
+    assert [r["epoch"] for r in rows] == [0, 1, 2]  # --epochs overrides the scene's 6
+    for epoch, row in enumerate(rows):
+        assert row["k"] == 3
+        assert row["forward_iterations"] == row["backward_iterations"] == TRAIN * 3 * (epoch + 1)
+    table = table_rows(stdout)
+    assert list(table) == ["K=3"]
+    assert table["K=3"]["schedule"] == ["3"] and table["K=3"]["its"] == 2 * TRAIN * 3 * 3
+    assert table["K=3"]["rel_its"] is None and table["K=3"]["rel_time"] is None  # no baseline, no ratios
+
+
+def test_converged_only(tiny, tmp_path):
+    out = tmp_path / "out"
+    code, stdout, stderr = call(["run", tiny, "--converged", "--epochs", "2", "--out", out, "--no-progress"])
+    assert code == 0, stderr
+    assert sorted(p.name for p in out.iterdir()) == ["converged"]
+    rows = metrics(out / "converged")
+    keps = rows[0]["k"]
+    assert [r["k"] for r in rows] == [keps, keps]
+    assert list(table_rows(stdout)) == [f"K_eps={keps}"]
+    assert "PRDP" not in stdout
+
+
+# ------------------------------------------------------------------ errors
+def test_unknown_scene_returns_2_and_names_the_bundled_scenes(capsys):
+    assert cli.main(["run", "no-such-scene"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.startswith("fempdl: unknown scene 'no-such-scene'; bundled scenes are")
+    for name in scene.available():
+        assert repr(name) in captured.err
+
+
+def test_missing_scene_file_returns_2(tmp_path, capsys):
+    missing = tmp_path / "nope.toml"
+    assert cli.main(["tradeoff", str(missing)]) == 2
+    assert f"scene file {str(missing)!r} does not exist" in capsys.readouterr().err
+
+
+def test_bad_scene_file_returns_2_with_the_scene_error(tmp_path, capsys):
+    path = tmp_path / "bad.toml"
+    path.write_text(TINY.replace("lr = 1e-3", "lr = -1e-3"))
+    assert cli.main(["run", str(path), "--out", str(tmp_path / "out")]) == 2
+    assert f"fempdl: {path}: [optimizer] lr must be > 0, got -0.001" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["run", "--k", "0"], "argument --k: must be >= 1, got 0"),
+    (["run", "--k", "x"], "argument --k: expected an integer, got 'x'"),
+    (["run", "--k", "3", "--prdp"], "argument --prdp: not allowed with argument --k"),
+    (["run", "--k", "3", "--converged"], "argument --converged: not allowed with argument --k"),
+    (["run", "--epochs", "0"], "argument --epochs: must be >= 1, got 0"),
+    (["tradeoff", "x", "--ks", "1,0"], "argument --ks: must be >= 1, got 0"),
+    (["tradeoff", "x", "--ks", ","], "argument --ks: expected comma-separated ints >= 1, got ','"),
+    (["tradeoff"], "the following arguments are required: scene"),
+    ([], "the following arguments are required: command"),
+])
+def test_argument_errors_exit_2(argv, fragment, capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main(argv)
+    assert info.value.code == 2
+    assert fragment in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ tradeoff
+def test_tradeoff_writes_its_report(tradeoff_run):
+    assert tradeoff_run["code"] == 0, tradeoff_run["stderr"]
+    out = tradeoff_run["out"]
+    for name in ("tradeoff.json", "tradeoff.csv"):
+        assert (out / name).is_file()
+    for name in ("metric_per_epoch.png", "metric_vs_cost.png"):
+        data = (out / name).read_bytes()
+        assert data.startswith(PNG_SIGNATURE), name
+        assert len(data) > 5_000, (name, len(data))
+    stdout = tradeoff_run["stdout"]
+    assert "wrote " in stdout and str(out / "tradeoff.json") in stdout
+    report = json.loads((out / "tradeoff.json").read_text())
+    table = table_rows(stdout)
+    assert list(table) == list(report["runs"])
+    for label, row in table.items():
+        assert row["its"] == report["runs"][label]["total_iterations"]
+    split = report["savings"]
+    assert (f"K_eps = {split['k_eps']}, K_max from the sweep = {split['k_max_sweep']}, "
+            f"PRDP's final K = {split['k_max_prdp']}") in stdout
+    assert f"total {100 * split['total_savings']:.0f}% = IC {100 * split['ic_savings']:.0f}%" in stdout
+
+
+def test_tradeoff_savings_are_consistent(tradeoff_run):
+    report = json.loads((tradeoff_run["out"] / "tradeoff.json").read_text())
+    split, runs = report["savings"], report["runs"]
+    keps = split["k_eps"]
+    assert keps > 2
+    assert list(runs) == ["K=1", "K=2", f"K_eps={keps}", "PRDP"]
+    assert abs(split["ic_savings"] + split["pr_savings"] - split["total_savings"]) <= 1e-12
+    assert split["k_max_sweep"] in (1, 2, keps)
+    cost = runs[f"K_eps={keps}"]["total_iterations"]
+    k_max_label = f"K={split['k_max_sweep']}" if split["k_max_sweep"] != keps else f"K_eps={keps}"
+    assert split["ic_savings"] == pytest.approx(1 - runs[k_max_label]["total_iterations"] / cost, abs=1e-12)
+    assert split["total_savings"] == pytest.approx(1 - runs["PRDP"]["total_iterations"] / cost, abs=1e-12)
+    assert split["k_max_prdp"] == runs["PRDP"]["rows"][-1]["k"]
+    assert split["baseline_final_metric"] == runs[f"K_eps={keps}"]["final_metric"]
+    # The epoch override reaches every run and the recorded scene; iteration counts are exact.
+    assert report["scene"]["optimizer"]["epochs"] == 4
+    for label, k in (("K=1", 1), ("K=2", 2), (f"K_eps={keps}", keps)):
+        assert [r["epoch"] for r in runs[label]["rows"]] == [0, 1, 2, 3]
+        assert runs[label]["total_iterations"] == 2 * TRAIN * k * 4
+    prdp_ks = [r["k"] for r in runs["PRDP"]["rows"]]
+    assert runs["PRDP"]["total_iterations"] == 2 * TRAIN * sum(prdp_ks)
+    # The per-run directories hold the same rows.
+    for label, sub in (("K=1", "k1"), ("K=2", "k2"), (f"K_eps={keps}", "converged"), ("PRDP", "prdp")):
+        assert metrics(tradeoff_run["out"] / sub) == runs[label]["rows"]
+
+
+def test_tradeoff_csv_matches_json(tradeoff_run):
+    report = json.loads((tradeoff_run["out"] / "tradeoff.json").read_text())
+    with (tradeoff_run["out"] / "tradeoff.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["run"] for r in rows] == list(report["runs"])
+    for row in rows:
+        entry = report["runs"][row["run"]]
+        assert row["mode"] == entry["mode"]
+        assert int(row["total_iterations"]) == entry["total_iterations"]
+        assert float(row["final_metric"]) == entry["final_metric"]
+    assert {r["mode"] for r in rows} == {"fixed", "converged", "prdp"}

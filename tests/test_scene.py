@@ -1,0 +1,308 @@
+"""Scene files: the bundled scenes, every way a scene can be malformed, and the defaults."""
+from __future__ import annotations
+
+import math
+import re
+from importlib import resources
+from pathlib import Path
+
+import pytest
+
+from fempdl import scene
+from fempdl.scene import SCHEMA, SceneError
+
+EXPECTED_BUNDLED = {"heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3"}
+
+EMULATOR = {"scene": 'name = "t"\ntask = "emulator"', "mesh": 'name = "lshape"', "pde": 'type = "heat"'}
+INVERSE = {"scene": 'name = "t"\ntask = "inverse"', "mesh": 'name = "lshape"', "pde": 'type = "poisson"',
+           "inverse": "theta_ref = [2.0]\ntheta_init = [5.0]"}
+
+
+def toml(extra: dict | None = None, *, base: dict = EMULATOR, drop: tuple = ()) -> str:
+    """Scene text: ``base``'s sections without ``drop``, with ``extra`` lines appended per section."""
+    sections = {name: body for name, body in base.items() if name not in drop}
+    for name, body in (extra or {}).items():
+        sections[name] = (sections.get(name, "") + "\n" + body).strip()
+    return "\n".join(f"[{name}]\n{body}\n" for name, body in sections.items())
+
+
+def assert_scene_error(text: str, *fragments: str, source: str = "<string>") -> SceneError:
+    with pytest.raises(SceneError, match=re.escape(fragments[0])) as info:
+        scene.parse(text, source=source)
+    message = str(info.value)
+    for fragment in fragments[1:]:
+        assert fragment in message, f"{fragment!r} not in {message!r}"
+    assert message.startswith(f"{source}: "), message
+    return info.value
+
+
+# ------------------------------------------------------------------ bundled scenes
+def test_available_lists_the_bundled_files():
+    names = scene.available()
+    assert names == sorted(names)
+    assert EXPECTED_BUNDLED <= set(names)
+    files = {p.name[:-5] for p in resources.files("fempdl.scenes").iterdir() if p.name.endswith(".toml")}
+    assert set(names) == files
+
+
+@pytest.mark.parametrize("name", scene.available())
+def test_bundled_scene_loads_with_its_tasks_sections(name):
+    sc = scene.load(name)
+    assert sc.name == name
+    assert sc.source == f"bundled:{name}"
+    assert sc.description.strip()
+    assert sc.task in ("emulator", "inverse")
+    assert sc.mesh["name"]
+    for section in ("mesh", "pde", "data", "optimizer", "solver", "prdp"):
+        assert set(getattr(sc, section)) == set(SCHEMA[section]), section
+    if sc.task == "emulator":
+        assert sc.inverse is None
+        assert set(sc.network) == set(SCHEMA["network"])
+        assert sc.network["type"] in ("mlp", "graph")
+        assert sc.pde["type"] == "heat"
+        # Every training sample passes the layer once per epoch in batches that fit.
+        assert sc.optimizer["batch"] <= sc.data["train"]
+    else:
+        assert sc.network is None
+        theta_ref, theta_init = sc.inverse["theta_ref"], sc.inverse["theta_init"]
+        assert len(theta_ref) == len(theta_init) >= 1
+        assert all(type(v) is float and math.isfinite(v) for v in theta_ref + theta_init)
+        assert theta_ref != theta_init
+        assert sc.pde["type"] == "poisson"
+        assert sc.optimizer["stop_at"] is not None and sc.optimizer["stop_at"] > 0
+    if sc.prdp["k_cap"] is not None:
+        assert sc.prdp["k_cap"] >= sc.prdp["k0"]
+    assert 0 < sc.prdp["tau_stop"] <= 1 and 0 < sc.prdp["tau_step"] <= 1
+
+
+@pytest.mark.parametrize("name", scene.available())
+def test_bundled_scene_by_path_equals_by_name(name):
+    path = Path(str(resources.files("fempdl.scenes").joinpath(f"{name}.toml")))
+    by_path, by_name = scene.load(path), scene.load(name)
+    assert by_path.source == str(path)
+    assert {**by_path.as_dict(), "source": ""} == {**by_name.as_dict(), "source": ""}
+
+
+def test_bundled_values():
+    two_d = scene.load("heat-emulator-2d")
+    assert (two_d.mesh["name"], two_d.mesh["h"], two_d.network["type"]) == ("lshape", None, "mlp")
+    assert scene.load("heat-emulator-3d").network["type"] == "graph"
+    assert scene.load("poisson-inverse").inverse == {"theta_ref": [2.0], "theta_init": [5.0]}
+    three = scene.load("poisson-inverse-3").inverse
+    assert len(three["theta_ref"]) == len(three["theta_init"]) == 3
+
+
+def test_mutating_a_loaded_scene_does_not_leak_into_the_next_load():
+    first = scene.load("heat-emulator-2d")
+    epochs = first.optimizer["epochs"]
+    first.optimizer["epochs"] = epochs + 1000  # what `fempdl run --epochs` does
+    assert scene.load("heat-emulator-2d").optimizer["epochs"] == epochs
+    a, b = scene.parse(toml()), scene.parse(toml())
+    a.optimizer["lr"] = 5.0
+    assert b.optimizer["lr"] == 1e-3
+
+
+# ------------------------------------------------------------------ defaults
+def test_parse_fills_the_schema_defaults():
+    sc = scene.parse(toml())
+    assert (sc.name, sc.task, sc.description, sc.source) == ("t", "emulator", "", "<string>")
+    assert sc.mesh == {"name": "lshape", "h": None}
+    assert sc.pde == {"type": "heat", "dt": 0.01, "theta": 1.0, "kappa": 1.0, "degree": 1}
+    assert sc.data == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "k_eps_rtol": 1e-5}
+    assert sc.network == {"type": "mlp", "hidden": 128, "layers": 2}
+    assert sc.optimizer == {"type": "adam", "lr": 1e-3, "decay": 1.0, "epochs": 30, "batch": 16, "stop_at": None}
+    assert sc.solver == {"preset": "jacobi", "diff": "implicit"}
+    assert sc.prdp == {"k0": 1, "dk": 1, "tau_step": 0.95, "tau_stop": 0.9, "delta": 3, "ema_window": 6,
+                       "k_cap": None}
+    assert sc.inverse is None
+    # ... and they are the schema's.
+    for section, keys in SCHEMA.items():
+        values = {"name": sc.name, "task": sc.task, "description": sc.description} if section == "scene" \
+            else getattr(sc, section)
+        if values is None:
+            continue
+        for key, spec in keys.items():
+            if spec.default is not scene._REQUIRED:
+                assert values[key] == spec.default, (section, key)
+
+
+def test_given_values_override_only_their_keys():
+    sc = scene.parse(toml({"optimizer": "epochs = 5\nlr = 2", "mesh": "h = 0.2"}), source="mine.toml")
+    assert sc.source == "mine.toml"
+    assert sc.optimizer == {"type": "adam", "lr": 2.0, "decay": 1.0, "epochs": 5, "batch": 16, "stop_at": None}
+    assert type(sc.optimizer["lr"]) is float  # an int is accepted where a float is expected
+    assert sc.mesh == {"name": "lshape", "h": 0.2}
+
+
+def test_inverse_defaults_and_theta_as_floats():
+    sc = scene.parse(toml({"inverse": ""}, base={**INVERSE, "inverse": "theta_ref = [2, 0.5]\ntheta_init = [1, 1]"}))
+    assert sc.task == "inverse" and sc.network is None
+    assert sc.inverse == {"theta_ref": [2.0, 0.5], "theta_init": [1.0, 1.0]}
+    assert all(type(v) is float for v in sc.inverse["theta_ref"] + sc.inverse["theta_init"])
+    assert sc.optimizer["stop_at"] is None and sc.pde["type"] == "poisson"
+
+
+def test_boundary_values_are_accepted():
+    sc = scene.parse(toml({"prdp": "delta = 2\nk_cap = 1", "pde": "theta = 0.0", "data": "seed = 0"}))
+    assert (sc.prdp["delta"], sc.prdp["k_cap"], sc.pde["theta"]) == (2, 1, 0.0)
+
+
+# ------------------------------------------------------------------ malformed scenes
+BAD = {
+    # invalid TOML
+    "toml-syntax": ("[scene\nname = 't'", ["not valid TOML"]),
+    "toml-expression": (toml({"optimizer": "lr = 1e-3 * 2"}), ["not valid TOML"]),
+    "toml-duplicate-key": (toml({"scene": 'name = "u"'}), ["not valid TOML"]),
+    # unknown section / key
+    "unknown-section": (toml({"training": "epochs = 3"}),
+                        ["unknown section(s) ['training']", f"allowed sections are {sorted(SCHEMA)}"]),
+    "unknown-top-level-key": ('epochs = 3\n' + toml(), ["unknown section(s) ['epochs']"]),
+    "unknown-key": (toml({"optimizer": "learning_rate = 0.1"}),
+                    ["unknown key(s) ['learning_rate'] in [optimizer]",
+                     "allowed keys are ['batch', 'decay', 'epochs', 'lr', 'stop_at', 'type']"]),
+    "unknown-key-scene": (toml({"scene": 'author = "me"'}),
+                          ["unknown key(s) ['author'] in [scene]", "allowed keys are ['description', 'name', 'task']"]),
+    "section-not-table": ('scene = "t"\n' + toml(drop=("scene",)), ["[scene] must be a table, got str"]),
+    "array-of-tables": (toml() + '[[optimizer]]\nlr = 0.1\n', ["[optimizer] must be a table, got list"]),
+    # wrong types
+    "str-for-float": (toml({"optimizer": 'lr = "0.1"'}), ["[optimizer] lr must be of type float, got '0.1' (str)"]),
+    "float-for-int": (toml({"optimizer": "epochs = 6.0"}), ["[optimizer] epochs must be of type int, got 6.0 (float)"]),
+    "bool-for-int": (toml({"optimizer": "batch = true"}), ["[optimizer] batch must be of type int, got True (bool)"]),
+    "bool-for-float": (toml({"pde": "dt = false"}), ["[pde] dt must be of type float, got False (bool)"]),
+    "str-for-int": (toml({"network": 'hidden = "64"'}), ["[network] hidden must be of type int, got '64' (str)"]),
+    "int-for-str": (toml({"scene": "description = 3"}), ["[scene] description must be of type str, got 3 (int)"]),
+    "list-for-str": (toml(drop=("mesh",)) + '[mesh]\nname = ["lshape"]\n',
+                     ["[mesh] name must be of type str, got ['lshape'] (list)"]),
+    "table-for-float": (toml({"prdp": "tau_step = {value = 0.9}"}),
+                        ["[prdp] tau_step must be of type float, got {'value': 0.9} (dict)"]),
+    # choices
+    "pde-choice": (toml(drop=("pde",)) + '[pde]\ntype = "wave"\n',
+                   ["[pde] type must be one of ['heat', 'poisson'], got 'wave'"]),
+    "optimizer-choice": (toml({"optimizer": 'type = "rmsprop"'}),
+                         ["[optimizer] type must be one of ['adam', 'sgd'], got 'rmsprop'"]),
+    "network-choice": (toml({"network": 'type = "cnn"'}), ["[network] type must be one of ['mlp', 'graph'], got 'cnn'"]),
+    "solver-choice": (toml({"solver": 'diff = "unrolled"'}), ["[solver] diff must be one of ['implicit'], got 'unrolled'"]),
+    "task-choice": ('[scene]\nname = "t"\ntask = "forward"\n', ["[scene] task must be one of ['emulator', 'inverse'], got 'forward'"]),
+    "choice-is-case-sensitive": (toml({"optimizer": 'type = "Adam"'}), ["[optimizer] type must be one of ['adam', 'sgd'], got 'Adam'"]),
+    # minimum
+    "negative-lr": (toml({"optimizer": "lr = -0.1"}), ["[optimizer] lr must be > 0, got -0.1"]),
+    "zero-lr": (toml({"optimizer": "lr = 0"}), ["[optimizer] lr must be > 0, got 0.0"]),
+    "zero-epochs": (toml({"optimizer": "epochs = 0"}), ["[optimizer] epochs must be >= 1, got 0"]),
+    "delta-1": (toml({"prdp": "delta = 1"}), ["[prdp] delta must be >= 2, got 1"]),
+    "negative-theta": (toml({"pde": "theta = -0.5"}), ["[pde] theta must be >= 0, got -0.5"]),
+    "zero-h": (toml({"mesh": "h = 0.0"}), ["[mesh] h must be > 0, got 0.0"]),
+    "zero-k-cap": (toml({"prdp": "k_cap = 0"}), ["[prdp] k_cap must be >= 1, got 0"]),
+    # maximum and cross-key ranges (values later code would reject)
+    "tau-step-above-1": (toml({"prdp": "tau_step = 1.5"}), ["[prdp] tau_step must be <= 1, got 1.5"]),
+    "tau-stop-above-1": (toml({"prdp": "tau_stop = 1.01"}), ["[prdp] tau_stop must be <= 1, got 1.01"]),
+    "theta-above-1": (toml({"pde": "theta = 3.0"}), ["[pde] theta must be <= 1, got 3.0"]),
+    "negative-seed": (toml({"data": "seed = -1"}), ["[data] seed must be >= 0, got -1"]),
+    "k-cap-below-k0": (toml({"prdp": "k0 = 5\nk_cap = 2"}), ["[prdp] k_cap must be >= k0 (5), got 2"]),
+    # keys a task or PDE does not use
+    "train-for-inverse": (toml({"data": "train = 8"}, base=INVERSE),
+                          ["[data] train do(es) not apply to task 'inverse'"]),
+    "batch-for-inverse": (toml({"optimizer": "batch = 8"}, base=INVERSE),
+                          ["[optimizer] batch do(es) not apply to task 'inverse'"]),
+    "dt-for-poisson": (toml({"pde": "dt = 0.1"}, base=INVERSE), ["[pde] dt do(es) not apply to pde 'poisson'"]),
+    # non-finite
+    "nan-lr": (toml({"optimizer": "lr = nan"}), ["[optimizer] lr must be finite, got nan"]),
+    "inf-h": (toml({"mesh": "h = inf"}), ["[mesh] h must be finite, got inf"]),
+    "minus-inf-stop-at": (toml({"optimizer": "stop_at = -inf"}), ["[optimizer] stop_at must be finite, got -inf"]),
+    "inf-tau": (toml({"prdp": "tau_step = +inf"}), ["[prdp] tau_step must be finite, got inf"]),
+    # missing pieces
+    "empty": ("", ["missing section [scene]"]),
+    "missing-scene": (toml(drop=("scene",)), ["missing section [scene]"]),
+    "missing-name": (toml(drop=("scene",)) + '[scene]\ntask = "emulator"\n', ["[scene] name is required"]),
+    "missing-task": (toml(drop=("scene",)) + '[scene]\nname = "t"\n', ["[scene] task is required"]),
+    "missing-mesh-name": (toml(drop=("mesh",)) + "[mesh]\nh = 0.2\n", ["[mesh] name is required"]),
+    "missing-pde-type": (toml(drop=("pde",)) + "[pde]\ndt = 0.1\n", ["[pde] type is required"]),
+    "missing-pde": (toml(drop=("pde",)), ["task 'emulator' needs section(s) ['pde']"]),
+    "missing-mesh-and-pde": (toml(drop=("mesh", "pde")), ["task 'emulator' needs section(s) ['mesh', 'pde']"]),
+    "inverse-without-inverse": (toml(base=INVERSE, drop=("inverse",)), ["task 'inverse' needs section(s) ['inverse']"]),
+    "inverse-missing-theta-init": (toml(base=INVERSE, drop=("inverse",)) + "[inverse]\ntheta_ref = [1.0]\n",
+                                   ["[inverse] theta_init is required"]),
+    # sections that do not apply
+    "network-on-inverse": (toml({"network": "hidden = 8"}, base=INVERSE),
+                           ["section(s) ['network'] do not apply to task 'inverse'",
+                            "allowed: ['data', 'inverse', 'mesh', 'optimizer', 'pde', 'prdp', 'scene', 'solver']"]),
+    "inverse-on-emulator": (toml({"inverse": "theta_ref = [1.0]\ntheta_init = [2.0]"}),
+                            ["section(s) ['inverse'] do not apply to task 'emulator'", "'network'"]),
+    # theta lists
+    "theta-lengths": (toml(base={**INVERSE, "inverse": "theta_ref = [1.0, 2.0]\ntheta_init = [1.0]"}),
+                      ["[inverse] theta_ref and theta_init must have the same length", "got [1.0, 2.0] and [1.0]"]),
+    "theta-string": (toml(base={**INVERSE, "inverse": 'theta_ref = ["a"]\ntheta_init = [1.0]'}),
+                     ["[inverse] theta_ref must be a non-empty list of finite numbers, got ['a']"]),
+    "theta-bool": (toml(base={**INVERSE, "inverse": "theta_ref = [1.0]\ntheta_init = [true]"}),
+                   ["[inverse] theta_init must be a non-empty list of finite numbers, got [True]"]),
+    "theta-empty": (toml(base={**INVERSE, "inverse": "theta_ref = []\ntheta_init = []"}),
+                    ["[inverse] theta_ref must be a non-empty list of finite numbers, got []"]),
+    "theta-nan": (toml(base={**INVERSE, "inverse": "theta_ref = [1.0]\ntheta_init = [nan]"}),
+                  ["[inverse] theta_init must be a non-empty list of finite numbers, got [nan]"]),
+    "theta-nested": (toml(base={**INVERSE, "inverse": "theta_ref = [[1.0]]\ntheta_init = [1.0]"}),
+                     ["[inverse] theta_ref must be a non-empty list of finite numbers, got [[1.0]]"]),
+    "theta-scalar": (toml(base={**INVERSE, "inverse": "theta_ref = 2.0\ntheta_init = [1.0]"}),
+                     ["[inverse] theta_ref must be of type list, got 2.0 (float)"]),
+}
+
+
+@pytest.mark.parametrize("case", BAD)
+def test_malformed_scene_names_the_problem(case):
+    text, fragments = BAD[case]
+    err = assert_scene_error(text, *fragments, source="bad.toml")
+    assert isinstance(err, ValueError)
+
+
+def test_error_from_a_file_names_the_file(tmp_path):
+    path = tmp_path / "broken.toml"
+    path.write_text(toml({"optimizer": "epochs = 0"}))
+    with pytest.raises(SceneError, match=re.escape(f"{path}: [optimizer] epochs must be >= 1, got 0")):
+        scene.load(path)
+    with pytest.raises(SceneError, match=re.escape(f"{path}: [optimizer] epochs must be >= 1, got 0")):
+        scene.load(str(path))
+
+
+def test_load_by_path(tmp_path):
+    path = tmp_path / "mine.toml"
+    path.write_text(toml({"optimizer": "epochs = 7"}))
+    sc = scene.load(path)
+    assert (sc.name, sc.source, sc.optimizer["epochs"]) == ("t", str(path), 7)
+
+
+def test_unknown_bundled_name_lists_the_bundled_scenes():
+    with pytest.raises(SceneError, match=re.escape("unknown scene 'no-such-scene'; bundled scenes are")) as info:
+        scene.load("no-such-scene")
+    message = str(info.value)
+    for name in scene.available():
+        assert repr(name) in message
+    assert ".toml" in message  # tells the user how to pass a file instead
+
+
+def test_missing_path_is_file_not_found(tmp_path):
+    missing = tmp_path / "nope.toml"
+    with pytest.raises(FileNotFoundError, match=re.escape(str(missing))):
+        scene.load(missing)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        scene.load(str(missing))
+
+
+def test_load_rejects_non_paths():
+    with pytest.raises(TypeError, match="bundled name or a path, got int"):
+        scene.load(3)
+
+
+PAYLOAD = "__import__('os').system('touch {marker}')"
+
+
+def test_strings_are_never_evaluated(tmp_path):
+    marker = tmp_path / "pwned"
+    payload = PAYLOAD.format(marker=marker)
+    quoted = payload.replace("\\", "\\\\").replace('"', '\\"')
+    text = toml(drop=("scene", "mesh")) + (f'[scene]\nname = "{quoted}"\ntask = "emulator"\n'
+                                           f'description = "{quoted}"\n[mesh]\nname = "{quoted}"\n')
+    path = tmp_path / "evil.toml"
+    path.write_text(text)
+    for sc in (scene.parse(text), scene.load(path)):
+        assert sc.name == payload and sc.description == payload and sc.mesh["name"] == payload
+    # A string where a number belongs is a type error, not an expression.
+    assert_scene_error(toml({"optimizer": f'lr = "{quoted}"'}), "[optimizer] lr must be of type float")
+    assert not marker.exists()
