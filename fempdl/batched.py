@@ -29,7 +29,7 @@ import scipy.sparse as sp
 import torch
 from petsc4py import PETSc
 
-from fempdl.ksp_adjoint import KSPOptions
+from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
 
 __all__ = ["BatchedJacobi"]
 
@@ -44,11 +44,6 @@ def sparse_to_torch(M: sp.csr_matrix) -> torch.Tensor:
         return torch.sparse_csr_tensor(
             torch.from_numpy(M.indptr.astype(np.int64)), torch.from_numpy(M.indices.astype(np.int64)),
             torch.from_numpy(M.data.astype(np.float64)), size=M.shape, check_invariants=False)
-
-
-def petsc_to_scipy(A: PETSc.Mat) -> sp.csr_matrix:
-    indptr, indices, data = A.getValuesCSR()
-    return sp.csr_matrix((data, indices, indptr), shape=A.getSize())
 
 
 class BatchedJacobi:
@@ -79,6 +74,11 @@ class BatchedJacobi:
         torch has two or more threads, or on one thread while the (n, B) iterate
         stays cache-sized."""
         return batch >= 2 and (torch.get_num_threads() >= 2 or batch * n <= 2 ** 20)
+
+    @property
+    def operator(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(A, D^{-1} as (n, 1)) of the last :meth:`load`."""
+        return self._A, self._dinv
 
     def load(self, A: PETSc.Mat) -> None:
         """Copy the current entries of ``A`` (call again after it is reassembled)."""

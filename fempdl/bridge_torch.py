@@ -34,14 +34,18 @@ import numpy as np
 import torch
 from torch.autograd.function import once_differentiable
 
-from fempdl.batched import BatchedJacobi
-from fempdl.ksp_adjoint import CumulativeStats, KSPOptions, warn_at_caller
+from fempdl import unrolled
+from fempdl.batched import BatchedJacobi, sparse_to_torch
+from fempdl.ksp_adjoint import CumulativeStats, KSPOptions, capped_solve_stats, warn_at_caller
 from fempdl.problem import Problem
 from fempdl.system import LinearSystem
 
 __all__ = ["SolveLayer", "DIFF_MODES"]
 
-DIFF_MODES = ("implicit",)
+DIFF_MODES = ("implicit", "unrolled")
+# KSP/PC combinations whose K-step iterate fempdl.unrolled reproduces.
+_UNROLLED_METHODS = {("richardson", "jacobi"): "jacobi", ("richardson", "none"): "jacobi",
+                     ("cg", "jacobi"): "cg", ("cg", "none"): "cg"}
 _FLOAT_DTYPES = (torch.float32, torch.float64)
 
 
@@ -52,7 +56,13 @@ class SolveLayer(torch.nn.Module):
         problem: the variational problem; its controls become keyword inputs.
         options: :class:`KSPOptions`, or a preset name (``"jacobi"``, ``"cg"``,
             ``"gmres"``, ``"lu"``). Default: Richardson + Jacobi capped at 20.
-        diff: ``"implicit"`` (adjoint solve with the same cap).
+        diff: ``"implicit"`` (adjoint solve with the same cap) or ``"unrolled"``
+            (autograd through the K iterations: the exact derivative of the
+            capped iterate; Richardson+Jacobi/none and CG+Jacobi/none, controls
+            that enter the right-hand side affinely such as f and u0).
+        max_unrolled_values: in unrolled mode, the number of floats the stored
+            iterates may take (about K * B * n * 2-5); above it the iterations
+            are checkpointed (recomputed in backward). ``None``: no bound.
 
     Attributes:
         max_it: the iteration cap K; assign to move it between calls (PRDP does).
@@ -66,7 +76,7 @@ class SolveLayer(torch.nn.Module):
     """
 
     def __init__(self, problem: Problem, options: KSPOptions | str | None = None, *,
-                 diff: str = "implicit"):
+                 diff: str = "implicit", max_unrolled_values: int | None = None):
         super().__init__()
         if not isinstance(problem, Problem):
             raise TypeError(f"problem must be a fempdl.Problem, got {type(problem).__name__}; "
@@ -79,8 +89,14 @@ class SolveLayer(torch.nn.Module):
             raise TypeError(f"options must be KSPOptions or a preset name, got {type(options).__name__}")
         if diff not in DIFF_MODES:
             raise ValueError(f"diff must be one of {list(DIFF_MODES)}, got {diff!r}")
+        if diff == "unrolled":
+            _unrolled_method(options)  # validates
+            if problem.V.mesh.comm.size > 1:
+                raise ValueError("diff='unrolled' runs on one process; use diff='implicit' under MPI")
         self.problem = problem
         self.diff = diff
+        self.max_unrolled_values = max_unrolled_values
+        self._unrolled_cache = None
         self._system = LinearSystem(problem, options, batched_engine=BatchedJacobi())
 
     @property
@@ -114,11 +130,63 @@ class SolveLayer(torch.nn.Module):
         if any(t.dtype != dtype for t in tensors):
             dtype = torch.float64
         device = tensors[0].device if tensors else torch.device("cpu")
-        out = _SolveFunction.apply(self, names, batch, *tensors)
+        if self.diff == "unrolled":
+            out = self._unrolled(names, tensors, batch)
+        else:
+            out = _SolveFunction.apply(self, names, batch, *tensors)
         out = out.to(device=device, dtype=dtype)
         if dtype != torch.float64 and _count_on_all_ranks(~torch.isfinite(out), self.problem):
             self._report_overflow(dtype)
         return out if batched else out[0]
+
+    def _unrolled(self, names: tuple, tensors: list, batch: int) -> torch.Tensor:
+        """u = X_K^T, X_K the K-step iterate on R = b_base + sum_m C_m m^T, all in torch."""
+        t0 = time.perf_counter()
+        options = self.options
+        if not options.capped:
+            raise ValueError("diff='unrolled' differentiates a capped iteration: set max_it")
+        A, P, b_base, mats = self._unrolled_operators(frozenset(names))
+        R = b_base.expand(-1, batch)
+        for name, t in zip(names, tensors):
+            m = t.to(device="cpu", dtype=torch.float64)
+            R = R + mats[name] @ (m.unsqueeze(1) if m.dim() == 1 else m.T)
+        method = _unrolled_method(options)
+        omega = float(options.petsc_options.get("ksp_richardson_scale", 1.0))
+        t_solve = time.perf_counter()
+        X = unrolled.solve(method, A, P if options.pc_type == "jacobi" else None, R, options.max_it,
+                           omega=omega, max_values=self.max_unrolled_values)
+        seconds = time.perf_counter() - t_solve
+        finite = torch.isfinite(X).all(0)
+        stats = self.system.stats
+        for ok in finite.tolist():
+            stats.record("forward", capped_solve_stats(options, seconds / batch, ok, "unrolled"))
+        if not bool(finite.all()):
+            self.system._solver.report_failure("forward", stats.last, finite=False,
+                                               samples=int((~finite).sum()))
+        out = X.T
+        if out.requires_grad:
+            out.register_hook(self._count_unrolled_backward(batch, options))
+        stats.layer_time += time.perf_counter() - t0
+        return out
+
+    def _count_unrolled_backward(self, batch: int, options: KSPOptions):
+        def hook(grad):
+            for _ in range(batch):
+                self.stats.record("backward", capped_solve_stats(options, 0.0, True, "unrolled"))
+            return grad
+        return hook
+
+    def _unrolled_operators(self, names: frozenset):
+        """Torch copies of A, D^{-1}, b_base and C_m, rebuilt when the matrix or the names change."""
+        key = (names, self.system.matrix_version)
+        if self._unrolled_cache is None or self._unrolled_cache[0] != key:
+            A, b_base, mats = self.system.affine_operators(names)
+            key = (names, self.system.matrix_version)
+            d = A.diagonal()
+            P = torch.from_numpy(1.0 / np.where(d != 0.0, d, 1.0))[:, None]  # as PCJACOBI
+            self._unrolled_cache = (key, (sparse_to_torch(A), P, torch.from_numpy(b_base)[:, None],
+                                          {n: sparse_to_torch(C) for n, C in mats.items()}))
+        return self._unrolled_cache[1]
 
     def _report_overflow(self, dtype) -> None:
         message = (f"the solution is finite in float64 but overflows {dtype}; pass float64 controls "
@@ -231,6 +299,18 @@ class _SolveFunction(torch.autograd.Function):
             out.append(g.to(device=device, dtype=dtype))
         layer.stats.layer_time += time.perf_counter() - t0
         return (None, None, None, *out)
+
+
+def _unrolled_method(options: KSPOptions) -> str:
+    method = _UNROLLED_METHODS.get((options.ksp_type, options.pc_type))
+    if method is None:
+        raise ValueError(f"diff='unrolled' supports {sorted(f'{k}+{p}' for k, p in _UNROLLED_METHODS)}, "
+                         f"got {options.ksp_type}+{options.pc_type}; use diff='implicit' for it")
+    extra = set(options.petsc_options) - {"ksp_richardson_scale"}
+    if extra or any(v is not None for v in (options.rtol, options.atol, options.divtol)):
+        raise ValueError("diff='unrolled' runs a pure cap: no rtol/atol/divtol and no petsc_options "
+                         f"other than ksp_richardson_scale (got {sorted(extra) or 'a tolerance'})")
+    return method
 
 
 def _count_on_all_ranks(mask, problem: Problem) -> int:

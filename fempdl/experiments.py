@@ -31,9 +31,8 @@ import torch
 from mpi4py import MPI
 
 from fempdl import _dolfinx, forms, mesh
-from fempdl.batched import petsc_to_scipy
 from fempdl.bridge_torch import SolveLayer
-from fempdl.ksp_adjoint import KSPOptions
+from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
 from fempdl.networks import GraphConvNet, ResidualMLP, normalised_adjacency
 from fempdl.prdp import PRDP
 from fempdl.scene import Scene

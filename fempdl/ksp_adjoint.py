@@ -46,6 +46,7 @@ __all__ = [
     "SolverFailedError",
     "SolverWarning",
     "PRESETS",
+    "petsc_to_scipy",
 ]
 
 _KSP_TYPES = frozenset(getattr(PETSc.KSP.Type, n) for n in dir(PETSc.KSP.Type) if n.isupper())
@@ -449,6 +450,14 @@ class CappedSolver:
         """Raise :class:`SolverFailedError` or warn (per ``on_failure``) for a failed solve."""
         options = self._options if direction == "forward" else self._options.adjoint_options
         _report_failure(options, stats, finite, direction == "backward", samples)
+
+
+def petsc_to_scipy(A: PETSc.Mat) -> "scipy.sparse.csr_matrix":
+    """The local rows of an assembled PETSc AIJ matrix as a scipy CSR matrix (a copy)."""
+    import scipy.sparse as sp
+
+    indptr, indices, data = A.getValuesCSR()
+    return sp.csr_matrix((data, indices, indptr), shape=(A.getLocalSize()[0], A.getSize()[1]))
 
 
 def capped_solve_stats(options: KSPOptions, seconds: float, finite: bool, engine: str) -> SolveStats:

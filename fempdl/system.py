@@ -24,11 +24,12 @@ from __future__ import annotations
 from typing import Mapping
 
 import numpy as np
+import scipy.sparse as sp
 from mpi4py import MPI
 from petsc4py import PETSc
 
 from fempdl import _dolfinx
-from fempdl.ksp_adjoint import CappedSolver, CumulativeStats, KSPOptions, capped_solve_stats
+from fempdl.ksp_adjoint import CappedSolver, CumulativeStats, KSPOptions, capped_solve_stats, petsc_to_scipy
 from fempdl.problem import Problem
 
 __all__ = ["LinearSystem"]
@@ -159,6 +160,31 @@ class LinearSystem:
                     for name in by_form:
                         grads[name][i] = self._assemble_gradient(name)
         return grads
+
+    def affine_operators(self, names: frozenset) -> tuple:
+        """The pieces of b(m) = b_base + sum_m C_m m for affine RHS controls ``names``,
+        with the (constant) matrix: (A, b_base (n,), {name: C_m}) as scipy CSR /
+        numpy; the BC rows of each C_m are zeroed. Used by unrolled differentiation."""
+        p = self.problem
+        names = frozenset(names)
+        not_affine = sorted(names - p.affine_rhs_controls)
+        if not_affine:
+            raise NotImplementedError(
+                f"unrolled differentiation with respect to {not_affine} is not available: they enter the "
+                f"matrix or the right-hand side non-affinely; use diff='implicit' for them "
+                f"(affine controls of this problem: {sorted(p.affine_rhs_controls)})")
+        with _ControlValues(p, dict.fromkeys(names)) as ctl:
+            self._ensure_constant_matrix()
+            b_base = self._base_rhs(names, ctl).getArray(readonly=True).copy()
+        keep = np.ones(p.output_size)
+        keep[p.bc_dofs] = 0.0  # BC rows of b come from the boundary data alone
+        mats = {name: (sp.diags(keep) @ petsc_to_scipy(self._rhs_matrix(name)[0])).tocsr() for name in sorted(names)}
+        return petsc_to_scipy(self._A), b_base, mats
+
+    @property
+    def matrix_version(self) -> int:
+        """Increases whenever the matrix is reassembled."""
+        return self._A_version
 
     # ------------------------------------------------------------ engines
     def _use_batched(self, batch: int, per_sample_matrix: bool) -> bool:

@@ -1,0 +1,143 @@
+"""diff="unrolled": the exact derivative of the K-step iterate, same forward as PETSc's KSP."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import torch
+
+from fempdl import unrolled
+from fempdl.batched import sparse_to_torch
+from fempdl.bridge_torch import SolveLayer
+from fempdl.ksp_adjoint import KSPOptions
+
+from conftest import CONVERGED, control_values
+
+UNROLLED_SOLVERS = {
+    "jacobi": lambda k: KSPOptions(max_it=k),
+    "jacobi-damped": lambda k: KSPOptions(max_it=k, petsc_options={"ksp_richardson_scale": 0.7}),
+    "cg": lambda k: KSPOptions.preset("cg", max_it=k),
+}
+RHS_CONTROLS = [("poisson", "f"), ("heat", "u0"), ("heat", "f")]
+
+
+def grad_of(layer, name, m, w):
+    m = m.clone().requires_grad_()
+    (layer(**{name: m}) * w).sum().backward()
+    return m.grad
+
+
+@pytest.mark.parametrize("solver", sorted(UNROLLED_SOLVERS))
+@pytest.mark.parametrize("k", [1, 2, 5, 20])
+@pytest.mark.parametrize("form,control", RHS_CONTROLS)
+def test_unrolled_forward_equals_petsc_and_gradcheck_of_the_capped_map(coarse_problems, form, control, k, solver):
+    prob = coarse_problems[form]
+    opts = UNROLLED_SOLVERS[solver](k)
+    layer = SolveLayer(prob, opts, diff="unrolled")
+    petsc = SolveLayer(prob, KSPOptions(**{**opts.__dict__, "engine": "petsc"}))
+    m = control_values(prob, control, batch=2)
+    u, u_petsc = layer(**{control: m}), petsc(**{control: m})
+    assert (u - u_petsc).abs().max() <= 1e-12 * u_petsc.abs().max()
+    assert torch.autograd.gradcheck(lambda x: layer(**{control: x}), (m.clone().requires_grad_(),),
+                                    eps=1e-6, atol=1e-8, rtol=1e-6)
+    assert layer.stats.last.iterations == k and layer.stats.last.engine == "unrolled"
+
+
+@pytest.mark.parametrize("form,control", RHS_CONTROLS)
+def test_jacobi_unrolled_and_implicit_gradients_agree(coarse_problems, form, control):
+    prob = coarse_problems[form]
+    w = torch.randn(3, prob.output_size, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    m = control_values(prob, control, batch=3)
+    for k in (1, 6, 30):
+        g_unr = grad_of(SolveLayer(prob, KSPOptions(max_it=k), diff="unrolled"), control, m, w)
+        g_imp = grad_of(SolveLayer(prob, KSPOptions(max_it=k)), control, m, w)
+        assert (g_unr - g_imp).abs().max() <= 1e-12 * g_imp.abs().max()
+
+
+def test_cg_unrolled_and_implicit_differ_at_small_k_and_converge_together(coarse_problems):
+    prob = coarse_problems["poisson"]
+    f = control_values(prob, "f", batch=1)[0]
+    w = torch.linspace(-1, 1, prob.output_size, dtype=torch.float64)
+    exact = grad_of(SolveLayer(prob, CONVERGED["lu"]), "f", f, w)
+    errors = {}
+    for k in (3, 10, 60):
+        opts = KSPOptions.preset("cg", max_it=k)
+        g_unr = grad_of(SolveLayer(prob, opts, diff="unrolled"), "f", f, w)
+        g_imp = grad_of(SolveLayer(prob, opts), "f", f, w)
+        errors[k] = (float((g_unr - g_imp).norm() / exact.norm()), float((g_unr - exact).norm() / exact.norm()),
+                     float((g_imp - exact).norm() / exact.norm()))
+    assert errors[3][0] > 1e-3                                   # two different gradients at a small cap
+    assert errors[60][1] < 1e-8 and errors[60][2] < 1e-8         # both exact once CG has converged
+    assert errors[10][1] < errors[3][1] and errors[10][2] < errors[3][2]
+
+
+def test_steepest_descent_matches_its_definition_and_gradcheck():
+    """The PRDP paper's Algorithm 2, against a NumPy transcription; gradients of the capped map."""
+    rng = np.random.default_rng(0)
+    n = 30
+    S = sp.diags([-1.0, 2.2, -1.0], [-1, 0, 1], shape=(n, n), format="csr")
+    R = rng.standard_normal((n, 3))
+    X_ref = np.zeros_like(R)
+    for j in range(3):
+        x, r = np.zeros(n), R[:, j].copy()
+        for _ in range(9):
+            alpha = (r @ r) / (r @ (S @ r))
+            x, r = x + alpha * r, r - alpha * (S @ r)
+        X_ref[:, j] = x
+    A = sparse_to_torch(S)
+    X = unrolled.solve("steepest_descent", A, None, torch.from_numpy(R), 9)
+    np.testing.assert_allclose(X.numpy(), X_ref, rtol=1e-12, atol=1e-14)
+    Rt = torch.from_numpy(R).requires_grad_()
+    assert torch.autograd.gradcheck(lambda r: unrolled.solve("steepest_descent", A, None, r, 9), (Rt,))
+
+
+@pytest.mark.parametrize("method", ["jacobi", "steepest_descent", "cg"])
+def test_zero_rhs_and_iterations_past_convergence_stay_finite(method):
+    n = 12
+    S = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n), format="csr")
+    A, P = sparse_to_torch(S), torch.from_numpy(1.0 / S.diagonal())[:, None]
+    R = torch.zeros(n, 2, dtype=torch.float64)
+    R[:, 1] = torch.linspace(0, 1, n, dtype=torch.float64)     # column 0 zero, column 1 solved to round-off
+    R.requires_grad_()
+    X = unrolled.solve(method, A, P, R, 400)
+    assert torch.all(X[:, 0] == 0)
+    exact = np.linalg.solve(S.toarray(), R[:, 1].detach().numpy())
+    np.testing.assert_allclose(X[:, 1].detach().numpy(), exact, rtol=1e-10)
+    (X ** 2).sum().backward()
+    assert torch.isfinite(R.grad).all()
+    # Past convergence the VJP is the converged one: 2 A^{-T} x.
+    np.testing.assert_allclose(R.grad[:, 1].numpy(), np.linalg.solve(S.toarray().T, 2 * exact), rtol=1e-7)
+
+
+def test_checkpointing_gives_the_same_gradient(coarse_problems):
+    prob = coarse_problems["heat"]
+    u0 = control_values(prob, "u0", batch=4)
+    w = torch.randn(4, prob.output_size, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    opts = KSPOptions.preset("cg", max_it=25)
+    full = grad_of(SolveLayer(prob, opts, diff="unrolled"), "u0", u0, w)
+    bounded = SolveLayer(prob, opts, diff="unrolled", max_unrolled_values=1000)
+    assert unrolled.stored_values("cg", 25, prob.output_size, 4) > 1000
+    torch.testing.assert_close(grad_of(bounded, "u0", u0, w), full, rtol=1e-13, atol=1e-15)
+
+
+def test_float32_and_unbatched(coarse_problems):
+    prob = coarse_problems["poisson"]
+    layer = SolveLayer(prob, KSPOptions(max_it=10), diff="unrolled")
+    f = control_values(prob, "f", batch=2)
+    f32 = f.float().requires_grad_()
+    out = layer(f=f32)
+    assert out.dtype == torch.float32 and out.shape == (2, prob.output_size)
+    out.sum().backward()
+    assert f32.grad.dtype == torch.float32
+    torch.testing.assert_close(layer(f=f[0]), layer(f=f)[0], rtol=0, atol=0)
+
+
+def test_what_unrolled_mode_refuses(coarse_problems):
+    prob = coarse_problems["poisson"]
+    with pytest.raises(ValueError, match=r"diff='unrolled' supports .*got gmres\+jacobi"):
+        SolveLayer(prob, KSPOptions.preset("gmres", max_it=5), diff="unrolled")
+    with pytest.raises(ValueError, match="pure cap"):
+        SolveLayer(prob, KSPOptions(max_it=5, rtol=1e-6), diff="unrolled")
+    layer = SolveLayer(prob, KSPOptions(max_it=5), diff="unrolled")
+    with pytest.raises(NotImplementedError, match=r"unrolled differentiation with respect to \['kappa'\]"):
+        layer(kappa=control_values(prob, "kappa", batch=2))
