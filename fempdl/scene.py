@@ -12,7 +12,8 @@ brackets; ``required`` has none)::
     [inverse]    theta_ref (required), theta_init (required)                  (inverse only)
     [optimizer]  type ["adam"] ("adam" | "sgd"), lr [1e-3], decay [1.0], epochs [30],
                  batch [16] (emulators), stop_at [none]: end once the validation metric is <= it
-    [solver]     preset ["jacobi"] ("jacobi" | "cg" | "gmres": the capped solver), diff ["implicit"]
+    [solver]     preset ["jacobi"] ("jacobi" | "cg" | "gmres": the capped solver),
+                 diff ["implicit"] ("implicit" | "unrolled")
     [prdp]       k0 [1], dk [1], tau_step [0.95], tau_stop [0.9], delta [3], ema_window [6], k_cap [none]
 
 Unknown sections or keys, keys that do not apply to the task or PDE, wrong
@@ -65,7 +66,7 @@ SCHEMA: dict[str, dict[str, _Key]] = {
                   "decay": _Key(float, 1.0, minimum=_POSITIVE), "epochs": _Key(int, 30, minimum=1),
                   "batch": _Key(int, 16, minimum=1), "stop_at": _Key(float, None, minimum=_POSITIVE)},
     "solver": {"preset": _Key(str, "jacobi", choices=("jacobi", "cg", "gmres")),
-               "diff": _Key(str, "implicit", choices=("implicit",))},
+               "diff": _Key(str, "implicit", choices=("implicit", "unrolled"))},
     "prdp": {"k0": _Key(int, 1, minimum=1), "dk": _Key(int, 1, minimum=1),
              "tau_step": _Key(float, 0.95, minimum=_POSITIVE, maximum=1.0),
              "tau_stop": _Key(float, 0.9, minimum=_POSITIVE, maximum=1.0),
@@ -162,6 +163,10 @@ def parse(text: str, source: str = "<string>") -> Scene:
             if given:
                 raise SceneError(f"{source}: [{name}] {', '.join(given)} do(es) not apply to {what} {value!r}; "
                                  "remove them")
+    solver = values["solver"]
+    if solver["diff"] == "unrolled" and solver["preset"] not in ("jacobi", "cg"):
+        raise SceneError(f"{source}: [solver] diff = 'unrolled' needs preset 'jacobi' or 'cg', "
+                         f"got {solver['preset']!r}")
     prdp = values["prdp"]
     if prdp["k_cap"] is not None and prdp["k_cap"] < prdp["k0"]:
         raise SceneError(f"{source}: [prdp] k_cap must be >= k0 ({prdp['k0']}), got {prdp['k_cap']}")

@@ -181,7 +181,10 @@ BAD = {
     "optimizer-choice": (toml({"optimizer": 'type = "rmsprop"'}),
                          ["[optimizer] type must be one of ['adam', 'sgd'], got 'rmsprop'"]),
     "network-choice": (toml({"network": 'type = "cnn"'}), ["[network] type must be one of ['mlp', 'graph'], got 'cnn'"]),
-    "solver-choice": (toml({"solver": 'diff = "unrolled"'}), ["[solver] diff must be one of ['implicit'], got 'unrolled'"]),
+    "solver-choice": (toml({"solver": 'diff = "adjoint"'}),
+                      ["[solver] diff must be one of ['implicit', 'unrolled'], got 'adjoint'"]),
+    "unrolled-gmres": (toml({"solver": 'preset = "gmres"\ndiff = "unrolled"'}),
+                       ["[solver] diff = 'unrolled' needs preset 'jacobi' or 'cg', got 'gmres'"]),
     "task-choice": ('[scene]\nname = "t"\ntask = "forward"\n', ["[scene] task must be one of ['emulator', 'inverse'], got 'forward'"]),
     "choice-is-case-sensitive": (toml({"optimizer": 'type = "Adam"'}), ["[optimizer] type must be one of ['adam', 'sgd'], got 'Adam'"]),
     # minimum
