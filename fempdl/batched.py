@@ -1,4 +1,4 @@
-"""Capped Richardson + Jacobi for a whole batch: one sparse-times-dense product per iteration.
+"""Capped Richardson and CG for a whole batch: one sparse-times-dense product per iteration.
 
 For B right-hand sides stacked as the columns of R (n, B), K iterations of
 
@@ -8,8 +8,8 @@ For B right-hand sides stacked as the columns of R (n, B), K iterations of
 KSPRICHARDSON + PCJACOBI computes column by column, with the same operations
 in the same order per entry; only the summation order inside a sparse row
 product may differ, so the iterates agree to round-off (about 1e-15
-relative). PCJACOBI replaces a zero diagonal entry by 1, and so does this
-engine.
+relative). CG runs :func:`fempdl.unrolled.solve`'s KSPCG recurrences the same
+way. PCJACOBI replaces a zero diagonal entry by 1, and so does this engine.
 
 The operator is a torch CSR copy of the assembled PETSc matrix (serial only),
 refreshed when the matrix is reassembled. Reading the matrix once per
@@ -29,9 +29,10 @@ import scipy.sparse as sp
 import torch
 from petsc4py import PETSc
 
+from fempdl import unrolled
 from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
 
-__all__ = ["BatchedJacobi"]
+__all__ = ["BatchedEngine", "sparse_to_torch"]
 
 _OWN_OPTIONS = frozenset({"ksp_richardson_scale"})
 
@@ -46,8 +47,8 @@ def sparse_to_torch(M: sp.csr_matrix) -> torch.Tensor:
             torch.from_numpy(M.data.astype(np.float64)), size=M.shape, check_invariants=False)
 
 
-class BatchedJacobi:
-    """Batched capped Richardson (+ Jacobi) on a torch copy of a PETSc matrix."""
+class BatchedEngine:
+    """Batched capped Richardson and CG (+ Jacobi) on a torch copy of a PETSc matrix."""
 
     def __init__(self):
         self._A = self._At = self._dinv = None
@@ -58,8 +59,8 @@ class BatchedJacobi:
         if comm_size > 1:
             return "it runs on one process (the mesh is distributed over several)"
         for opts in (options, options.adjoint_options):
-            if opts.ksp_type != "richardson" or opts.pc_type not in ("jacobi", "none"):
-                return (f"it implements Richardson with Jacobi or no preconditioner, not "
+            if opts.ksp_type not in ("richardson", "cg") or opts.pc_type not in ("jacobi", "none"):
+                return (f"it implements Richardson and CG with Jacobi or no preconditioner, not "
                         f"{opts.ksp_type}+{opts.pc_type}")
             if not opts.capped or any(v is not None for v in (opts.rtol, opts.atol, opts.divtol)):
                 return "it runs a pure iteration cap (max_it set; rtol, atol and divtol unset)"
@@ -75,11 +76,6 @@ class BatchedJacobi:
         stays cache-sized."""
         return batch >= 2 and (torch.get_num_threads() >= 2 or batch * n <= 2 ** 20)
 
-    @property
-    def operator(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(A, D^{-1} as (n, 1)) of the last :meth:`load`."""
-        return self._A, self._dinv
-
     def load(self, A: PETSc.Mat) -> None:
         """Copy the current entries of ``A`` (call again after it is reassembled)."""
         S = petsc_to_scipy(A)
@@ -92,15 +88,19 @@ class BatchedJacobi:
     def solve(self, R: np.ndarray, options: KSPOptions, *, transpose: bool = False) -> tuple[np.ndarray, float]:
         """``options.max_it`` iterations for the rows of R (B, n); returns (X (B, n), seconds)."""
         if self._A is None:
-            raise RuntimeError("BatchedJacobi.load(A) must be called before solve")
+            raise RuntimeError("BatchedEngine.load(A) must be called before solve")
         t0 = time.perf_counter()
         op = self._At if transpose else self._A
         rhs = torch.from_numpy(np.ascontiguousarray(R.T))
-        step = self._dinv if options.pc_type == "jacobi" else torch.ones_like(self._dinv)
         scale = float(options.petsc_options.get("ksp_richardson_scale", 1.0))
-        if scale != 1.0:
-            step = step * scale
-        X = torch.zeros_like(rhs)
-        for _ in range(options.max_it):
-            X.addcmul_(step, rhs - op @ X)
+        precondition = options.pc_type == "jacobi"
+        with torch.no_grad():
+            if options.ksp_type == "cg":
+                X = unrolled.solve("cg", op, self._dinv if precondition else None, rhs, options.max_it)
+            else:
+                # In place: nothing is differentiated here, so no iterate needs keeping.
+                step = (self._dinv if precondition else torch.ones_like(self._dinv)) * scale
+                X = torch.zeros_like(rhs)
+                for _ in range(options.max_it):
+                    X.addcmul_(step, rhs - op @ X)
         return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0

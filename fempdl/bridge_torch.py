@@ -35,7 +35,7 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from fempdl import unrolled
-from fempdl.batched import BatchedJacobi, sparse_to_torch
+from fempdl.batched import BatchedEngine, sparse_to_torch
 from fempdl.ksp_adjoint import CumulativeStats, KSPOptions, capped_solve_stats, warn_at_caller
 from fempdl.problem import Problem
 from fempdl.system import LinearSystem
@@ -97,7 +97,7 @@ class SolveLayer(torch.nn.Module):
         self.diff = diff
         self.max_unrolled_values = max_unrolled_values
         self._unrolled_cache = None
-        self._system = LinearSystem(problem, options, batched_engine=BatchedJacobi())
+        self._system = LinearSystem(problem, options, batched_engine=BatchedEngine())
 
     @property
     def system(self) -> LinearSystem:

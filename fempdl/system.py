@@ -42,7 +42,7 @@ class LinearSystem:
         problem: the variational problem.
         options: solver options (the cap can be moved later via ``max_it``).
         batched_engine: an engine that solves all samples of a call at once
-            (:class:`fempdl.batched.BatchedJacobi`), used where ``options.engine``
+            (:class:`fempdl.batched.BatchedEngine`), used where ``options.engine``
             and the call allow it; ``None`` runs every solve through PETSc.
     """
 
