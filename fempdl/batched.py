@@ -1,4 +1,4 @@
-"""Capped Richardson and CG for a whole batch: one sparse-times-dense product per iteration.
+"""Capped Richardson, CG and GMRES for a whole batch: one sparse-times-dense product per iteration.
 
 For B right-hand sides stacked as the columns of R (n, B), K iterations of
 
@@ -8,8 +8,8 @@ For B right-hand sides stacked as the columns of R (n, B), K iterations of
 KSPRICHARDSON + PCJACOBI computes column by column, with the same operations
 in the same order per entry; only the summation order inside a sparse row
 product may differ, so the iterates agree to round-off (about 1e-15
-relative). CG runs :func:`fempdl.unrolled.solve`'s KSPCG recurrences the same
-way. PCJACOBI replaces a zero diagonal entry by 1, and so does this engine.
+relative). CG and GMRES(m) run :func:`fempdl.unrolled.solve`'s KSPCG and
+KSPGMRES recurrences the same way. PCJACOBI replaces a zero diagonal entry by 1, and so does this engine.
 
 The operator is a torch CSR copy of the assembled PETSc matrix (serial only),
 refreshed when the matrix is reassembled. Reading the matrix once per
@@ -48,7 +48,7 @@ def sparse_to_torch(M: sp.csr_matrix) -> torch.Tensor:
 
 
 class BatchedEngine:
-    """Batched capped Richardson and CG (+ Jacobi) on a torch copy of a PETSc matrix."""
+    """Batched capped Richardson, CG and GMRES (+ Jacobi) on a torch copy of a PETSc matrix."""
 
     def __init__(self):
         self._A = self._At = self._dinv = None
@@ -59,8 +59,8 @@ class BatchedEngine:
         if comm_size > 1:
             return "it runs on one process (the mesh is distributed over several)"
         for opts in (options, options.adjoint_options):
-            if opts.ksp_type not in ("richardson", "cg") or opts.pc_type not in ("jacobi", "none"):
-                return (f"it implements Richardson and CG with Jacobi or no preconditioner, not "
+            if opts.ksp_type not in ("richardson", "cg", "gmres") or opts.pc_type not in ("jacobi", "none"):
+                return (f"it implements Richardson, CG and GMRES with Jacobi or no preconditioner, not "
                         f"{opts.ksp_type}+{opts.pc_type}")
             if not opts.capped or any(v is not None for v in (opts.rtol, opts.atol, opts.divtol)):
                 return "it runs a pure iteration cap (max_it set; rtol, atol and divtol unset)"
@@ -95,8 +95,9 @@ class BatchedEngine:
         scale = float(options.petsc_options.get("ksp_richardson_scale", 1.0))
         precondition = options.pc_type == "jacobi"
         with torch.no_grad():
-            if options.ksp_type == "cg":
-                X = unrolled.solve("cg", op, self._dinv if precondition else None, rhs, options.max_it)
+            if options.ksp_type in ("cg", "gmres"):
+                X = unrolled.solve(options.ksp_type, op, self._dinv if precondition else None, rhs,
+                                   options.max_it, restart=options.gmres_restart or 30)
             else:
                 # In place: nothing is differentiated here, so no iterate needs keeping.
                 step = (self._dinv if precondition else torch.ones_like(self._dinv)) * scale

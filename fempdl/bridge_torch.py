@@ -45,7 +45,8 @@ __all__ = ["SolveLayer", "DIFF_MODES"]
 DIFF_MODES = ("implicit", "unrolled")
 # KSP/PC combinations whose K-step iterate fempdl.unrolled reproduces.
 _UNROLLED_METHODS = {("richardson", "jacobi"): "jacobi", ("richardson", "none"): "jacobi",
-                     ("cg", "jacobi"): "cg", ("cg", "none"): "cg"}
+                     ("cg", "jacobi"): "cg", ("cg", "none"): "cg",
+                     ("gmres", "jacobi"): "gmres", ("gmres", "none"): "gmres"}
 _FLOAT_DTYPES = (torch.float32, torch.float64)
 
 
@@ -58,8 +59,9 @@ class SolveLayer(torch.nn.Module):
             ``"gmres"``, ``"lu"``). Default: Richardson + Jacobi capped at 20.
         diff: ``"implicit"`` (adjoint solve with the same cap) or ``"unrolled"``
             (autograd through the K iterations: the exact derivative of the
-            capped iterate; Richardson+Jacobi/none and CG+Jacobi/none, controls
-            that enter the right-hand side affinely such as f and u0).
+            capped iterate; Richardson, CG and GMRES(m) with Jacobi or no
+            preconditioner, controls that enter the right-hand side affinely
+            such as f and u0).
         max_unrolled_values: in unrolled mode, the number of floats the stored
             iterates may take (about K * B * n * 2-5); above it the iterations
             are checkpointed (recomputed in backward). ``None``: no bound.
@@ -154,7 +156,7 @@ class SolveLayer(torch.nn.Module):
         omega = float(options.petsc_options.get("ksp_richardson_scale", 1.0))
         t_solve = time.perf_counter()
         X = unrolled.solve(method, A, P if options.pc_type == "jacobi" else None, R, options.max_it,
-                           omega=omega, max_values=self.max_unrolled_values)
+                           omega=omega, restart=options.gmres_restart or 30, max_values=self.max_unrolled_values)
         seconds = time.perf_counter() - t_solve
         finite = torch.isfinite(X).all(0)
         stats = self.system.stats

@@ -12,6 +12,8 @@ iterate (not of the converged solution). Methods:
   alpha = (r.r) / (r.A r), X <- X + alpha r (unpreconditioned).
 * ``"cg"`` — preconditioned CG with the recurrences of PETSc's KSPCG, the
   iterate of KSPCG + PCJACOBI/PCNONE.
+* ``"gmres"`` — left-preconditioned GMRES(m) with classical Gram-Schmidt and
+  restarts, the iterate of KSPGMRES (see :func:`gmres`).
 
 A is a torch CSR matrix (constant), P the inverse diagonal (n, 1) or None.
 No 0/0 can occur: when a column's residual vanishes (a zero right-hand side),
@@ -99,16 +101,75 @@ class _ConjugateGradient:
 METHODS = {"jacobi": _Jacobi(), "steepest_descent": _SteepestDescent(), "cg": _ConjugateGradient()}
 
 
+def gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int, restart: int) -> torch.Tensor:
+    """K iterations of left-preconditioned GMRES(restart) with classical Gram-Schmidt
+    (PETSc's KSPGMRES defaults), from X = 0; a cycle cut short by K ends with the
+    least-squares update of its partial basis, as PETSc does.
+
+    Happy breakdown (the Krylov space of a column became invariant: the new
+    basis vector's norm fell below 1e-14 of the cycle's residual) makes that
+    column exact: its later basis vectors are zero and its Hessenberg matrix is
+    padded with unit columns on fresh rows, which keeps the small least-squares
+    problem of full rank (its padded coefficients are 0) and the gradients finite.
+    """
+    n, batch = R.shape
+    X = torch.zeros_like(R)
+    done = 0
+    while done < K:
+        steps = min(restart, K - done)
+        r = R - A @ X
+        r = r if P is None else P * r
+        beta = r.norm(dim=0)
+        broken = beta == 0                                          # nothing left to solve
+        basis = [r / torch.where(broken, torch.ones_like(beta), beta)]
+        columns = []
+        for j in range(steps):
+            w = A @ basis[j]
+            w = w if P is None else P * w
+            V = torch.stack(basis)                                  # (j + 1, n, B)
+            h = (V * w).sum(1)                                      # classical Gram-Schmidt
+            w = w - (V * h[:, None, :]).sum(0)
+            h_next = w.norm(dim=0)
+            newly = ~broken & (h_next <= 1e-14 * beta)
+            pad = broken                                            # broken before this step
+            broken = broken | newly
+            column = torch.zeros(steps + 1, batch, dtype=R.dtype)
+            column = column + torch.nn.functional.pad(torch.where(pad, torch.zeros_like(h), h),
+                                                      (0, 0, 0, steps - j))
+            unit = torch.zeros(steps + 1, batch, dtype=R.dtype)
+            unit[j + 1] = 1.0
+            sub = torch.where(broken, torch.zeros_like(h_next), h_next)
+            column = column + unit * torch.where(pad, torch.ones_like(sub), sub)
+            columns.append(column)
+            basis.append(torch.where(broken, torch.zeros_like(w),
+                                     w / torch.where(broken, torch.ones_like(h_next), h_next)))
+        H = torch.stack(columns, dim=1).permute(2, 0, 1)            # (B, steps + 1, steps)
+        rhs = torch.zeros(batch, steps + 1, 1, dtype=R.dtype)
+        rhs = rhs + torch.nn.functional.pad(beta[:, None, None], (0, 0, 0, steps))
+        Q, T = torch.linalg.qr(H)
+        y = torch.linalg.solve_triangular(T, Q.transpose(1, 2) @ rhs, upper=True)[..., 0]   # (B, steps)
+        X = X + sum(basis[k] * y[:, k] for k in range(steps))
+        done += steps
+    return X
+
+
 def stored_values(method: str, K: int, n: int, batch: int) -> int:
     """Float values autograd keeps for a K-step solve of ``batch`` columns of size n."""
+    if method == "gmres":
+        return 3 * K * n * batch
     return METHODS[method].values_per_iteration * K * n * batch
 
 
 def solve(method: str, A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int, *,
-          omega: float = 1.0, max_values: int | None = None) -> torch.Tensor:
-    """K iterations of ``method`` on A X = R (R: (n, B)) from X = 0; returns X (n, B)."""
+          omega: float = 1.0, restart: int = 30, max_values: int | None = None) -> torch.Tensor:
+    """K iterations of ``method`` on A X = R (R: (n, B)) from X = 0; returns X (n, B).
+
+    GMRES is not checkpointed (its state is a whole Krylov basis).
+    """
+    if method == "gmres":
+        return gmres(A, P, R, K, restart)
     if method not in METHODS:
-        raise ValueError(f"method must be one of {sorted(METHODS)}, got {method!r}")
+        raise ValueError(f"method must be one of {sorted(METHODS) + ['gmres']}, got {method!r}")
     impl = METHODS[method]
     state = impl.init(A, P, R, omega)
 

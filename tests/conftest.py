@@ -9,6 +9,10 @@ from mpi4py import MPI
 from fempdl import forms, mesh
 from fempdl.ksp_adjoint import KSPOptions
 
+# The tests' tensors are small: one thread avoids thread start-up costs per op
+# and oversubscribing a shared 2-core machine (numbers do not depend on it).
+torch.set_num_threads(1)
+
 # Converged solvers: gradients must be exact (gradcheck, Taylor test).
 CONVERGED = {
     "lu": KSPOptions.preset("lu"),

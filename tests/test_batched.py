@@ -19,6 +19,10 @@ def cg(k, engine, **kw):
     return KSPOptions.preset("cg", max_it=k, engine=engine, **kw)
 
 
+def gmres(k, engine, **kw):
+    return KSPOptions.preset("gmres", max_it=k, gmres_restart=7, engine=engine, **kw)
+
+
 def solve_and_grad(layer, controls, grad_names, weights):
     inputs = {n: t.clone().requires_grad_(n in grad_names) for n, t in controls.items()}
     u = layer(**inputs)
@@ -27,12 +31,12 @@ def solve_and_grad(layer, controls, grad_names, weights):
 
 
 @pytest.mark.parametrize("k", [1, 5, 60])
-@pytest.mark.parametrize("solver", ["jacobi", "jacobi-damped", "cg"])
+@pytest.mark.parametrize("solver", ["jacobi", "jacobi-damped", "cg", "gmres"])
 @pytest.mark.parametrize("form,grad_names", [("poisson", ("f", "kappa")), ("heat", ("u0", "f", "kappa"))])
 def test_batched_engine_matches_petsc(lshape, form, grad_names, k, solver):
     prob = build(form, lshape)
     make = {"jacobi": jacobi, "jacobi-damped": lambda k, e: jacobi(k, e, petsc_options={"ksp_richardson_scale": 0.6}),
-            "cg": cg}[solver]
+            "cg": cg, "gmres": gmres}[solver]
     batched, petsc = (SolveLayer(prob, make(k, e)) for e in ("batched", "petsc"))
     controls = {n: control_values(prob, n, batch=4, seed=i) for i, n in enumerate(grad_names)}
     controls["kappa"] = controls["kappa"][0]          # shared: the matrix is the same for the batch
@@ -40,7 +44,7 @@ def test_batched_engine_matches_petsc(lshape, form, grad_names, k, solver):
     u_b, g_b = solve_and_grad(batched, controls, grad_names, w)
     u_p, g_p = solve_and_grad(petsc, controls, grad_names, w)
     # CG's recurrences amplify round-off a little over 60 iterations.
-    tol = 1e-10 if solver == "cg" else 1e-12
+    tol = 1e-10 if solver in ("cg", "gmres") else 1e-12
     assert (u_b - u_p).abs().max() <= tol * u_p.abs().max()
     for n in grad_names:
         assert (g_b[n] - g_p[n]).abs().max() <= 10 * tol * g_p[n].abs().max(), n
@@ -75,8 +79,8 @@ def test_engine_choice_per_call(lshape):
 
 def test_engine_batched_refuses_what_it_cannot_run(lshape):
     prob = build("poisson", lshape)
-    with pytest.raises(ValueError, match=r"engine='batched' cannot run these options: it implements Richardson and CG"):
-        SolveLayer(prob, KSPOptions.preset("gmres", max_it=5, engine="batched"))
+    with pytest.raises(ValueError, match=r"engine='batched' cannot run these options: it implements Richardson, CG and GMRES"):
+        SolveLayer(prob, KSPOptions(ksp_type="bcgs", pc_type="jacobi", max_it=5, engine="batched"))
     with pytest.raises(ValueError, match=r"pure iteration cap"):
         SolveLayer(prob, jacobi(5, "batched", rtol=1e-3))
     with pytest.raises(ValueError, match=r"engine must be one of"):

@@ -17,6 +17,7 @@ UNROLLED_SOLVERS = {
     "jacobi": lambda k: KSPOptions(max_it=k),
     "jacobi-damped": lambda k: KSPOptions(max_it=k, petsc_options={"ksp_richardson_scale": 0.7}),
     "cg": lambda k: KSPOptions.preset("cg", max_it=k),
+    "gmres": lambda k: KSPOptions.preset("gmres", max_it=k, gmres_restart=4),   # restarts inside K
 }
 RHS_CONTROLS = [("poisson", "f"), ("heat", "u0"), ("heat", "f")]
 
@@ -54,14 +55,15 @@ def test_jacobi_unrolled_and_implicit_gradients_agree(coarse_problems, form, con
         assert (g_unr - g_imp).abs().max() <= 1e-12 * g_imp.abs().max()
 
 
-def test_cg_unrolled_and_implicit_differ_at_small_k_and_converge_together(coarse_problems):
+@pytest.mark.parametrize("preset", ["cg", "gmres"])
+def test_krylov_unrolled_and_implicit_differ_at_small_k_and_converge_together(coarse_problems, preset):
     prob = coarse_problems["poisson"]
     f = control_values(prob, "f", batch=1)[0]
     w = torch.linspace(-1, 1, prob.output_size, dtype=torch.float64)
     exact = grad_of(SolveLayer(prob, CONVERGED["lu"]), "f", f, w)
     errors = {}
     for k in (3, 10, 60):
-        opts = KSPOptions.preset("cg", max_it=k)
+        opts = KSPOptions.preset(preset, max_it=k)
         g_unr = grad_of(SolveLayer(prob, opts, diff="unrolled"), "f", f, w)
         g_imp = grad_of(SolveLayer(prob, opts), "f", f, w)
         errors[k] = (float((g_unr - g_imp).norm() / exact.norm()), float((g_unr - exact).norm() / exact.norm()),
@@ -91,15 +93,17 @@ def test_steepest_descent_matches_its_definition_and_gradcheck():
     assert torch.autograd.gradcheck(lambda r: unrolled.solve("steepest_descent", A, None, r, 9), (Rt,))
 
 
-@pytest.mark.parametrize("method", ["jacobi", "steepest_descent", "cg"])
+@pytest.mark.parametrize("method", ["jacobi", "steepest_descent", "cg", "gmres"])
 def test_zero_rhs_and_iterations_past_convergence_stay_finite(method):
+    """Zero right-hand sides, and K far past convergence (GMRES: happy breakdown
+    within one cycle, then the exact solution), give finite values and gradients."""
     n = 12
     S = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n), format="csr")
     A, P = sparse_to_torch(S), torch.from_numpy(1.0 / S.diagonal())[:, None]
     R = torch.zeros(n, 2, dtype=torch.float64)
     R[:, 1] = torch.linspace(0, 1, n, dtype=torch.float64)     # column 0 zero, column 1 solved to round-off
     R.requires_grad_()
-    X = unrolled.solve(method, A, P, R, 400)
+    X = unrolled.solve(method, A, P, R, 400, restart=100)
     assert torch.all(X[:, 0] == 0)
     exact = np.linalg.solve(S.toarray(), R[:, 1].detach().numpy())
     np.testing.assert_allclose(X[:, 1].detach().numpy(), exact, rtol=1e-10)
@@ -134,8 +138,8 @@ def test_float32_and_unbatched(coarse_problems):
 
 def test_what_unrolled_mode_refuses(coarse_problems):
     prob = coarse_problems["poisson"]
-    with pytest.raises(ValueError, match=r"diff='unrolled' supports .*got gmres\+jacobi"):
-        SolveLayer(prob, KSPOptions.preset("gmres", max_it=5), diff="unrolled")
+    with pytest.raises(ValueError, match=r"diff='unrolled' supports .*got bcgs\+jacobi"):
+        SolveLayer(prob, KSPOptions(ksp_type="bcgs", pc_type="jacobi", max_it=5), diff="unrolled")
     with pytest.raises(ValueError, match="pure cap"):
         SolveLayer(prob, KSPOptions(max_it=5, rtol=1e-6), diff="unrolled")
     layer = SolveLayer(prob, KSPOptions(max_it=5), diff="unrolled")
