@@ -299,7 +299,11 @@ def test_bundled_mesh_loads_from_the_unpacked_wheel(wheel, tmp_path):
 def test_loading_a_mesh_keeps_the_openmp_thread_count():
     """gmsh resets OpenMP's thread count when it starts; torch shares that runtime."""
     torch = pytest.importorskip("torch")
+    before = torch.get_num_threads()
     torch.set_num_threads(2)
-    mesh.load("lshape", COMM, h=0.3)
-    mesh.load("lshape", COMM)
-    assert torch.get_num_threads() == 2
+    try:
+        mesh.load("lshape", COMM, h=0.3)
+        mesh.load("lshape", COMM)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
