@@ -123,3 +123,9 @@ def is_dirichlet_bc(obj) -> bool:
 def bc_on_space(bc, V) -> bool:
     """Whether Dirichlet condition ``bc`` constrains ``V`` or one of its subspaces."""
     return V._cpp_object.contains(bc.function_space)
+
+
+def cell_dofs(V) -> np.ndarray:
+    """(num_cells, dofs_per_cell) local DOF indices of every cell (owned and ghost)."""
+    dofs = V.dofmap.list.array
+    return dofs.reshape(-1, V.dofmap.dof_layout.num_dofs)

@@ -60,8 +60,9 @@ class SolveLayer(torch.nn.Module):
         diff: ``"implicit"`` (adjoint solve with the same cap) or ``"unrolled"``
             (autograd through the K iterations: the exact derivative of the
             capped iterate; Richardson, CG and GMRES(m) with Jacobi or no
-            preconditioner, controls that enter the right-hand side affinely
-            such as f and u0).
+            preconditioner; controls that enter the right-hand side affinely
+            (f, u0) and one control the matrix is affine in (kappa), with zero
+            Dirichlet values).
         max_unrolled_values: in unrolled mode, the number of floats the stored
             iterates may take (about K * B * n * 2-5); above it the iterations
             are checkpointed (recomputed in backward). ``None``: no bound.
@@ -99,6 +100,7 @@ class SolveLayer(torch.nn.Module):
         self.diff = diff
         self.max_unrolled_values = max_unrolled_values
         self._unrolled_cache = None
+        self._unrolled_jacobians: dict = {}
         self._system = LinearSystem(problem, options, batched_engine=BatchedEngine())
 
     @property
@@ -142,15 +144,20 @@ class SolveLayer(torch.nn.Module):
         return out if batched else out[0]
 
     def _unrolled(self, names: tuple, tensors: list, batch: int) -> torch.Tensor:
-        """u = X_K^T, X_K the K-step iterate on R = b_base + sum_m C_m m^T, all in torch."""
+        """u = X_K^T, X_K the K-step iterate on A(m) X = R, R = b_base + sum_m C_m m^T, all in torch."""
         t0 = time.perf_counter()
         options = self.options
         if not options.capped:
             raise ValueError("diff='unrolled' differentiates a capped iteration: set max_it")
-        A, P, b_base, mats = self._unrolled_operators(frozenset(names))
+        given = dict(zip(names, (t.to(device="cpu", dtype=torch.float64) for t in tensors)))
+        matrix_names = [n for n in names if n in self.problem.matrix_controls]
+        rhs_names = frozenset(names) - set(matrix_names)
+        A, P, b_base, mats = self._unrolled_operators(rhs_names)
+        if matrix_names:
+            A, P = self._unrolled_matrix(matrix_names, given)
         R = b_base.expand(-1, batch)
-        for name, t in zip(names, tensors):
-            m = t.to(device="cpu", dtype=torch.float64)
+        for name in sorted(rhs_names):
+            m = given[name]
             R = R + mats[name] @ (m.unsqueeze(1) if m.dim() == 1 else m.T)
         method = _unrolled_method(options)
         omega = float(options.petsc_options.get("ksp_richardson_scale", 1.0))
@@ -170,6 +177,31 @@ class SolveLayer(torch.nn.Module):
             out.register_hook(self._count_unrolled_backward(batch, options))
         stats.layer_time += time.perf_counter() - t0
         return out
+
+    def _unrolled_matrix(self, matrix_names: list, given: dict):
+        """A(m) and its inverse diagonal as differentiable functions of the matrix control."""
+        if len(matrix_names) > 1:
+            raise NotImplementedError(f"diff='unrolled' takes one matrix control at a time, got {matrix_names}")
+        name = matrix_names[0]
+        p = self.problem
+        if name in p.rhs_controls or not p.homogeneous_bcs():
+            raise NotImplementedError(
+                f"diff='unrolled' with respect to {name!r} needs zero Dirichlet values and {name!r} absent "
+                "from the right-hand side (else b depends on it); use diff='implicit'")
+        key = ("jacobian", name)
+        if key not in self._unrolled_jacobians:
+            pattern, v0, J = self.system.matrix_jacobian(name)
+            rows = torch.from_numpy(np.repeat(np.arange(pattern.shape[0]), np.diff(pattern.indptr)))
+            cols = torch.from_numpy(pattern.indices.astype(np.int64))
+            diagonal = torch.from_numpy(np.flatnonzero(pattern.indices == rows.numpy()))
+            self._unrolled_jacobians[key] = (rows, cols, diagonal, torch.from_numpy(v0)[:, None],
+                                             sparse_to_torch(J))
+        rows, cols, diagonal, v0, J = self._unrolled_jacobians[key]
+        m = given[name]
+        values = v0 + J @ (m.unsqueeze(1) if m.dim() == 1 else m.T)       # (nnz, B or 1)
+        d = values[diagonal]
+        P = 1.0 / torch.where(d == 0, torch.ones_like(d), d)                  # PCJACOBI: zero -> 1
+        return _EntryMatrix(rows, cols, values, len(d)), P
 
     def _count_unrolled_backward(self, batch: int, options: KSPOptions):
         def hook(grad):
@@ -301,6 +333,18 @@ class _SolveFunction(torch.autograd.Function):
             out.append(g.to(device=device, dtype=dtype))
         layer.stats.layer_time += time.perf_counter() - t0
         return (None, None, None, *out)
+
+
+class _EntryMatrix:
+    """A sparse matrix per column of X, from differentiable entry values (nnz, B)
+    on a fixed pattern: (A @ X)[:, b] = A_b X[:, b]."""
+
+    def __init__(self, rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, n: int):
+        self.rows, self.cols, self.values, self.n = rows, cols, values, n
+
+    def __matmul__(self, X: torch.Tensor) -> torch.Tensor:
+        contributions = self.values * X[self.cols]                            # (nnz, B)
+        return torch.zeros(self.n, X.shape[1], dtype=X.dtype).index_add(0, self.rows, contributions)
 
 
 def _unrolled_method(options: KSPOptions) -> str:

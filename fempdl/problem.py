@@ -35,7 +35,11 @@ import numpy as np
 import ufl
 from ufl.algorithms import expand_derivatives
 
+from mpi4py import MPI
+
 from fempdl import _dolfinx
+
+_LAND = MPI.LAND
 
 __all__ = ["Problem"]
 
@@ -57,6 +61,7 @@ class Problem:
         rhs_controls: names of controls that ``L`` depends on.
         affine_rhs_controls: controls that enter only ``L``, linearly, with a
             coefficient that depends on no control (C_m = dL/dm is constant).
+        affine_matrix_controls: matrix controls the matrix is affine in.
     """
 
     def __init__(self, a: ufl.Form, L: ufl.Form, bcs=(), controls: Mapping | None = None):
@@ -92,6 +97,12 @@ class Problem:
         self.affine_rhs_controls = frozenset(
             n for n, dL in self._rhs_derivatives.items()
             if n not in self.matrix_controls and not self._depends_on_controls(dL))
+        # Matrix controls the matrix is affine in (A(m) = A0 + sum_k m_k A_k).
+        # (The direction is a third argument: a already has a test and a trial function.)
+        self.affine_matrix_controls = frozenset(
+            n for n in self.matrix_controls
+            if self._controls[n] not in set(expand_derivatives(ufl.derivative(
+                a, self._controls[n], ufl.Argument(self._controls[n].function_space, 2))).coefficients()))
         self._gradient_forms: dict = {}
         self._rhs_matrix_forms: dict = {}
 
@@ -158,6 +169,12 @@ class Problem:
     def matrix_inputs(self) -> tuple:
         """Coefficients and constants whose values the matrix depends on."""
         return tuple(self.a.coefficients()) + tuple(self.a.constants())
+
+    def homogeneous_bcs(self) -> bool:
+        """Whether every Dirichlet value is zero (then the RHS has no lifting term)."""
+        values = [bc.g.x.array if hasattr(bc.g, "x") else np.asarray(bc.g.value) for bc in self.bcs]
+        local = all(not np.any(v) for v in values)
+        return self.V.mesh.comm.allreduce(local, op=_LAND)
 
     def rhs_inputs(self) -> tuple:
         """Coefficients and constants the right-hand side (with lifting) depends on."""

@@ -66,6 +66,7 @@ class LinearSystem:
         self._b_base: dict = {}                                # frozenset(names) -> (Vec, fingerprint)
         self._rhs_mats: dict = {}                              # name -> (Mat, vec on m, vec on V, fingerprint)
         self._grad_vecs: dict = {}                             # name -> ghosted Vec on M
+        self._jacobians: dict = {}                             # name -> (pattern, v0, J)
 
     # ------------------------------------------------------------ properties
     @property
@@ -180,6 +181,73 @@ class LinearSystem:
         keep[p.bc_dofs] = 0.0  # BC rows of b come from the boundary data alone
         mats = {name: (sp.diags(keep) @ petsc_to_scipy(self._rhs_matrix(name)[0])).tocsr() for name in sorted(names)}
         return petsc_to_scipy(self._A), b_base, mats
+
+    def matrix_jacobian(self, name: str) -> tuple:
+        """The matrix as an affine function of control ``name``: values(m) = v0 + J m.
+
+        Returns (A_pattern, v0, J): A_pattern a scipy CSR matrix whose indptr /
+        indices fix the entry order, v0 (nnz,) the entries at m = 0 (Dirichlet
+        rows and columns as assembled: identity), J (nnz, n_m) scipy CSR.
+
+        J is built with a few assemblies instead of one per DOF of m: the DOFs of
+        m are coloured so that no two of one colour share a cell with a common
+        matrix entry; assembling with m = the indicator of a colour then yields,
+        for each entry, the contribution of the single DOF of that colour which
+        touches it. Exact for forms affine in m. Serial only.
+        """
+        p = self.problem
+        if name not in p.matrix_controls:
+            raise ValueError(f"control {name!r} does not enter the matrix")
+        if name not in p.affine_matrix_controls:
+            raise NotImplementedError(f"the matrix is not affine in control {name!r}; "
+                                      "its unrolled derivative is not available (use diff='implicit')")
+        if self._comm.size > 1:
+            raise NotImplementedError("the matrix Jacobian is built on one process only")
+        m = p.control(name)
+        cached = self._jacobians.get(name)
+        if cached is not None:
+            return cached
+        m_cells = _dolfinx.cell_dofs(m.function_space)
+        v_cells = _dolfinx.cell_dofs(p.V)
+        n_m = p.control_size(name)
+        colors = _distance_two_colors(m_cells, v_cells, n_m)
+        saved = m.x.array.copy()
+        try:
+            m.x.array[:] = 0.0
+            self._assemble_matrix()
+            A0 = petsc_to_scipy(self._A).tocsr()
+            # The part that does not depend on m (e.g. a mass matrix), without the BC diagonal.
+            _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs, diagonal=0.0)
+            fixed = petsc_to_scipy(self._A).data.copy()
+            per_color = []
+            for color in range(colors.max() + 1):
+                m.x.array[:] = (colors == color).astype(float)
+                _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs, diagonal=0.0)
+                Ac = petsc_to_scipy(self._A)
+                if not (np.array_equal(Ac.indptr, A0.indptr) and np.array_equal(Ac.indices, A0.indices)):
+                    raise RuntimeError("the matrix pattern changed between assemblies")
+                per_color.append(Ac.data - fixed)
+        finally:
+            m.x.array[:] = saved
+            self._A_version += 1
+            self._A_inputs = None          # A holds a colour indicator now: reassemble next time
+        # Every (entry, m-DOF) pair that can be nonzero: both entry DOFs and the m-DOF in one cell.
+        n = A0.shape[0]
+        rows = np.repeat(v_cells, v_cells.shape[1], axis=1)          # (cells, d*d): i
+        cols = np.tile(v_cells, (1, v_cells.shape[1]))               # (cells, d*d): j
+        keys = (rows.astype(np.int64) * n + cols).ravel()
+        csr_keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(A0.indptr)) * n + A0.indices
+        entry = np.searchsorted(csr_keys, keys).reshape(rows.shape)  # CSR position of (i, j)
+        pairs_e = np.repeat(entry, m_cells.shape[1], axis=1).ravel()
+        pairs_k = np.tile(m_cells, (1, entry.shape[1])).ravel()
+        pairs = np.unique(np.stack([pairs_e, pairs_k]), axis=1)
+        pairs = pairs[:, pairs[1] < n_m]
+        values = np.stack(per_color)[colors[pairs[1]], pairs[0]]
+        J = sp.csr_matrix((values, (pairs[0], pairs[1])), shape=(A0.nnz, n_m))
+        J.eliminate_zeros()
+        result = (A0, A0.data.copy(), J)
+        self._jacobians[name] = result
+        return result
 
     @property
     def matrix_version(self) -> int:
@@ -339,6 +407,26 @@ class _Zeroed:
     def __exit__(self, *exc):
         for fn, saved in zip(self._fns, self._saved):
             fn.x.array[:] = saved
+
+
+def _distance_two_colors(m_cells: np.ndarray, v_cells: np.ndarray, n_m: int) -> np.ndarray:
+    """Greedy colouring of the DOFs of m: two DOFs get different colours when cells
+    containing them share a DOF of the solution space (so they may touch a common
+    matrix entry)."""
+    n_cells = m_cells.shape[0]
+    n_v = int(v_cells.max()) + 1
+    cells_of_m = sp.csr_matrix((np.ones(m_cells.size), (m_cells.ravel(), np.repeat(np.arange(n_cells),
+                               m_cells.shape[1]))), shape=(int(m_cells.max()) + 1, n_cells))
+    v_of_cell = sp.csr_matrix((np.ones(v_cells.size), (np.repeat(np.arange(n_cells), v_cells.shape[1]),
+                              v_cells.ravel())), shape=(n_cells, n_v))
+    touch = (cells_of_m @ v_of_cell).tocsr()
+    graph = (touch @ touch.T).tocsr()
+    colors = np.full(graph.shape[0], -1, dtype=np.int64)
+    for k in range(graph.shape[0]):
+        used = colors[graph.indices[graph.indptr[k]:graph.indptr[k + 1]]]
+        free = np.setdiff1d(np.arange(len(used) + 1), used[used >= 0])
+        colors[k] = free[0]
+    return colors
 
 
 def _set_owned(fn, values: np.ndarray, n_owned: int) -> None:

@@ -136,12 +136,53 @@ def test_float32_and_unbatched(coarse_problems):
     torch.testing.assert_close(layer(f=f[0]), layer(f=f)[0], rtol=0, atol=0)
 
 
-def test_what_unrolled_mode_refuses(coarse_problems):
+@pytest.mark.parametrize("solver", ["jacobi", "cg", "gmres"])
+@pytest.mark.parametrize("k", [1, 12])
+@pytest.mark.parametrize("form,other", [("poisson", "f"), ("heat", "u0")])
+def test_unrolled_matrix_control_gradcheck_and_forward(coarse_problems, form, other, k, solver):
+    """kappa enters the matrix: the entries are an exact affine function of it (J),
+    and autograd through the K iterations with per-sample matrices is the exact VJP."""
+    prob = coarse_problems[form]
+    opts = UNROLLED_SOLVERS[solver](k)
+    layer = SolveLayer(prob, opts, diff="unrolled")
+    kappa = control_values(prob, "kappa", batch=2)
+    m = control_values(prob, other, batch=2)
+    u = layer(**{other: m, "kappa": kappa})
+    u_petsc = SolveLayer(prob, KSPOptions(**{**opts.__dict__, "engine": "petsc"}))(**{other: m, "kappa": kappa})
+    assert (u - u_petsc).abs().max() <= 1e-12 * u_petsc.abs().max()
+    assert torch.autograd.gradcheck(lambda a, b: layer(**{other: a, "kappa": b}),
+                                    (m.requires_grad_(), kappa.requires_grad_()), eps=1e-6, atol=1e-8, rtol=1e-6)
+
+
+@pytest.mark.parametrize("form", ["poisson-p2-dg0", "heat"])
+def test_matrix_jacobian_reproduces_the_assembled_matrix(coarse_lshape, form):
+    from conftest import build
+    from fempdl import _dolfinx
+    from fempdl.ksp_adjoint import petsc_to_scipy
+    prob = build(form, coarse_lshape)
+    layer = SolveLayer(prob, KSPOptions(max_it=3))
+    pattern, v0, J = layer.system.matrix_jacobian("kappa")
+    kappa = control_values(prob, "kappa", batch=1)[0].numpy()
+    fn = prob.control("kappa")
+    fn.x.array[: len(kappa)] = kappa
+    A = _dolfinx.create_matrix(prob.a_form)
+    _dolfinx.assemble_matrix_into(A, prob.a_form, prob.bcs)
+    S = petsc_to_scipy(A)
+    assert np.array_equal(S.indices, pattern.indices)
+    np.testing.assert_allclose(v0 + J @ kappa, S.data, rtol=0, atol=1e-13 * np.abs(S.data).max())
+    assert J.shape == (S.nnz, prob.control_size("kappa")) and J.nnz < 40 * prob.control_size("kappa")
+
+
+def test_what_unrolled_mode_refuses(coarse_problems, coarse_lshape):
+    from conftest import build
     prob = coarse_problems["poisson"]
     with pytest.raises(ValueError, match=r"diff='unrolled' supports .*got bcgs\+jacobi"):
         SolveLayer(prob, KSPOptions(ksp_type="bcgs", pc_type="jacobi", max_it=5), diff="unrolled")
     with pytest.raises(ValueError, match="pure cap"):
         SolveLayer(prob, KSPOptions(max_it=5, rtol=1e-6), diff="unrolled")
-    layer = SolveLayer(prob, KSPOptions(max_it=5), diff="unrolled")
-    with pytest.raises(NotImplementedError, match=r"unrolled differentiation with respect to \['kappa'\]"):
-        layer(kappa=control_values(prob, "kappa", batch=2))
+    lifted = build("poisson", coarse_lshape, g=1.0)
+    with pytest.raises(NotImplementedError, match=r"needs zero Dirichlet values"):
+        SolveLayer(lifted, KSPOptions(max_it=5), diff="unrolled")(kappa=control_values(lifted, "kappa", batch=2))
+    theta_half = coarse_problems["heat-cn"]                       # kappa also in the right-hand side
+    with pytest.raises(NotImplementedError, match=r"absent from the right-hand side"):
+        SolveLayer(theta_half, KSPOptions(max_it=5), diff="unrolled")(kappa=control_values(theta_half, "kappa", 2))
