@@ -133,9 +133,9 @@ class KSPOptions:
             once, one sparse-times-dense product per iteration
             (:mod:`fempdl.batched`; capped Richardson or CG with Jacobi or no
             preconditioner, serial; used whenever the call's matrix is shared
-            by the batch). ``"auto"`` (default): batched where supported and
+            by the batch). ``"auto"`` (default): batched for Richardson where
             faster (B >= 2, and two or more torch threads or n * B <= 2^20),
-            PETSc otherwise. ``SolveStats.engine`` reports which ran.
+            PETSc otherwise (batched CG/GMRES measured slower than PETSc). ``SolveStats.engine`` reports which ran.
     """
 
     ksp_type: str = "richardson"

@@ -261,7 +261,11 @@ class LinearSystem:
             return False
         if self._batched.unsupported_reason(self.options, self._comm.size) is not None:
             return False  # e.g. the cap was lifted to max_it=None after construction
-        return self.options.engine == "batched" or self._batched.faster_than_petsc(batch, self.problem.output_size)
+        if self.options.engine == "batched":
+            return True
+        # Measured (scripts/bench_unrolled.py): batched CG/GMRES is slower than PETSc's loop.
+        return self.options.ksp_type == "richardson" and self._batched.faster_than_petsc(
+            batch, self.problem.output_size)
 
     def _batched_solve(self, R: np.ndarray, direction: str) -> np.ndarray:
         """All rows of R at once on the batched engine; stats recorded per sample."""
