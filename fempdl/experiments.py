@@ -96,6 +96,14 @@ def source_modes(coords: np.ndarray, count: int) -> np.ndarray:
     return np.stack([np.prod(np.sin(np.pi * p * unit), axis=1) for p in range(1, count + 1)], axis=1)
 
 
+def optimisation_step(optimizer, loss: torch.Tensor) -> float:
+    """One step of ``optimizer`` on ``loss``; returns the loss value."""
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+    return loss.item()
+
+
 class EmulatorTask:
     """Network step u0 -> u1, capped heat layer u1 -> u2, loss nMSE(u2, u2_ref)."""
 
@@ -133,11 +141,7 @@ class EmulatorTask:
 
     def train_step(self, idx) -> float:
         u2 = self.layer(u0=self.model(self.train_u0[idx]))
-        loss = nmse(u2, self.train_u2[idx])
-        self.optimizer.zero_grad()
-        loss.backward()
-        self.optimizer.step()
-        return loss.item()
+        return optimisation_step(self.optimizer, nmse(u2, self.train_u2[idx]))
 
     def validate(self) -> float:
         with torch.no_grad():
@@ -180,11 +184,7 @@ class InverseTask:
 
     def train_step(self, idx) -> float:
         u = self.layer(f=self.modes @ self.model.theta)
-        loss = nmse(u, self.u_ref)
-        self.optimizer.zero_grad()
-        loss.backward()
-        self.optimizer.step()
-        return loss.item()
+        return optimisation_step(self.optimizer, nmse(u, self.u_ref))
 
     def validate(self) -> float:
         with torch.no_grad():

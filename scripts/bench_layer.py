@@ -65,7 +65,6 @@ import json
 import os
 import platform
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -83,6 +82,7 @@ from petsc4py import PETSc
 
 import fempdl
 from fempdl.bridge_torch import SolveLayer
+from fempdl.training import write_atomically
 from fempdl.ksp_adjoint import KSPOptions
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.meshgen)
@@ -401,10 +401,7 @@ def machine_info() -> dict:
 
 def write_json_atomically(data: dict, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=path.name, suffix=".tmp",
-                                     delete=False) as tmp:
-        json.dump(data, tmp, indent=2)
-    os.replace(tmp.name, path)
+    write_atomically(path, lambda p: p.write_text(json.dumps(data, indent=2)))
 
 
 # ---------------------------------------------------------------------- CLI

@@ -146,6 +146,7 @@ import fempdl
 import fempdl.meshgen
 from fempdl import unrolled
 from fempdl.bridge_torch import SolveLayer
+from fempdl.training import write_atomically
 from fempdl.ksp_adjoint import KSPOptions
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.meshgen)
@@ -572,10 +573,7 @@ def machine_info() -> dict:
 
 def write_json_atomically(data: dict, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=path.name, suffix=".tmp",
-                                     delete=False) as tmp:
-        json.dump(data, tmp, indent=2)
-    os.replace(tmp.name, path)
+    write_atomically(path, lambda p: p.write_text(json.dumps(data, indent=2)))
 
 
 # ---------------------------------------------------------------------- CLI
