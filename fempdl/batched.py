@@ -22,29 +22,18 @@ This module knows PETSc and torch, nothing of UFL.
 from __future__ import annotations
 
 import time
-import warnings
 
 import numpy as np
-import scipy.sparse as sp
 import torch
 from petsc4py import PETSc
 
 from fempdl import unrolled
 from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
+from fempdl.sparse import sparse_to_torch
 
-__all__ = ["BatchedEngine", "sparse_to_torch"]
+__all__ = ["BatchedEngine"]
 
 _OWN_OPTIONS = frozenset({"ksp_richardson_scale"})
-
-
-def sparse_to_torch(M: sp.csr_matrix) -> torch.Tensor:
-    """A scipy CSR matrix as a float64 torch CSR tensor (copies)."""
-    with warnings.catch_warnings():
-        # torch flags CSR support as beta; sparse @ dense used here is stable.
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-        return torch.sparse_csr_tensor(
-            torch.from_numpy(M.indptr.astype(np.int64)), torch.from_numpy(M.indices.astype(np.int64)),
-            torch.from_numpy(M.data.astype(np.float64)), size=M.shape, check_invariants=False)
 
 
 class BatchedEngine:

@@ -35,9 +35,10 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from fempdl import unrolled
-from fempdl.batched import BatchedEngine, sparse_to_torch
+from fempdl.batched import BatchedEngine
 from fempdl.ksp_adjoint import CumulativeStats, KSPOptions, capped_solve_stats, warn_at_caller
 from fempdl.problem import Problem
+from fempdl.sparse import SparseOperator
 from fempdl.system import LinearSystem
 
 __all__ = ["SolveLayer", "DIFF_MODES"]
@@ -195,7 +196,7 @@ class SolveLayer(torch.nn.Module):
             cols = torch.from_numpy(pattern.indices.astype(np.int64))
             diagonal = torch.from_numpy(np.flatnonzero(pattern.indices == rows.numpy()))
             self._unrolled_jacobians[key] = (rows, cols, diagonal, torch.from_numpy(v0)[:, None],
-                                             sparse_to_torch(J))
+                                             SparseOperator.from_scipy(J))
         rows, cols, diagonal, v0, J = self._unrolled_jacobians[key]
         m = given[name]
         values = v0 + J @ (m.unsqueeze(1) if m.dim() == 1 else m.T)       # (nnz, B or 1)
@@ -218,8 +219,8 @@ class SolveLayer(torch.nn.Module):
             key = (names, self.system.matrix_version)
             d = A.diagonal()
             P = torch.from_numpy(1.0 / np.where(d != 0.0, d, 1.0))[:, None]  # as PCJACOBI
-            self._unrolled_cache = (key, (sparse_to_torch(A), P, torch.from_numpy(b_base)[:, None],
-                                          {n: sparse_to_torch(C) for n, C in mats.items()}))
+            self._unrolled_cache = (key, (SparseOperator.from_scipy(A), P, torch.from_numpy(b_base)[:, None],
+                                          {n: SparseOperator.from_scipy(C) for n, C in mats.items()}))
         return self._unrolled_cache[1]
 
     def _report_overflow(self, dtype) -> None:
@@ -342,9 +343,38 @@ class _EntryMatrix:
     def __init__(self, rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, n: int):
         self.rows, self.cols, self.values, self.n = rows, cols, values, n
 
+    @property
+    def requires_grad(self) -> bool:
+        return self.values.requires_grad
+
     def __matmul__(self, X: torch.Tensor) -> torch.Tensor:
-        contributions = self.values * X[self.cols]                            # (nnz, B)
-        return torch.zeros(self.n, X.shape[1], dtype=X.dtype).index_add(0, self.rows, contributions)
+        return _EntryMatMul.apply(self.values, X, self.rows, self.cols, self.n)
+
+
+class _EntryMatMul(torch.autograd.Function):
+    """(A_b X[:, b])_b from entries (nnz, B or 1); keeps values and X (n, B),
+    not the (nnz, B) products autograd would keep through index_add."""
+
+    @staticmethod
+    def forward(ctx, values, X, rows, cols, n):
+        ctx.save_for_backward(values, X)
+        ctx.rows, ctx.cols, ctx.n = rows, cols, n
+        return torch.zeros(n, X.shape[1], dtype=X.dtype).index_add_(0, rows, values * X[cols])
+
+    @staticmethod
+    def backward(ctx, grad):
+        values, X = ctx.saved_tensors
+        rows, cols = ctx.rows, ctx.cols
+        grad_values = grad_X = None
+        if ctx.needs_input_grad[0]:
+            grad_values = grad[rows] * X[cols]                              # d(A_b x_b)/d a_ij = x_j
+            if values.shape[1] == 1 and grad_values.shape[1] > 1:
+                grad_values = grad_values.sum(1, keepdim=True)              # shared matrix
+        if ctx.needs_input_grad[1]:
+            grad_X = torch.zeros_like(grad).index_add_(0, cols, values * grad[rows])  # A_b^T g_b
+            if X.shape[1] == 1 and grad.shape[1] > 1:
+                grad_X = grad_X.sum(1, keepdim=True)
+        return grad_values, grad_X, None, None, None
 
 
 def _unrolled_method(options: KSPOptions) -> str:

@@ -17,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from fempdl.batched import sparse_to_torch
+from fempdl.sparse import sparse_to_torch
 
 __all__ = ["ResidualMLP", "GraphConvNet", "normalised_adjacency"]
 

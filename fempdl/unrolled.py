@@ -15,7 +15,8 @@ iterate (not of the converged solution). Methods:
 * ``"gmres"`` — left-preconditioned GMRES(m) with classical Gram-Schmidt and
   restarts, the iterate of KSPGMRES (see :func:`gmres`).
 
-A is a torch CSR matrix (constant), P the inverse diagonal (n, 1) or None.
+A is a constant :class:`fempdl.sparse.SparseOperator` (or anything with ``@``), P the
+inverse diagonal (n, 1) or None.
 No 0/0 can occur: when a column's residual vanishes (a zero right-hand side),
 or has fallen by 1e-20 from its start (far past double precision), its step
 lengths are 0 and the column stays where it is; forward values and gradients
@@ -51,20 +52,15 @@ def _safe_ratio(num: torch.Tensor, den: torch.Tensor, solved: torch.Tensor | Non
 
 
 class _Jacobi:
-    values_per_iteration = 2
-
     def init(self, A, P, R, omega):
         return (torch.zeros_like(R),)
 
     def step(self, A, P, R, omega, state):
         (X,) = state
-        step = omega if P is None else P * omega
-        return (X + step * (R - A @ X),)
+        return (X + omega * (R - A @ X),)
 
 
 class _SteepestDescent:
-    values_per_iteration = 4
-
     def init(self, A, P, R, omega):
         return (torch.zeros_like(R), R)
 
@@ -77,8 +73,6 @@ class _SteepestDescent:
 
 
 class _ConjugateGradient:
-    values_per_iteration = 5
-
     def init(self, A, P, R, omega):
         z = R if P is None else P * R
         beta = (R * z).sum(0)
@@ -126,9 +120,10 @@ def gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int, rest
         for j in range(steps):
             w = A @ basis[j]
             w = w if P is None else P * w
-            V = torch.stack(basis)                                  # (j + 1, n, B)
-            h = (V * w).sum(1)                                      # classical Gram-Schmidt
-            w = w - (V * h[:, None, :]).sum(0)
+            # Classical Gram-Schmidt, one basis vector at a time: stacking the
+            # basis would give autograd a new (j + 1, n, B) copy to keep per step.
+            h = torch.stack([(v * w).sum(0) for v in basis])       # (j + 1, B)
+            w = w - sum(v * h[k] for k, v in enumerate(basis))
             h_next = w.norm(dim=0)
             newly = ~broken & (h_next <= 1e-14 * beta)
             pad = broken                                            # broken before this step
@@ -153,11 +148,20 @@ def gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int, rest
     return X
 
 
-def stored_values(method: str, K: int, n: int, batch: int) -> int:
-    """Float values autograd keeps for a K-step solve of ``batch`` columns of size n."""
-    if method == "gmres":
-        return 3 * K * n * batch
-    return METHODS[method].values_per_iteration * K * n * batch
+# Floats autograd keeps per iteration, in units of n * B, with a constant operator
+# and with one whose entries are differentiated (a matrix control), counted
+# with saved-tensor hooks. Jacobi with a constant operator keeps nothing: it is
+# linear in X, fempdl.sparse.SparseOperator keeps no operand, and its step
+# tensor is built once.
+_STORED_PER_ITERATION = {"jacobi": (0, 2), "steepest_descent": (2, 2), "cg": (4, 4), "gmres": (4, 5)}
+
+
+def stored_values(method: str, K: int, n: int, batch: int, *, matrix_grad: bool = False) -> int:
+    """Float values autograd keeps for a K-step solve of ``batch`` columns of size n
+    (``matrix_grad``: the operator's entries require grad)."""
+    if method not in _STORED_PER_ITERATION:
+        raise ValueError(f"method must be one of {sorted(_STORED_PER_ITERATION)}, got {method!r}")
+    return _STORED_PER_ITERATION[method][int(matrix_grad)] * K * n * batch
 
 
 def solve(method: str, A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int, *,
@@ -171,6 +175,9 @@ def solve(method: str, A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor,
     if method not in METHODS:
         raise ValueError(f"method must be one of {sorted(METHODS) + ['gmres']}, got {method!r}")
     impl = METHODS[method]
+    if method == "jacobi":
+        # One step tensor for all iterations: omega D^{-1}, or omega alone.
+        omega = omega if P is None else P * omega
     state = impl.init(A, P, R, omega)
 
     def run(count, *s):
@@ -178,7 +185,8 @@ def solve(method: str, A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor,
             s = impl.step(A, P, R, omega, s)
         return s
 
-    if max_values is None or not torch.is_grad_enabled() or stored_values(method, K, *R.shape) <= max_values:
+    stored = stored_values(method, K, *R.shape, matrix_grad=bool(getattr(A, "requires_grad", False)))
+    if max_values is None or not torch.is_grad_enabled() or stored <= max_values:
         return run(K, *state)[0]
     segment = max(1, int(math.sqrt(K)))
     done = 0

@@ -46,7 +46,8 @@ Measured per (size, solver, K):
 (3) at the largest K: unrolled with checkpointing, ``max_unrolled_values`` set
     to a tenth of the stored size (the iterations then run in checkpointed
     segments of about sqrt(K), recomputed in backward): its time and memory
-    over plain unrolled.
+    over plain unrolled. Not for Jacobi, whose unrolled solve keeps no
+    per-iteration state (``stored_values`` is 0).
 
 Checks (on the warm-up calls; max over samples of ||a_i - b_i|| / ||b_i||,
 all recorded): the forward outputs of unrolled and implicit (default engine)
@@ -356,10 +357,11 @@ def measure_memory_repeated(size: str, solver: str, K: int, variant: str, args, 
 def bench_config(layers: dict, size: str, solver: str, K: int, F, W, args, heavy: bool,
                  largest_k: bool) -> dict:
     n, batch = F.shape[1], F.shape[0]
-    names = [v for v in VARIANTS if largest_k or v != "unrolled_checkpointed"]
+    limit = checkpoint_limit(solver, K, n, batch)
+    # Checkpointing needs something to bound: Jacobi keeps no per-iteration state.
+    names = [v for v in VARIANTS if (largest_k and limit > 0) or v != "unrolled_checkpointed"]
     for v in names:
         layers[v].max_it = K
-    limit = checkpoint_limit(solver, K, n, batch)
     layers["unrolled_checkpointed"].max_unrolled_values = limit
     # Warm-up, also the correctness check and the engine each variant ran on.
     warm = {}

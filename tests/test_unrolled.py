@@ -7,7 +7,7 @@ import scipy.sparse as sp
 import torch
 
 from fempdl import unrolled
-from fempdl.batched import sparse_to_torch
+from fempdl.sparse import sparse_to_torch
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 
@@ -122,6 +122,55 @@ def test_checkpointing_gives_the_same_gradient(coarse_problems):
     bounded = SolveLayer(prob, opts, diff="unrolled", max_unrolled_values=1000)
     assert unrolled.stored_values("cg", 25, prob.output_size, 4) > 1000
     torch.testing.assert_close(grad_of(bounded, "u0", u0, w), full, rtol=1e-13, atol=1e-15)
+
+
+@pytest.mark.parametrize("method", ["jacobi", "steepest_descent", "cg", "gmres"])
+@pytest.mark.parametrize("matrix_grad", [False, True])
+def test_stored_values_bounds_what_autograd_keeps(method, matrix_grad):
+    """stored_values is the memory statement users size max_unrolled_values by:
+    count the distinct storages autograd saves (saved-tensor hooks) at two K and
+    check the per-iteration growth against it; Jacobi on a constant operator keeps none."""
+    from fempdl.bridge_torch import _EntryMatrix
+    n, batch = 300, 3
+    S = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n)).tocoo()
+    rows, cols = torch.from_numpy(S.row.astype(np.int64)), torch.from_numpy(S.col.astype(np.int64))
+
+    def saved_floats(K):
+        values = torch.from_numpy(S.data)[:, None].repeat(1, batch).requires_grad_(matrix_grad)
+        if matrix_grad:
+            A = _EntryMatrix(rows, cols, values, n)
+        else:
+            from fempdl.sparse import SparseOperator
+            A = SparseOperator.from_scipy(S)
+        P = 1.0 / values[rows == cols]
+        R = torch.randn(n, batch, dtype=torch.float64, generator=torch.Generator().manual_seed(0)).requires_grad_()
+        seen = {}
+
+        def pack(t):
+            seen[t.untyped_storage().data_ptr()] = t.untyped_storage().nbytes() // 8
+            return t
+        with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+            unrolled.solve(method, A, P, R, K, restart=5)
+        return sum(seen.values())
+
+    growth = saved_floats(30) - saved_floats(10)
+    bound = unrolled.stored_values(method, 20, n, batch, matrix_grad=matrix_grad)
+    scalars = 20 * 10 * batch                        # step lengths: a few per column and iteration
+    assert growth <= bound + scalars
+    assert growth >= 0.5 * bound                     # the statement is not a loose overestimate
+    if method == "jacobi" and not matrix_grad:
+        assert bound == 0 and growth == 0
+
+
+def test_checkpointing_a_matrix_control_gives_the_same_gradient(coarse_problems):
+    prob = coarse_problems["poisson"]
+    kappa = control_values(prob, "kappa", batch=3)
+    w = torch.randn(3, prob.output_size, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    opts = KSPOptions(max_it=16)
+    full = grad_of(SolveLayer(prob, opts, diff="unrolled"), "kappa", kappa, w)
+    assert unrolled.stored_values("jacobi", 16, prob.output_size, 3, matrix_grad=True) > 500
+    bounded = SolveLayer(prob, opts, diff="unrolled", max_unrolled_values=500)
+    torch.testing.assert_close(grad_of(bounded, "kappa", kappa, w), full, rtol=1e-13, atol=1e-15)
 
 
 def test_float32_and_unbatched(coarse_problems):
