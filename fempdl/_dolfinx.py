@@ -35,6 +35,42 @@ def function_space(msh, family: str, degree: int, shape: tuple | None = None):
     return dolfinx.fem.VectorFunctionSpace(msh, (family, degree), dim=shape[0])
 
 
+def taylor_hood_space(msh, degree: int = 2):
+    """The mixed space P_degree (vector) x P_(degree-1) of velocity and pressure."""
+    import ufl
+
+    velocity = ufl.VectorElement("Lagrange", msh.ufl_cell(), degree)
+    pressure = ufl.FiniteElement("Lagrange", msh.ufl_cell(), degree - 1)
+    return dolfinx.fem.FunctionSpace(msh, ufl.MixedElement([velocity, pressure]))
+
+
+def collapsed_subspace(W, index: int):
+    """(space, owned_dofs): subspace ``index`` of the mixed space W collapsed,
+    and the owned local DOF indices in W of its owned DOFs, in its own order."""
+    space, dofs = W.sub(index).collapse()
+    n_owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+    return space, np.asarray(dofs[:n_owned], dtype=np.int32)
+
+
+def dirichlet_bc_on_subspace(W, index: int, value, facets: np.ndarray):
+    """A Dirichlet condition on subspace ``index`` of W (value: a Function on
+    the collapsed subspace) on the DOFs of ``facets``."""
+    fdim = W.mesh.topology.dim - 1
+    sub = W.sub(index)
+    dofs = dolfinx.fem.locate_dofs_topological((sub, value.function_space), fdim, facets)
+    return dolfinx.fem.dirichletbc(value, dofs, sub)
+
+
+def cell_diameters(msh) -> np.ndarray:
+    """Diameter (largest vertex distance) of every local cell of an affine mesh."""
+    x = msh.geometry.x
+    n_cells = msh.topology.index_map(msh.topology.dim).size_local
+    cells = msh.geometry.dofmap.array.reshape(-1, msh.ufl_cell().num_vertices())[:n_cells]
+    corners = x[cells]                                                    # (cells, vertices, 3)
+    gaps = np.linalg.norm(corners[:, :, None, :] - corners[:, None, :, :], axis=-1)
+    return gaps.reshape(n_cells, -1).max(axis=1)
+
+
 def compile_form(ufl_form):
     """JIT-compile a UFL form (cached on disk by FFCx)."""
     return dolfinx.fem.form(ufl_form)

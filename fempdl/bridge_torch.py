@@ -97,6 +97,9 @@ class SolveLayer(torch.nn.Module):
             _unrolled_method(options)  # validates
             if problem.V.mesh.comm.size > 1:
                 raise ValueError("diff='unrolled' runs on one process; use diff='implicit' under MPI")
+            if len(problem.nullspace):
+                raise ValueError("diff='unrolled' does not project out the operator's null space (an enclosed "
+                                 "flow's pressure constant); use diff='implicit'")
         self.problem = problem
         self.diff = diff
         self.max_unrolled_values = max_unrolled_values

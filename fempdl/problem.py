@@ -62,9 +62,23 @@ class Problem:
         affine_rhs_controls: controls that enter only ``L``, linearly, with a
             coefficient that depends on no control (C_m = dL/dm is constant).
         affine_matrix_controls: matrix controls the matrix is affine in.
+        fields: ``{name: owned DOF indices}`` of the subspaces of a mixed
+            solution space (e.g. ``"u"`` and ``"p"``), in each collapsed
+            subspace's DOF order; empty for a single space. Fieldsplit
+            preconditioners and :meth:`split` use them.
+        nullspace: orthonormal (k, n) array spanning the null space of A and of
+            A^T (owned DOF values), e.g. the pressure constant of an enclosed
+            flow; (0, n) when A is regular. Solves return the solution
+            orthogonal to it (see :class:`fempdl.ksp_adjoint.CappedSolver`).
+
+    Keyword Args:
+        fields: ``{name: subspace index}`` of a mixed solution space.
+        nullspace: vectors (owned DOF values, any basis) spanning the common
+            null space of A and A^T.
     """
 
-    def __init__(self, a: ufl.Form, L: ufl.Form, bcs=(), controls: Mapping | None = None):
+    def __init__(self, a: ufl.Form, L: ufl.Form, bcs=(), controls: Mapping | None = None, *,
+                 fields: Mapping[str, int] | None = None, nullspace=()):
         if not isinstance(a, ufl.Form) or len(a.arguments()) != 2:
             raise TypeError(f"a must be a bilinear UFL form (two arguments), got {_describe_form(a)}")
         if not isinstance(L, ufl.Form) or len(L.arguments()) != 1:
@@ -109,6 +123,13 @@ class Problem:
         imap = self.V.dofmap.index_map
         self._n_owned = imap.size_local * self.V.dofmap.index_map_bs
         self.bc_dofs = _dolfinx.bc_dofs_owned(self.bcs, self._n_owned)
+        self._field_spaces = {}
+        self.fields = {}
+        for name, index in (fields or {}).items():
+            space, dofs = _dolfinx.collapsed_subspace(self.V, index)
+            self._field_spaces[name] = space
+            self.fields[name] = dofs
+        self.nullspace = _orthonormal(nullspace, self._n_owned, self.V.mesh.comm)
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -141,6 +162,23 @@ class Problem:
         fn.interpolate(expression)
         n = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
         return fn.x.array[:n].copy()
+
+    def split(self, values) -> dict:
+        """The field parts of solution values (..., n) (a tensor or an array):
+        ``{name: values[..., fields[name]]}``, each in its collapsed subspace's
+        DOF order (so a velocity can be fed back as a control on that space)."""
+        if not self.fields:
+            raise ValueError("this problem has a single solution space; there is nothing to split")
+        if values.shape[-1] != self._n_owned:
+            raise ValueError(f"values have {values.shape[-1]} entries in the last dimension, expected "
+                             f"{self._n_owned} (problem.output_size)")
+        return {name: values[..., dofs] for name, dofs in self.fields.items()}
+
+    def field_space(self, name: str):
+        """The collapsed function space of field ``name``."""
+        if name not in self._field_spaces:
+            raise ValueError(f"unknown field {name!r}; this problem's fields are {list(self.fields)}")
+        return self._field_spaces[name]
 
     # ------------------------------------------------- derivative information
     def gradient_form(self, name: str):
@@ -223,6 +261,22 @@ def _validated_controls(controls: Mapping, a: ufl.Form, L: ufl.Form, msh) -> dic
                              "object when building the forms")
         out[name] = fn
     return out
+
+
+def _orthonormal(vectors, n: int, comm) -> np.ndarray:
+    """Orthonormalise (Gram-Schmidt, global dot products) rows of owned DOF values."""
+    basis = []
+    for i, v in enumerate(vectors):
+        v = np.array(v, dtype=np.float64).reshape(-1)
+        if v.shape != (n,):
+            raise ValueError(f"nullspace[{i}] has {v.size} values, expected {n} (owned DOFs of the solution)")
+        for w in basis:
+            v = v - comm.allreduce(float(w @ v)) * w
+        norm = np.sqrt(comm.allreduce(float(v @ v)))
+        if not np.isfinite(norm) or norm == 0:
+            raise ValueError(f"nullspace[{i}] is zero or depends on the vectors before it")
+        basis.append(v / norm)
+    return np.array(basis).reshape(len(basis), n)
 
 
 def _describe_form(form) -> str:

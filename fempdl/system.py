@@ -50,17 +50,20 @@ class LinearSystem:
         self._comm = problem.V.mesh.comm
         if options.engine == "batched":
             reason = ("no batched engine was given" if batched_engine is None
+                      else "the operator has a null space (the engine does not project it out)"
+                      if len(problem.nullspace)
                       else batched_engine.unsupported_reason(options, self._comm.size))
             if reason is not None:
                 raise ValueError(f"engine='batched' cannot run these options: {reason}; "
                                  "use engine='auto' or engine='petsc'")
         self.problem = problem
-        self._batched = None if options.engine == "petsc" else batched_engine
+        self._batched = None if options.engine == "petsc" or len(problem.nullspace) else batched_engine
         self._batched_version = -1                             # A version the batched copy holds
         self._A = _dolfinx.create_matrix(problem.a_form)
         self._b = _dolfinx.create_vector(problem.L_form)       # ghosted: assembly target
         self._x, self._rhs = self._A.createVecs()              # solution / transposed RHS
-        self._solver = CappedSolver(self._A, options)
+        self._nullspace = _attach_nullspace(self._A, problem.nullspace)
+        self._solver = CappedSolver(self._A, options, fields=problem.fields or None)
         self._A_inputs = None                                  # fingerprint of the assembled A
         self._A_version = 0                                    # bumped at every assembly of A
         self._b_base: dict = {}                                # frozenset(names) -> (Vec, fingerprint)
@@ -286,7 +289,7 @@ class LinearSystem:
     def destroy(self) -> None:
         """Free the PETSc objects (the system is unusable afterwards)."""
         self._solver.destroy()
-        objs = [self._A, self._b, self._x, self._rhs]
+        objs = [self._A, self._b, self._x, self._rhs] + ([self._nullspace] if self._nullspace else [])
         objs += [v for v, _ in self._b_base.values()]
         objs += [o for C, vin, out, _ in self._rhs_mats.values() for o in (C, vin, out)]
         objs += list(self._grad_vecs.values())
@@ -411,6 +414,23 @@ class _Zeroed:
     def __exit__(self, *exc):
         for fn, saved in zip(self._fns, self._saved):
             fn.x.array[:] = saved
+
+
+def _attach_nullspace(A: PETSc.Mat, basis: np.ndarray):
+    """Attach the (orthonormal, owned values) null space of A and A^T to A."""
+    if not len(basis):
+        return None
+    vectors = []
+    for values in basis:
+        vec = A.createVecRight()
+        vec.setArray(values)
+        vectors.append(vec)
+    nsp = PETSc.NullSpace().create(vectors=vectors, comm=A.getComm())
+    A.setNullSpace(nsp)
+    A.setTransposeNullSpace(nsp)
+    for vec in vectors:
+        vec.destroy()
+    return nsp
 
 
 def _distance_two_colors(m_cells: np.ndarray, v_cells: np.ndarray, n_m: int) -> np.ndarray:

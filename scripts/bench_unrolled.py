@@ -402,7 +402,7 @@ def bench_config(layers: dict, size: str, solver: str, K: int, F, W, args, heavy
         "memory_unrolled_over_implicit": ratio(mem.get("unrolled"), mem.get("implicit")),
         "engine_speedup_petsc_over_batched": t["implicit_petsc"] / t["implicit_batched"],
     }
-    if largest_k:
+    if "unrolled_checkpointed" in t:
         ratios["checkpointed_time_over_unrolled"] = t["unrolled_checkpointed"] / t["unrolled"]
         ratios["checkpointed_memory_over_unrolled"] = ratio(mem.get("unrolled_checkpointed"), mem.get("unrolled"))
     return {

@@ -2,7 +2,10 @@
 
 * :mod:`fempdl.forms.poisson` — -div(kappa grad u) = f, controls f, kappa.
 * :mod:`fempdl.forms.heat` — one theta-step of the heat equation, controls u0, f, kappa.
+* :mod:`fempdl.forms.stokes` — steady Stokes flow (Taylor-Hood), control f.
+* :mod:`fempdl.forms.oseen` — one Oseen (linearised Navier-Stokes) step, controls w, u_prev, f.
+* :mod:`fempdl.forms.burgers` — one linearised vector Burgers step, controls w, u_prev, f.
 """
-from fempdl.forms import heat, poisson
+from fempdl.forms import burgers, heat, oseen, poisson, stokes
 
-__all__ = ["heat", "poisson"]
+__all__ = ["burgers", "heat", "oseen", "poisson", "stokes"]

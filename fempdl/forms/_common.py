@@ -63,6 +63,12 @@ def positive_constant(msh, value, name: str) -> dolfinx.fem.Constant:
     return dolfinx.fem.Constant(msh, float(value))
 
 
+def nonnegative_constant(msh, value, name: str):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return dolfinx.fem.Constant(msh, float(value))
+
+
 def dirichlet_bcs(tagged: TaggedMesh, V, g, dirichlet) -> tuple:
     """Dirichlet conditions u = g on the boundary parts named by ``dirichlet``.
 
@@ -76,11 +82,11 @@ def dirichlet_bcs(tagged: TaggedMesh, V, g, dirichlet) -> tuple:
         parts = (dirichlet,) if isinstance(dirichlet, (str, int)) else tuple(dirichlet)
         if not parts:
             return ()
-        facets = _tagged_facets(tagged, parts)
+        facets = tagged_facets(tagged, parts)
     return (_dolfinx.dirichlet_bc(V, make_function(V, g, "g"), facets),)
 
 
-def _tagged_facets(tagged: TaggedMesh, parts: tuple) -> np.ndarray:
+def tagged_facets(tagged: TaggedMesh, parts: tuple) -> np.ndarray:
     if tagged.facet_tags is None:
         raise ValueError(f"dirichlet={list(parts)} needs facet tags, but this mesh has none; "
                          "pass dirichlet=None for the whole boundary or load a tagged .msh file")

@@ -1,0 +1,102 @@
+"""Pieces shared by the flow forms (Stokes, Oseen, Burgers): velocity Dirichlet
+data per boundary part, the pressure null space of enclosed flows, vector
+coefficient Functions, and the SUPG parameter."""
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Mapping
+
+import numpy as np
+import ufl
+
+from mpi4py import MPI
+
+from fempdl import _dolfinx
+from fempdl.forms._common import tagged_facets, make_function
+from fempdl.mesh import TaggedMesh
+
+_MAX = MPI.MAX
+
+
+def vector_function(space, value, name: str):
+    """A Function on a vector ``space`` holding ``value``: a float (every
+    component), a sequence of gdim floats, or a callable x (3, N) -> (gdim, N)."""
+    if isinstance(value, (tuple, list)):
+        components = [float(c) for c in value]
+        dim = space.dofmap.index_map_bs
+        if len(components) != dim or not all(math.isfinite(c) for c in components):
+            raise ValueError(f"{name} must have {dim} finite components, got {value!r}")
+        value = lambda x, c=np.array(components)[:, None]: np.repeat(c, x.shape[1], axis=1)  # noqa: E731
+    return make_function(space, value, name)
+
+
+def velocity_bcs(tagged: TaggedMesh, W, index: int | None, velocity: Mapping | None, space) -> tuple:
+    """Dirichlet conditions for the velocity and whether they close the domain.
+
+    Args:
+        W: the solution space; ``index`` the velocity's subspace index in it,
+            or ``None`` when W is the velocity space itself.
+        velocity: ``{part: value}`` with part a facet tag name or integer (or
+            ``None`` for the whole boundary) and value as in :func:`vector_function`
+            (0.0 for a no-slip wall). Parts not named are do-nothing
+            (traction-free) outflow boundaries.
+        space: the (collapsed) velocity space the values live on.
+
+    Returns:
+        (bcs, enclosed): ``enclosed`` is True when the Dirichlet parts cover the
+        whole boundary (the pressure is then determined up to a constant).
+    """
+    if velocity is None:
+        velocity = {None: 0.0}
+    if not isinstance(velocity, Mapping):
+        raise TypeError(f"velocity must be a mapping {{boundary part: value}}, got {type(velocity).__name__}")
+    boundary = _dolfinx.boundary_facets(tagged.mesh)
+    bcs, covered = [], []
+    for part, value in velocity.items():
+        facets = boundary if part is None else tagged_facets(tagged, (part,))
+        fn = vector_function(space, value, f"velocity[{part!r}]")
+        bcs.append(_dolfinx.dirichlet_bc(space, fn, facets) if index is None
+                   else _dolfinx.dirichlet_bc_on_subspace(W, index, fn, facets))
+        covered.append(facets)
+    local_uncovered = len(np.setdiff1d(boundary, np.concatenate(covered) if covered else boundary))
+    enclosed = tagged.mesh.comm.allreduce(local_uncovered) == 0
+    return tuple(bcs), enclosed
+
+
+def pressure_nullspace(W, pressure_dofs: np.ndarray, n_owned: int) -> list:
+    """The constant-pressure vector (zero velocity) of an enclosed flow."""
+    vector = np.zeros(n_owned)
+    vector[pressure_dofs] = 1.0
+    return [vector]
+
+
+def supg_tau(msh, w, nu, dt=None):
+    """The SUPG parameter per cell (Tezduyar / Shakib et al.):
+
+        tau = ((2/dt)^2 + (2|w|/h)^2 + 9 (4 nu / h^2)^2)^(-1/2),
+
+    h the cell diameter. Written with |w|^2 (no square root), it is a smooth
+    function of the advecting velocity w, so its derivative in w exists
+    everywhere (w = 0 included)."""
+    h = ufl.CellDiameter(msh)
+    inverse_square = 4.0 * ufl.dot(w, w) / h ** 2 + 9.0 * (4.0 * nu / h ** 2) ** 2
+    if dt is not None:
+        inverse_square = inverse_square + (2.0 / dt) ** 2
+    return inverse_square ** -0.5
+
+
+def warn_if_convection_dominated(msh, w_fn, nu: float, supg: bool) -> None:
+    """Warn when Galerkin without SUPG meets a cell Péclet number |w| h / (2 nu) above 1
+    for the given advecting velocity (it then oscillates)."""
+    if supg:
+        return
+    speed = np.linalg.norm(w_fn.x.array.reshape(-1, w_fn.function_space.dofmap.index_map_bs), axis=1)
+    h = _dolfinx.cell_diameters(msh)
+    comm = msh.comm
+    peclet = comm.allreduce(float(speed.max(initial=0.0)), op=_MAX) * comm.allreduce(float(h.max(initial=0.0)),
+                                                                                      op=_MAX) / (2.0 * nu)
+    if peclet > 1.0:
+        warnings.warn(f"cell Péclet number up to {peclet:.3g} > 1 (|w| h / (2 nu) with nu={nu:g}) without "
+                      "SUPG: the Galerkin solution will oscillate; pass supg=True or refine the mesh",
+                      UserWarning, stacklevel=3)

@@ -1,0 +1,83 @@
+"""Steady Stokes flow -nu Δu + ∇p = f, div u = 0, Taylor-Hood P2-P1.
+
+Weak form: find (u, p) in W = V_g x Q (V: vector P_k, Q: P_(k-1), k = ``degree``)
+such that for all (v, q) in V_0 x Q
+
+    ∫ nu ∇u : ∇v - p div v - q div u dx = ∫ f · v dx.
+
+Boundary: u = g on the Dirichlet parts (``velocity``: walls, inflow); every
+other part is a do-nothing outflow (nu ∂u/∂n - p n = 0). When the Dirichlet
+parts cover the whole boundary (an enclosed flow) the pressure is determined
+up to a constant: the constant-pressure vector is attached to the operator as
+its null space, right-hand sides are projected orthogonal to it, and solutions
+are returned orthogonal to it (pressure DOF values of zero sum), forward and
+adjoint.
+
+Output: the whole (u, p) vector in W's DOF order; ``problem.split(x)`` gives
+``{"u": ..., "p": ...}`` in the collapsed velocity / pressure spaces' orders,
+and ``problem.field_space("u")`` the velocity space (the space of ``f``).
+Control: ``"f"`` (vector, in the velocity space), affine in the right-hand side.
+"""
+from __future__ import annotations
+
+import ufl
+
+from fempdl import _dolfinx
+from fempdl.forms._common import check_controls, positive_constant
+from fempdl.forms._flow import pressure_nullspace, vector_function, velocity_bcs
+from fempdl.mesh import as_tagged
+from fempdl.problem import Problem
+
+CONTROLS = ("f",)
+
+
+def problem(msh, controls=("f",), *, nu: float = 1.0, degree: int = 2, f=0.0, velocity=None) -> Problem:
+    """Build the Stokes problem on ``msh``.
+
+    Args:
+        msh: a :class:`fempdl.mesh.TaggedMesh` or a dolfinx Mesh.
+        controls: ``("f",)`` or ``()``.
+        nu: kinematic viscosity (> 0).
+        degree: velocity degree k >= 2 (pressure k - 1).
+        f: the body force (float, gdim floats, or callable x -> (gdim, N)).
+        velocity: ``{boundary part: value}`` Dirichlet velocity data (see
+            :func:`fempdl.forms._flow.velocity_bcs`); ``None``: no-slip on the
+            whole boundary.
+
+    Returns:
+        A :class:`fempdl.Problem` with fields ``"u"``, ``"p"`` and attributes
+        ``nu`` (a Constant) and ``enclosed``.
+    """
+    controls = check_controls(controls, CONTROLS, "stokes")
+    tagged = as_tagged(msh)
+    W, V, nu_c, bcs, enclosed = _taylor_hood(tagged, degree, nu, velocity)
+    f_fn = vector_function(V, f, "f")
+    (u, p), (v, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
+    a = (nu_c * ufl.inner(ufl.grad(u), ufl.grad(v)) - p * ufl.div(v) - q * ufl.div(u)) * ufl.dx
+    L = ufl.inner(f_fn, v) * ufl.dx
+    return _flow_problem(W, a, L, bcs, enclosed, {"f": f_fn}, controls, nu=nu_c)
+
+
+def _taylor_hood(tagged, degree, nu, velocity):
+    if isinstance(degree, bool) or not isinstance(degree, int) or degree < 2:
+        raise ValueError(f"degree must be an int >= 2 (Taylor-Hood P_k-P_(k-1)), got {degree!r}")
+    W = _dolfinx.taylor_hood_space(tagged.mesh, degree)
+    V, _ = _dolfinx.collapsed_subspace(W, 0)
+    nu_c = positive_constant(tagged.mesh, nu, "nu")
+    bcs, enclosed = velocity_bcs(tagged, W, 0, velocity, V)
+    return W, V, nu_c, bcs, enclosed
+
+
+def _flow_problem(W, a, L, bcs, enclosed, fns, controls, **attributes) -> Problem:
+    """The Problem with fields u, p and, for an enclosed flow, the pressure null space."""
+    nullspace = ()
+    if enclosed:
+        _, p_dofs = _dolfinx.collapsed_subspace(W, 1)
+        n_owned = W.dofmap.index_map.size_local * W.dofmap.index_map_bs
+        nullspace = pressure_nullspace(W, p_dofs, n_owned)
+    prob = Problem(a, L, bcs, controls={name: fns[name] for name in controls},
+                   fields={"u": 0, "p": 1}, nullspace=nullspace)
+    prob.enclosed = enclosed
+    for name, value in attributes.items():
+        setattr(prob, name, value)
+    return prob
