@@ -229,9 +229,10 @@ class KSPOptions:
         by the least-squares commutator (PCLSC, its B B^T solve by hypre
         BoomerAMG); for saddle-point problems with fields ``"u"`` and ``"p"``,
         the Stokes and Oseen forms. Measured to rtol 1e-8 on the bundled
-        meshes: 35-42 iterations for Stokes and for Oseen at nu = 1e-3, in
-        channel and enclosed flows, where the "selfp" Schur approximation takes
-        23-34 for Stokes but 665 to over 10,000 for Oseen), ``"lu"`` (direct; MUMPS, which pivots through
+        meshes (scripts/bench_flow.py): 26-66 iterations forward and adjoint
+        for Stokes and for Oseen down to nu = 1e-3, in channel and enclosed
+        flows, where the "selfp" Schur approximation takes 24-36 for Stokes
+        but 250-4,000 for Oseen), ``"lu"`` (direct; MUMPS, which pivots through
         the zero pressure block of a saddle point). Iterative presets run to
         rtol=1e-10 unless ``max_it`` caps them.
 
