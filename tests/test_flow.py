@@ -1,7 +1,6 @@
 """Stokes, Oseen and Burgers layers: rates, exactness, adjoints, caps and stability."""
 from __future__ import annotations
 
-import dataclasses
 import warnings
 
 import dolfinx.fem

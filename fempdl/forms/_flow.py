@@ -64,7 +64,7 @@ def velocity_bcs(tagged: TaggedMesh, W, index: int | None, velocity: Mapping | N
     return tuple(bcs), enclosed
 
 
-def pressure_nullspace(W, pressure_dofs: np.ndarray, n_owned: int) -> list:
+def pressure_nullspace(pressure_dofs: np.ndarray, n_owned: int) -> list:
     """The constant-pressure vector (zero velocity) of an enclosed flow."""
     vector = np.zeros(n_owned)
     vector[pressure_dofs] = 1.0

@@ -74,7 +74,7 @@ def _flow_problem(W, a, L, bcs, enclosed, fns, controls, **attributes) -> Proble
     if enclosed:
         _, p_dofs = _dolfinx.collapsed_subspace(W, 1)
         n_owned = W.dofmap.index_map.size_local * W.dofmap.index_map_bs
-        nullspace = pressure_nullspace(W, p_dofs, n_owned)
+        nullspace = pressure_nullspace(p_dofs, n_owned)
     prob = Problem(a, L, bcs, controls={name: fns[name] for name in controls},
                    fields={"u": 0, "p": 1}, nullspace=nullspace)
     prob.enclosed = enclosed
