@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -43,7 +42,8 @@ from mpi4py import MPI
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions, SolverFailedError
-from fempdl.training import write_atomically
+
+from bench_common import machine_info, write_json_atomically
 
 HEIGHT = 0.41
 
@@ -118,10 +118,9 @@ def main() -> int:
                   f"adj {r['backward_iterations']:6d} "
                   + (f"grad err {r['grad_error_vs_lu']:.1e} " if "grad_error_vs_lu" in r else "")
                   + (f"{r['seconds']:.2f} s" if "seconds" in r else f"FAILED: {r['failed']}"), flush=True)
-    report = {"benchmark": "bench_flow", "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S"), "h": args.h,
-              "rtol": 1e-8, "rows": rows}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    write_atomically(args.out, lambda path: path.write_text(json.dumps(report, indent=1)))
+    report = {"benchmark": "bench_flow", "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S"),
+              "machine": machine_info(), "h": args.h, "rtol": 1e-8, "rows": rows}
+    write_json_atomically(report, args.out)
     print(f"wrote {args.out}")
     return 0
 

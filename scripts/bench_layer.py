@@ -61,9 +61,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
-import platform
 import sys
 import time
 from dataclasses import dataclass
@@ -74,7 +72,6 @@ import dolfinx.fem
 import dolfinx.fem.petsc
 import dolfinx.mesh
 import numpy as np
-import petsc4py
 import torch
 import ufl
 from mpi4py import MPI
@@ -82,7 +79,7 @@ from petsc4py import PETSc
 
 import fempdl
 from fempdl.bridge_torch import SolveLayer
-from fempdl.training import write_atomically
+from bench_common import comma_list, machine_info, write_json_atomically
 from fempdl.ksp_adjoint import KSPOptions
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.meshgen)
@@ -382,35 +379,7 @@ def print_row(row: dict, flush: bool = False) -> None:
           flush=flush)
 
 
-def machine_info() -> dict:
-    return {
-        "cpu_count": os.cpu_count(),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "torch_num_threads": torch.get_num_threads(),
-        "dolfinx": dolfinx.__version__,
-        "petsc": ".".join(map(str, PETSc.Sys.getVersion())),
-        "petsc4py": petsc4py.__version__,
-        "numpy": np.__version__,
-        "fempdl": fempdl.__version__,
-        "mpi_ranks": MPI.COMM_WORLD.size,
-    }
-
-
-def write_json_atomically(data: dict, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomically(path, lambda p: p.write_text(json.dumps(data, indent=2)))
-
-
 # ---------------------------------------------------------------------- CLI
-def comma_list(kind):
-    def parse(text: str) -> list:
-        return [kind(item) for item in text.split(",") if item]
-    return parse
-
-
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

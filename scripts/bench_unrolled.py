@@ -109,7 +109,6 @@ import datetime
 import gc
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -136,18 +135,15 @@ _OMP_POLICY_ARG = _omp_policy_arg(sys.argv[1:])
 if _OMP_POLICY_ARG == "passive":
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import dolfinx
 import numpy as np
-import petsc4py
 import torch
 from mpi4py import MPI
-from petsc4py import PETSc
 
 import fempdl
 import fempdl.meshgen
 from fempdl import unrolled
 from fempdl.bridge_torch import SolveLayer
-from fempdl.training import write_atomically
+from bench_common import comma_list, machine_info, write_json_atomically
 from fempdl.ksp_adjoint import KSPOptions
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.meshgen)
@@ -544,47 +540,7 @@ def print_row(row: dict, flush: bool = False) -> None:
           flush=flush)
 
 
-def machine_info() -> dict:
-    meminfo = {}
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                key, value = line.split(":", 1)
-                if key in ("MemTotal", "MemAvailable"):
-                    meminfo[key] = int(value.split()[0]) / 1024.0 / 1024.0
-    except OSError:
-        pass
-    return {
-        "cpu_count": os.cpu_count(),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "memory_total_gib": meminfo.get("MemTotal"),
-        "memory_available_gib_at_start": meminfo.get("MemAvailable"),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "torch_num_threads": torch.get_num_threads(),
-        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "runtime default"),
-        "dolfinx": dolfinx.__version__,
-        "petsc": ".".join(map(str, PETSc.Sys.getVersion())),
-        "petsc4py": petsc4py.__version__,
-        "numpy": np.__version__,
-        "fempdl": fempdl.__version__,
-        "mpi_ranks": MPI.COMM_WORLD.size,
-    }
-
-
-def write_json_atomically(data: dict, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomically(path, lambda p: p.write_text(json.dumps(data, indent=2)))
-
-
 # ---------------------------------------------------------------------- CLI
-def comma_list(kind):
-    def parse(text: str) -> list:
-        return [kind(item) for item in text.split(",") if item]
-    return parse
-
-
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -1,6 +1,7 @@
-"""Pieces shared by the flow forms (Stokes, Oseen, Burgers): velocity Dirichlet
-data per boundary part, the pressure null space of enclosed flows, vector
-coefficient Functions, and the SUPG parameter."""
+"""Pieces shared by the flow forms (Stokes, Oseen, Burgers): the Taylor-Hood
+space and its Problem (fields, enclosed-flow pressure null space), velocity
+Dirichlet data per boundary part, vector coefficient Functions, the SUPG
+parameter and the Péclet check."""
 from __future__ import annotations
 
 import math
@@ -13,8 +14,9 @@ import ufl
 from mpi4py import MPI
 
 from fempdl import _dolfinx
-from fempdl.forms._common import tagged_facets, make_function
+from fempdl.forms._common import make_function, positive_constant, tagged_facets
 from fempdl.mesh import TaggedMesh
+from fempdl.problem import Problem
 
 _MAX = MPI.MAX
 
@@ -100,3 +102,30 @@ def warn_if_convection_dominated(msh, w_fn, nu: float, supg: bool) -> None:
         warnings.warn(f"cell Péclet number up to {peclet:.3g} > 1 (|w| h / (2 nu) with nu={nu:g}) without "
                       "SUPG: the Galerkin solution will oscillate; pass supg=True or refine the mesh",
                       UserWarning, stacklevel=3)
+
+
+def taylor_hood(tagged: TaggedMesh, degree, nu, velocity):
+    """(W, V, nu Constant, bcs, enclosed): the Taylor-Hood space, its collapsed velocity
+    space, the viscosity and the velocity Dirichlet conditions."""
+    if isinstance(degree, bool) or not isinstance(degree, int) or degree < 2:
+        raise ValueError(f"degree must be an int >= 2 (Taylor-Hood P_k-P_(k-1)), got {degree!r}")
+    W = _dolfinx.taylor_hood_space(tagged.mesh, degree)
+    V, _ = _dolfinx.collapsed_subspace(W, 0)
+    nu_c = positive_constant(tagged.mesh, nu, "nu")
+    bcs, enclosed = velocity_bcs(tagged, W, 0, velocity, V)
+    return W, V, nu_c, bcs, enclosed
+
+
+def flow_problem(W, a, L, bcs, enclosed, fns, controls, **attributes) -> Problem:
+    """The Problem with fields u, p and, for an enclosed flow, the pressure null space."""
+    nullspace = ()
+    if enclosed:
+        _, p_dofs = _dolfinx.collapsed_subspace(W, 1)
+        n_owned = W.dofmap.index_map.size_local * W.dofmap.index_map_bs
+        nullspace = pressure_nullspace(p_dofs, n_owned)
+    prob = Problem(a, L, bcs, controls={name: fns[name] for name in controls},
+                   fields={"u": 0, "p": 1}, nullspace=nullspace)
+    prob.enclosed = enclosed
+    for name, value in attributes.items():
+        setattr(prob, name, value)
+    return prob

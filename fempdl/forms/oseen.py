@@ -33,8 +33,7 @@ from __future__ import annotations
 import ufl
 
 from fempdl.forms._common import check_controls, nonnegative_constant, positive_constant
-from fempdl.forms._flow import supg_tau, vector_function, warn_if_convection_dominated
-from fempdl.forms.stokes import _flow_problem, _taylor_hood
+from fempdl.forms._flow import flow_problem, supg_tau, taylor_hood, vector_function, warn_if_convection_dominated
 from fempdl.mesh import as_tagged
 from fempdl.problem import Problem
 
@@ -63,7 +62,7 @@ def problem(msh, controls=("w", "u_prev"), *, nu: float = 1e-2, dt: float = 0.1,
     if not isinstance(supg, bool):
         raise TypeError(f"supg must be True or False, got {supg!r}")
     tagged = as_tagged(msh)
-    W, V, nu_c, bcs, enclosed = _taylor_hood(tagged, degree, nu, velocity)
+    W, V, nu_c, bcs, enclosed = taylor_hood(tagged, degree, nu, velocity)
     dt_c = positive_constant(tagged.mesh, dt, "dt")
     gamma = nonnegative_constant(tagged.mesh, grad_div, "grad_div")
     fns = {"w": vector_function(V, w, "w"), "u_prev": vector_function(V, u_prev, "u_prev"),
@@ -80,4 +79,4 @@ def problem(msh, controls=("w", "u_prev"), *, nu: float = 1e-2, dt: float = 0.1,
         residual = u / dt_c + ufl.dot(ufl.grad(u), w_fn) - nu_c * ufl.div(ufl.grad(u)) + ufl.grad(p)
         a = a + tau * ufl.inner(streamline, residual) * ufl.dx
         L = L + tau * ufl.inner(streamline, source) * ufl.dx
-    return _flow_problem(W, a, L, bcs, enclosed, fns, controls, nu=nu_c, dt=dt_c, grad_div=gamma)
+    return flow_problem(W, a, L, bcs, enclosed, fns, controls, nu=nu_c, dt=dt_c, grad_div=gamma)

@@ -22,9 +22,8 @@ from __future__ import annotations
 
 import ufl
 
-from fempdl import _dolfinx
-from fempdl.forms._common import check_controls, positive_constant
-from fempdl.forms._flow import pressure_nullspace, vector_function, velocity_bcs
+from fempdl.forms._common import check_controls
+from fempdl.forms._flow import flow_problem, taylor_hood, vector_function
 from fempdl.mesh import as_tagged
 from fempdl.problem import Problem
 
@@ -50,34 +49,9 @@ def problem(msh, controls=("f",), *, nu: float = 1.0, degree: int = 2, f=0.0, ve
     """
     controls = check_controls(controls, CONTROLS, "stokes")
     tagged = as_tagged(msh)
-    W, V, nu_c, bcs, enclosed = _taylor_hood(tagged, degree, nu, velocity)
+    W, V, nu_c, bcs, enclosed = taylor_hood(tagged, degree, nu, velocity)
     f_fn = vector_function(V, f, "f")
     (u, p), (v, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
     a = (nu_c * ufl.inner(ufl.grad(u), ufl.grad(v)) - p * ufl.div(v) - q * ufl.div(u)) * ufl.dx
     L = ufl.inner(f_fn, v) * ufl.dx
-    return _flow_problem(W, a, L, bcs, enclosed, {"f": f_fn}, controls, nu=nu_c)
-
-
-def _taylor_hood(tagged, degree, nu, velocity):
-    if isinstance(degree, bool) or not isinstance(degree, int) or degree < 2:
-        raise ValueError(f"degree must be an int >= 2 (Taylor-Hood P_k-P_(k-1)), got {degree!r}")
-    W = _dolfinx.taylor_hood_space(tagged.mesh, degree)
-    V, _ = _dolfinx.collapsed_subspace(W, 0)
-    nu_c = positive_constant(tagged.mesh, nu, "nu")
-    bcs, enclosed = velocity_bcs(tagged, W, 0, velocity, V)
-    return W, V, nu_c, bcs, enclosed
-
-
-def _flow_problem(W, a, L, bcs, enclosed, fns, controls, **attributes) -> Problem:
-    """The Problem with fields u, p and, for an enclosed flow, the pressure null space."""
-    nullspace = ()
-    if enclosed:
-        _, p_dofs = _dolfinx.collapsed_subspace(W, 1)
-        n_owned = W.dofmap.index_map.size_local * W.dofmap.index_map_bs
-        nullspace = pressure_nullspace(p_dofs, n_owned)
-    prob = Problem(a, L, bcs, controls={name: fns[name] for name in controls},
-                   fields={"u": 0, "p": 1}, nullspace=nullspace)
-    prob.enclosed = enclosed
-    for name, value in attributes.items():
-        setattr(prob, name, value)
-    return prob
+    return flow_problem(W, a, L, bcs, enclosed, {"f": f_fn}, controls, nu=nu_c)

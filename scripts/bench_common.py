@@ -1,0 +1,57 @@
+"""Helpers shared by the benchmark scripts: the machine record, JSON output, list options."""
+from __future__ import annotations
+
+import json
+import os
+import platform
+from pathlib import Path
+
+import dolfinx
+import numpy as np
+import petsc4py
+import torch
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import fempdl
+from fempdl.training import write_atomically
+
+
+def machine_info() -> dict:
+    meminfo = {}
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                key, value = line.split(":", 1)
+                if key in ("MemTotal", "MemAvailable"):
+                    meminfo[key] = int(value.split()[0]) / 1024.0 / 1024.0
+    except OSError:
+        pass
+    return {
+        "cpu_count": os.cpu_count(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "memory_total_gib": meminfo.get("MemTotal"),
+        "memory_available_gib_at_start": meminfo.get("MemAvailable"),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "torch_num_threads": torch.get_num_threads(),
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "runtime default"),
+        "dolfinx": dolfinx.__version__,
+        "petsc": ".".join(map(str, PETSc.Sys.getVersion())),
+        "petsc4py": petsc4py.__version__,
+        "numpy": np.__version__,
+        "fempdl": fempdl.__version__,
+        "mpi_ranks": MPI.COMM_WORLD.size,
+    }
+
+
+def write_json_atomically(data: dict, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomically(path, lambda p: p.write_text(json.dumps(data, indent=2)))
+
+
+def comma_list(kind):
+    def parse(text: str) -> list:
+        return [kind(item) for item in text.split(",") if item]
+    return parse
