@@ -165,3 +165,20 @@ def cell_dofs(V) -> np.ndarray:
     """(num_cells, dofs_per_cell) local DOF indices of every cell (owned and ghost)."""
     dofs = V.dofmap.list.array
     return dofs.reshape(-1, V.dofmap.dof_layout.num_dofs)
+
+
+def point_evaluator(msh, points: np.ndarray):
+    """For points (N, 3): (found indices, their cells) on this process's part of ``msh``.
+
+    A point on a facet or vertex is assigned to one of the cells containing it."""
+    import dolfinx.geometry
+    tree = dolfinx.geometry.BoundingBoxTree(msh, msh.topology.dim)
+    candidates = dolfinx.geometry.compute_collisions(tree, points)
+    colliding = dolfinx.geometry.compute_colliding_cells(msh, candidates, points)
+    found, cells = [], []
+    for i in range(len(points)):
+        links = colliding.links(i)
+        if len(links):
+            found.append(i)
+            cells.append(links[0])
+    return np.asarray(found, dtype=np.int64), np.asarray(cells, dtype=np.int32)

@@ -1,17 +1,21 @@
 """Scene -> training task, and the runs that compare capped, PRDP and converged physics.
 
-Two tasks, chosen by the scene's ``task``:
+Three tasks, chosen by the scene's ``task``:
 
 * ``emulator`` (the PRDP paper's mixed chain): a network maps u0 to u1, the
-  capped heat layer maps u1 to u2, and the training loss is the nMSE of u2
-  against two converged heat steps. The validation metric is the same chain on
-  held-out states with *converged* physics (LU) in place of the capped layer,
-  so every K is judged alike: a network that learned to lean on an
-  unconverged solver shows it here.
+  capped physics layer maps u1 to u2, and the training loss is the nMSE of u2
+  against two converged steps. The physics is a heat step, or a Burgers step
+  linearised around the network's output (w = u_prev = u1: the network's output
+  enters the matrix). The validation metric rolls out ``[data] rollout``
+  (network, physics) pairs on held-out states with *converged* physics (LU) in
+  place of the capped layer, so every K is judged alike: a network that learned
+  to lean on an unconverged solver shows it here.
 * ``inverse`` (the paper's Poisson inverse problem): the source is a sum of P
   smooth modes f = Phi theta; gradient descent on theta minimises the nMSE of
   the capped Poisson solution against the solution for theta_ref. The
   validation metric is ||theta - theta_ref||^2 / ||theta_ref||^2.
+* ``hybrid`` (:mod:`fempdl.hybrid`): a coarse Oseen stepper plus a network
+  correction, trained over unrolled steps against a fine-mesh reference.
 
 Training data are float32 (as in the paper); references are computed with LU.
 K_eps, the "converged" cap, is the largest number of iterations the scene's
@@ -75,17 +79,22 @@ class RunResult:
         return out
 
 
-def smooth_fields(coords: np.ndarray, count: int, modes: int, rng: np.random.Generator) -> np.ndarray:
-    """(count, n) random sums of sine modes over the bounding box, amplitudes ~ 1/|mode|^2."""
+def smooth_fields(coords: np.ndarray, count: int, modes: int, rng: np.random.Generator,
+                  components: int = 1) -> np.ndarray:
+    """(count, n * components) random sums of sine modes over the bounding box, amplitudes ~ 1/|mode|^2.
+
+    ``coords`` (n, 3) are node coordinates; with ``components`` > 1 every
+    component is an independent field and the values are blocked per node
+    (x0, y0, x1, y1, ...), the DOF order of a vector space."""
     lo, hi = coords.min(axis=0), coords.max(axis=0)
     dims = [d for d in range(coords.shape[1]) if hi[d] > lo[d]]
     unit = (coords[:, dims] - lo[dims]) / (hi[dims] - lo[dims])
-    out = np.zeros((count, len(coords)))
+    out = np.zeros((count, len(coords), components))
     for index in np.ndindex(*([modes] * len(dims))):
         wave = np.array(index) + 1
         shape = np.prod(np.sin(np.pi * wave[None, :] * unit), axis=1)
-        out += (rng.standard_normal(count) / float(wave @ wave))[:, None] * shape[None, :]
-    return out
+        out += (rng.standard_normal((count, 1, components)) / float(wave @ wave)) * shape[None, :, None]
+    return out.reshape(count, -1)
 
 
 def source_modes(coords: np.ndarray, count: int) -> np.ndarray:
@@ -105,31 +114,54 @@ def optimisation_step(optimizer, loss: torch.Tensor) -> float:
 
 
 class EmulatorTask:
-    """Network step u0 -> u1, capped heat layer u1 -> u2, loss nMSE(u2, u2_ref)."""
+    """Network step u0 -> u1, capped physics step u1 -> u2, loss nMSE(u2, u2_ref).
+
+    The physics step is the scene's PDE: a heat step (control u0) or a
+    linearised Burgers step around the network's output (w = u_prev = u1: the
+    matrix itself depends on the network). Validation rolls out ``rollout``
+    (network, converged physics) pairs from held-out states and averages the
+    nMSE against the converged trajectory at every pair.
+    """
 
     def __init__(self, scene: Scene, options: KSPOptions):
         torch.manual_seed(scene.data["seed"])
         rng = np.random.default_rng(scene.data["seed"])
         msh = mesh.load(scene.mesh["name"], MPI.COMM_SELF, h=scene.mesh["h"])
         pde = scene.pde
-        self.problem = forms.heat.problem(msh, controls=("u0",), dt=pde["dt"], theta=pde["theta"],
-                                          kappa=pde["kappa"], degree=pde["degree"])
-        coords = self.problem.dof_coordinates()
+        self.pde = pde["type"]
+        if self.pde == "heat":
+            self.problem = forms.heat.problem(msh, controls=("u0",), dt=pde["dt"], theta=pde["theta"],
+                                              kappa=pde["kappa"], degree=pde["degree"])
+        else:
+            self.problem = forms.burgers.problem(msh, controls=("w", "u_prev"), nu=pde["nu"], dt=pde["dt"],
+                                                 degree=pde["degree"])
         n_train, n_val = scene.data["train"], scene.data["validation"]
-        u0 = torch.as_tensor(smooth_fields(coords, n_train + n_val, scene.data["modes"], rng))
+        self.rollout = scene.data["rollout"]
+        u0 = torch.as_tensor(self._initial_states(n_train + n_val, scene.data["modes"], rng))
         # Converged physics: reference data and validation (not counted in layers' iterations).
         self.reference = SolveLayer(self.problem, KSPOptions.preset("lu"))
         with torch.no_grad():
-            u1 = self.reference(u0=u0)
-            u2 = self.reference(u0=u1)
-        self.reference_states = u1
-        self.train_u0, self.train_u2 = u0[:n_train].float(), u2[:n_train].float()
-        self.val_u0, self.val_u2 = u0[n_train:].float(), u2[n_train:].float()
+            trajectory = [u0]
+            for _ in range(2 * self.rollout):
+                trajectory.append(self.physics(self.reference, trajectory[-1]))
+        self.reference_states = trajectory[1]
+        self.train_u0, self.train_u2 = u0[:n_train].float(), trajectory[2][:n_train].float()
+        self.val_u0 = u0[n_train:].float()
+        self.val_targets = [state[n_train:].float() for state in trajectory[2::2]]
         self.train_size = n_train
         self.layer = SolveLayer(self.problem, options, diff=scene.solver["diff"])
         self.layers = [self.layer]
         self.model = self._network(scene.network)
         self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
+
+    def physics(self, layer: SolveLayer, u: torch.Tensor) -> torch.Tensor:
+        """One step of the scene's PDE from state ``u`` through ``layer``."""
+        return layer(u0=u) if self.pde == "heat" else layer(w=u, u_prev=u)
+
+    def _initial_states(self, count: int, modes: int, rng: np.random.Generator) -> np.ndarray:
+        # Vector fields (Burgers) have blocked DOFs: one coordinate per node, gdim values each.
+        return smooth_fields(self.problem.dof_coordinates(), count, modes, rng,
+                             components=self.problem.V.dofmap.index_map_bs)
 
     def _network(self, spec: dict) -> torch.nn.Module:
         n = self.problem.output_size
@@ -140,12 +172,16 @@ class EmulatorTask:
                             spec["hidden"], spec["layers"])
 
     def train_step(self, idx) -> float:
-        u2 = self.layer(u0=self.model(self.train_u0[idx]))
+        u2 = self.physics(self.layer, self.model(self.train_u0[idx]))
         return optimisation_step(self.optimizer, nmse(u2, self.train_u2[idx]))
 
     def validate(self) -> float:
         with torch.no_grad():
-            return float(nmse(self.reference(u0=self.model(self.val_u0)), self.val_u2))
+            u, errors = self.val_u0, []
+            for target in self.val_targets:
+                u = self.physics(self.reference, self.model(u))
+                errors.append(float(nmse(u, target)))
+            return float(np.mean(errors))
 
     def close(self) -> None:
         self.layer.close()
@@ -153,7 +189,8 @@ class EmulatorTask:
 
     def k_eps_rhs(self) -> dict:
         """Inputs on which K_eps is measured: the validation states (u1 -> u2 solves)."""
-        return {"u0": self.reference_states[self.train_size:]}
+        states = self.reference_states[self.train_size:]
+        return {"u0": states} if self.pde == "heat" else {"w": states, "u_prev": states}
 
 
 class _Theta(torch.nn.Module):
@@ -220,6 +257,9 @@ def make_optimizer(spec: dict, params):
 
 def build_task(scene: Scene, options: KSPOptions):
     """The training task of a scene, with its layer solving under ``options``."""
+    if scene.task == "hybrid":
+        from fempdl.hybrid import HybridTask
+        return HybridTask(scene, options)
     return (EmulatorTask if scene.task == "emulator" else InverseTask)(scene, options)
 
 

@@ -23,19 +23,34 @@ __all__ = ["ResidualMLP", "GraphConvNet", "normalised_adjacency"]
 
 
 class ResidualMLP(torch.nn.Module):
-    """u + MLP(u): ``layers`` hidden layers of width ``hidden`` with GELU."""
+    """u + mask * MLP(u): ``layers`` hidden layers of width ``hidden`` with GELU.
 
-    def __init__(self, n: int, hidden: int = 128, layers: int = 2):
+    Args:
+        mask: optional (n,) weights of the correction per DOF (0 keeps a DOF,
+            e.g. a Dirichlet value, as it is).
+        start_at_identity: zero the output layer, so the untrained network is
+            exactly the identity (a corrector that starts as "no correction").
+    """
+
+    def __init__(self, n: int, hidden: int = 128, layers: int = 2, *, mask: torch.Tensor | None = None,
+                 start_at_identity: bool = False):
         super().__init__()
         widths = [n] + [hidden] * layers
         blocks = []
         for a, b in zip(widths[:-1], widths[1:]):
             blocks += [torch.nn.Linear(a, b), torch.nn.GELU()]
         blocks.append(torch.nn.Linear(widths[-1], n))
+        if start_at_identity:
+            torch.nn.init.zeros_(blocks[-1].weight)
+            torch.nn.init.zeros_(blocks[-1].bias)
         self.net = torch.nn.Sequential(*blocks)
+        if mask is not None and tuple(mask.shape) != (n,):
+            raise ValueError(f"mask must have shape ({n},), got {tuple(mask.shape)}")
+        self.register_buffer("mask", None if mask is None else mask.detach().clone())
 
     def forward(self, u: torch.Tensor) -> torch.Tensor:
-        return u + self.net(u)
+        correction = self.net(u)
+        return u + (correction if self.mask is None else self.mask.to(u.dtype) * correction)
 
 
 def normalised_adjacency(pattern: sp.spmatrix) -> torch.Tensor:

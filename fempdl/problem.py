@@ -149,7 +149,9 @@ class Problem:
 
     def dof_coordinates(self, name: str | None = None) -> np.ndarray:
         """Coordinates (n_owned, 3) of the owned DOFs of the solution (``name=None``)
-        or of control ``name``, in the order tensors use."""
+        or of control ``name``, in the order tensors use. For a vector (blocked)
+        space they are the nodes' coordinates, (n_owned / gdim, 3): tensor entry
+        gdim * i + c is component c at node i."""
         space = self.V if name is None else self.control(name).function_space
         n = space.dofmap.index_map.size_local
         return space.tabulate_dof_coordinates()[:n]

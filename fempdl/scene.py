@@ -3,16 +3,26 @@
 A scene declares only what its task needs. Sections and keys (defaults in
 brackets; ``required`` has none)::
 
-    [scene]      name (required), description [""], task (required: "emulator" | "inverse")
+    [scene]      name (required), description [""],
+                 task (required: "emulator" | "inverse" | "hybrid")
     [mesh]       name (required: bundled name or path to a .msh), h [bundled default]
-    [pde]        type (required: "heat" | "poisson"), kappa [1.0], degree [1],
-                 dt [0.01] and theta [1.0] (heat only)
-    [data]       seed [0], k_eps_rtol [1e-5], and for emulators train [64], validation [16], modes [4]
-    [network]    type ["mlp"] ("mlp" | "graph"), hidden [128], layers [2]      (emulator only)
+    [pde]        type (required: "heat" | "burgers" for emulators, "poisson" for inverse,
+                 "oseen" for hybrid), degree [1; 2 for oseen], kappa [1.0] (heat, poisson),
+                 dt [0.01] (heat, burgers, oseen), theta [1.0] (heat), nu [0.01] (burgers,
+                 oseen), inflow [1.0] (oseen: peak of the parabolic inlet profile)
+    [data]       seed [0], k_eps_rtol [1e-5], and for emulators and hybrids train [64],
+                 validation [16], modes [4], rollout [1] (steps of the validation rollout)
+    [network]    type ["mlp"] ("mlp" | "graph"; heat only), hidden [128], layers [2]
+                                                                   (emulator, hybrid)
     [inverse]    theta_ref (required), theta_init (required)                  (inverse only)
+    [hybrid]     fine_h (required: the reference mesh size), steps [2] (unrolled training
+                 steps), spinup [10] (fine steps from rest before sampling),
+                 perturbation [0.2] (initial perturbation, relative to inflow) (hybrid only)
     [optimizer]  type ["adam"] ("adam" | "sgd"), lr [1e-3], decay [1.0], epochs [30],
-                 batch [16] (emulators), stop_at [none]: end once the validation metric is <= it
-    [solver]     preset ["jacobi"] ("jacobi" | "cg" | "gmres": the capped solver),
+                 batch [16] (emulators, hybrids), stop_at [none]: end once the validation
+                 metric is <= it
+    [solver]     preset ["jacobi"] ("jacobi" | "cg" | "gmres" | "gmres-ilu" | "schur": the
+                 capped solver; "schur" is for oseen and only it),
                  diff ["implicit"] ("implicit" | "unrolled")
     [prdp]       k0 [1], dk [1], tau_step [0.95], tau_stop [0.9], delta [3], ema_window [6], k_cap [none]
 
@@ -51,21 +61,24 @@ class _Key:
 _POSITIVE = 1e-300
 SCHEMA: dict[str, dict[str, _Key]] = {
     "scene": {"name": _Key(str), "description": _Key(str, ""),
-              "task": _Key(str, choices=("emulator", "inverse"))},
+              "task": _Key(str, choices=("emulator", "inverse", "hybrid"))},
     "mesh": {"name": _Key(str), "h": _Key(float, None, minimum=_POSITIVE)},
-    "pde": {"type": _Key(str, choices=("heat", "poisson")), "dt": _Key(float, 0.01, minimum=_POSITIVE),
-            "theta": _Key(float, 1.0, minimum=0.0, maximum=1.0), "kappa": _Key(float, 1.0, minimum=_POSITIVE),
-            "degree": _Key(int, 1, minimum=1)},
+    "pde": {"type": _Key(str, choices=("heat", "poisson", "burgers", "oseen")),
+            "dt": _Key(float, 0.01, minimum=_POSITIVE), "theta": _Key(float, 1.0, minimum=0.0, maximum=1.0),
+            "kappa": _Key(float, 1.0, minimum=_POSITIVE), "degree": _Key(int, None, minimum=1),
+            "nu": _Key(float, 0.01, minimum=_POSITIVE), "inflow": _Key(float, 1.0, minimum=_POSITIVE)},
     "data": {"train": _Key(int, 64, minimum=1), "validation": _Key(int, 16, minimum=1),
              "modes": _Key(int, 4, minimum=1), "seed": _Key(int, 0, minimum=0),
-             "k_eps_rtol": _Key(float, 1e-5, minimum=_POSITIVE, maximum=0.5)},
+             "k_eps_rtol": _Key(float, 1e-5, minimum=_POSITIVE, maximum=0.5), "rollout": _Key(int, 1, minimum=1)},
     "network": {"type": _Key(str, "mlp", choices=("mlp", "graph")), "hidden": _Key(int, 128, minimum=1),
                 "layers": _Key(int, 2, minimum=1)},
     "inverse": {"theta_ref": _Key(list), "theta_init": _Key(list)},
+    "hybrid": {"fine_h": _Key(float, minimum=_POSITIVE), "steps": _Key(int, 2, minimum=1),
+               "spinup": _Key(int, 10, minimum=0), "perturbation": _Key(float, 0.2, minimum=0.0)},
     "optimizer": {"type": _Key(str, "adam", choices=("adam", "sgd")), "lr": _Key(float, 1e-3, minimum=_POSITIVE),
                   "decay": _Key(float, 1.0, minimum=_POSITIVE), "epochs": _Key(int, 30, minimum=1),
                   "batch": _Key(int, 16, minimum=1), "stop_at": _Key(float, None, minimum=_POSITIVE)},
-    "solver": {"preset": _Key(str, "jacobi", choices=("jacobi", "cg", "gmres")),
+    "solver": {"preset": _Key(str, "jacobi", choices=("jacobi", "cg", "gmres", "gmres-ilu", "schur")),
                "diff": _Key(str, "implicit", choices=("implicit", "unrolled"))},
     "prdp": {"k0": _Key(int, 1, minimum=1), "dk": _Key(int, 1, minimum=1),
              "tau_step": _Key(float, 0.95, minimum=_POSITIVE, maximum=1.0),
@@ -77,13 +90,20 @@ SCHEMA: dict[str, dict[str, _Key]] = {
 _TASK_SECTIONS = {
     "emulator": {"required": {"scene", "mesh", "pde"}, "optional": {"data", "network", "optimizer", "solver", "prdp"}},
     "inverse": {"required": {"scene", "mesh", "pde", "inverse"}, "optional": {"data", "optimizer", "solver", "prdp"}},
+    "hybrid": {"required": {"scene", "mesh", "pde", "hybrid"},
+               "optional": {"data", "network", "optimizer", "solver", "prdp"}},
 }
+# The PDEs each task is built for.
+_TASK_PDES = {"emulator": ("heat", "burgers"), "inverse": ("poisson",), "hybrid": ("oseen",)}
 
 
 # Keys a task or PDE type does not use: setting them is an error, not a silent no-op.
 _NOT_FOR = {
-    ("task", "inverse"): {"data": {"train", "validation", "modes"}, "optimizer": {"batch"}},
-    ("pde", "poisson"): {"pde": {"dt", "theta"}},
+    ("task", "inverse"): {"data": {"train", "validation", "modes", "rollout"}, "optimizer": {"batch"}},
+    ("pde", "poisson"): {"pde": {"dt", "theta", "nu", "inflow"}},
+    ("pde", "heat"): {"pde": {"nu", "inflow"}},
+    ("pde", "burgers"): {"pde": {"theta", "kappa", "inflow"}},
+    ("pde", "oseen"): {"pde": {"theta", "kappa"}},
 }
 
 
@@ -106,6 +126,7 @@ class Scene:
     prdp: dict
     network: dict | None = None
     inverse: dict | None = None
+    hybrid: dict | None = None
     source: str = ""
 
     def as_dict(self) -> dict:
@@ -163,6 +184,11 @@ def parse(text: str, source: str = "<string>") -> Scene:
             if given:
                 raise SceneError(f"{source}: [{name}] {', '.join(given)} do(es) not apply to {what} {value!r}; "
                                  "remove them")
+    pde = values["pde"]
+    if pde["type"] not in _TASK_PDES[task]:
+        raise SceneError(f"{source}: [pde] type {pde['type']!r} does not apply to task {task!r}; "
+                         f"it takes {list(_TASK_PDES[task])}")
+    _check_flow(values, source)
     solver = values["solver"]
     if solver["diff"] == "unrolled" and solver["preset"] not in ("jacobi", "cg"):
         raise SceneError(f"{source}: [solver] diff = 'unrolled' needs preset 'jacobi' or 'cg', "
@@ -175,7 +201,24 @@ def parse(text: str, source: str = "<string>") -> Scene:
     return Scene(name=header["name"], task=task, description=header["description"],
                  mesh=values["mesh"], pde=values["pde"], data=values["data"], optimizer=values["optimizer"],
                  solver=values["solver"], prdp=values["prdp"], network=values.get("network"),
-                 inverse=values.get("inverse"), source=source)
+                 inverse=values.get("inverse"), hybrid=values.get("hybrid"), source=source)
+
+
+def _check_flow(values: dict, source: str) -> None:
+    """Fill the per-PDE degree default and check the choices that depend on the PDE."""
+    pde, solver, network = values["pde"], values["solver"], values.get("network")
+    flow = pde["type"] in ("burgers", "oseen")
+    if pde["degree"] is None:
+        pde["degree"] = 2 if pde["type"] == "oseen" else 1
+    if pde["type"] == "oseen" and pde["degree"] < 2:
+        raise SceneError(f"{source}: [pde] degree must be >= 2 for oseen (Taylor-Hood P_k-P_(k-1)), "
+                         f"got {pde['degree']}")
+    if (pde["type"] == "oseen") != (solver["preset"] == "schur"):
+        raise SceneError(f"{source}: [solver] preset 'schur' is the saddle-point solver: oseen needs it and "
+                         f"other PDEs cannot use it (pde {pde['type']!r}, preset {solver['preset']!r})")
+    if flow and network is not None and network["type"] != "mlp":
+        raise SceneError(f"{source}: [network] type {network['type']!r} works on scalar fields; "
+                         f"{pde['type']} states are vector fields: use 'mlp'")
 
 
 def _section(raw: dict, name: str, source: str) -> dict:

@@ -11,11 +11,15 @@ import pytest
 from fempdl import scene
 from fempdl.scene import SCHEMA, SceneError
 
-EXPECTED_BUNDLED = {"heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3"}
+EXPECTED_BUNDLED = {"heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
+                    "burgers-emulator", "ns-hybrid"}
 
 EMULATOR = {"scene": 'name = "t"\ntask = "emulator"', "mesh": 'name = "lshape"', "pde": 'type = "heat"'}
 INVERSE = {"scene": 'name = "t"\ntask = "inverse"', "mesh": 'name = "lshape"', "pde": 'type = "poisson"',
            "inverse": "theta_ref = [2.0]\ntheta_init = [5.0]"}
+HYBRID = {"scene": 'name = "t"\ntask = "hybrid"', "mesh": 'name = "obstacle"', "pde": 'type = "oseen"',
+          "hybrid": "fine_h = 0.05", "solver": 'preset = "schur"'}
+BURGERS = {**EMULATOR, "pde": 'type = "burgers"', "solver": 'preset = "gmres"'}
 
 
 def toml(extra: dict | None = None, *, base: dict = EMULATOR, drop: tuple = ()) -> str:
@@ -51,15 +55,16 @@ def test_bundled_scene_loads_with_its_tasks_sections(name):
     assert sc.name == name
     assert sc.source == f"bundled:{name}"
     assert sc.description.strip()
-    assert sc.task in ("emulator", "inverse")
+    assert sc.task in ("emulator", "inverse", "hybrid")
     assert sc.mesh["name"]
     for section in ("mesh", "pde", "data", "optimizer", "solver", "prdp"):
         assert set(getattr(sc, section)) == set(SCHEMA[section]), section
-    if sc.task == "emulator":
+    if sc.task in ("emulator", "hybrid"):
         assert sc.inverse is None
         assert set(sc.network) == set(SCHEMA["network"])
         assert sc.network["type"] in ("mlp", "graph")
-        assert sc.pde["type"] == "heat"
+        assert sc.pde["type"] in {"emulator": ("heat", "burgers"), "hybrid": ("oseen",)}[sc.task]
+        assert (sc.hybrid is not None) == (sc.task == "hybrid")
         # Every training sample passes the layer once per epoch in batches that fit.
         assert sc.optimizer["batch"] <= sc.data["train"]
     else:
@@ -107,8 +112,9 @@ def test_parse_fills_the_schema_defaults():
     sc = scene.parse(toml())
     assert (sc.name, sc.task, sc.description, sc.source) == ("t", "emulator", "", "<string>")
     assert sc.mesh == {"name": "lshape", "h": None}
-    assert sc.pde == {"type": "heat", "dt": 0.01, "theta": 1.0, "kappa": 1.0, "degree": 1}
-    assert sc.data == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "k_eps_rtol": 1e-5}
+    assert sc.pde == {"type": "heat", "dt": 0.01, "theta": 1.0, "kappa": 1.0, "degree": 1, "nu": 0.01,
+                      "inflow": 1.0}
+    assert sc.data == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "k_eps_rtol": 1e-5, "rollout": 1}
     assert sc.network == {"type": "mlp", "hidden": 128, "layers": 2}
     assert sc.optimizer == {"type": "adam", "lr": 1e-3, "decay": 1.0, "epochs": 30, "batch": 16, "stop_at": None}
     assert sc.solver == {"preset": "jacobi", "diff": "implicit"}
@@ -122,7 +128,7 @@ def test_parse_fills_the_schema_defaults():
         if values is None:
             continue
         for key, spec in keys.items():
-            if spec.default is not scene._REQUIRED:
+            if spec.default is not scene._REQUIRED and (section, key) != ("pde", "degree"):
                 assert values[key] == spec.default, (section, key)
 
 
@@ -132,6 +138,15 @@ def test_given_values_override_only_their_keys():
     assert sc.optimizer == {"type": "adam", "lr": 2.0, "decay": 1.0, "epochs": 5, "batch": 16, "stop_at": None}
     assert type(sc.optimizer["lr"]) is float  # an int is accepted where a float is expected
     assert sc.mesh == {"name": "lshape", "h": 0.2}
+
+
+def test_flow_defaults():
+    hybrid = scene.parse(toml(base=HYBRID))
+    assert hybrid.pde["degree"] == 2  # Taylor-Hood P2-P1
+    assert hybrid.hybrid == {"fine_h": 0.05, "steps": 2, "spinup": 10, "perturbation": 0.2}
+    assert hybrid.network == {"type": "mlp", "hidden": 128, "layers": 2}
+    burgers = scene.parse(toml(base=BURGERS))
+    assert burgers.pde["degree"] == 1 and burgers.pde["nu"] == 0.01 and burgers.hybrid is None
 
 
 def test_inverse_defaults_and_theta_as_floats():
@@ -177,7 +192,35 @@ BAD = {
                         ["[prdp] tau_step must be of type float, got {'value': 0.9} (dict)"]),
     # choices
     "pde-choice": (toml(drop=("pde",)) + '[pde]\ntype = "wave"\n',
-                   ["[pde] type must be one of ['heat', 'poisson'], got 'wave'"]),
+                   ["[pde] type must be one of ['heat', 'poisson', 'burgers', 'oseen'], got 'wave'"]),
+    # PDE and task, solver and network combinations
+    "poisson-emulator": (toml(drop=("pde",)) + '[pde]\ntype = "poisson"\n',
+                         ["[pde] type 'poisson' does not apply to task 'emulator'; it takes ['heat', 'burgers']"]),
+    "heat-inverse": (toml(base={**INVERSE, "pde": 'type = "heat"'}),
+                     ["[pde] type 'heat' does not apply to task 'inverse'; it takes ['poisson']"]),
+    "burgers-hybrid": (toml(base={**HYBRID, "pde": 'type = "burgers"', "solver": 'preset = "gmres"'}),
+                       ["[pde] type 'burgers' does not apply to task 'hybrid'; it takes ['oseen']"]),
+    "oseen-without-schur": (toml(base={**HYBRID, "solver": 'preset = "gmres"'}),
+                            ["[solver] preset 'schur' is the saddle-point solver", "(pde 'oseen', preset 'gmres')"]),
+    "oseen-default-preset": (toml(base=HYBRID, drop=("solver",)),
+                             ["[solver] preset 'schur' is the saddle-point solver", "preset 'jacobi'"]),
+    "schur-for-heat": (toml({"solver": 'preset = "schur"'}),
+                       ["[solver] preset 'schur' is the saddle-point solver", "(pde 'heat', preset 'schur')"]),
+    "oseen-p1": (toml({"pde": "degree = 1"}, base=HYBRID), ["[pde] degree must be >= 2 for oseen", "got 1"]),
+    "graph-burgers": (toml({"network": 'type = "graph"'}, base=BURGERS),
+                      ["[network] type 'graph' works on scalar fields; burgers states are vector fields"]),
+    "hybrid-without-hybrid": (toml(base=HYBRID, drop=("hybrid",)), ["task 'hybrid' needs section(s) ['hybrid']"]),
+    "hybrid-missing-fine-h": (toml(base={**HYBRID, "hybrid": "steps = 3"}), ["[hybrid] fine_h is required"]),
+    "hybrid-zero-steps": (toml({"hybrid": "steps = 0"}, base=HYBRID), ["[hybrid] steps must be >= 1, got 0"]),
+    "hybrid-on-emulator": (toml({"hybrid": "fine_h = 0.1"}), ["section(s) ['hybrid'] do not apply to task 'emulator'"]),
+    "nu-for-heat": (toml({"pde": "nu = 0.1"}), ["[pde] nu do(es) not apply to pde 'heat'"]),
+    "kappa-for-burgers": (toml({"pde": "kappa = 2.0"}, base=BURGERS), ["[pde] kappa do(es) not apply to pde 'burgers'"]),
+    "inflow-for-burgers": (toml({"pde": "inflow = 2.0"}, base=BURGERS),
+                           ["[pde] inflow do(es) not apply to pde 'burgers'"]),
+    "theta-for-oseen": (toml({"pde": "theta = 0.5"}, base=HYBRID), ["[pde] theta do(es) not apply to pde 'oseen'"]),
+    "rollout-for-inverse": (toml({"data": "rollout = 2"}, base=INVERSE),
+                            ["[data] rollout do(es) not apply to task 'inverse'"]),
+    "zero-rollout": (toml({"data": "rollout = 0"}), ["[data] rollout must be >= 1, got 0"]),
     "optimizer-choice": (toml({"optimizer": 'type = "rmsprop"'}),
                          ["[optimizer] type must be one of ['adam', 'sgd'], got 'rmsprop'"]),
     "network-choice": (toml({"network": 'type = "cnn"'}), ["[network] type must be one of ['mlp', 'graph'], got 'cnn'"]),
@@ -185,7 +228,8 @@ BAD = {
                       ["[solver] diff must be one of ['implicit', 'unrolled'], got 'adjoint'"]),
     "unrolled-gmres": (toml({"solver": 'preset = "gmres"\ndiff = "unrolled"'}),
                        ["[solver] diff = 'unrolled' needs preset 'jacobi' or 'cg', got 'gmres'"]),
-    "task-choice": ('[scene]\nname = "t"\ntask = "forward"\n', ["[scene] task must be one of ['emulator', 'inverse'], got 'forward'"]),
+    "task-choice": ('[scene]\nname = "t"\ntask = "forward"\n',
+                    ["[scene] task must be one of ['emulator', 'inverse', 'hybrid'], got 'forward'"]),
     "choice-is-case-sensitive": (toml({"optimizer": 'type = "Adam"'}), ["[optimizer] type must be one of ['adam', 'sgd'], got 'Adam'"]),
     # minimum
     "negative-lr": (toml({"optimizer": "lr = -0.1"}), ["[optimizer] lr must be > 0, got -0.1"]),

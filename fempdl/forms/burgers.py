@@ -26,7 +26,8 @@ import ufl
 
 from fempdl import _dolfinx
 from fempdl.forms._common import check_controls, check_degree, positive_constant
-from fempdl.forms._flow import supg_tau, vector_function, warn_if_convection_dominated, velocity_bcs
+from fempdl.forms._flow import (supg_measure, supg_tau, vector_function, velocity_bcs,
+                               warn_if_convection_dominated)
 from fempdl.mesh import as_tagged
 from fempdl.problem import Problem
 
@@ -59,9 +60,10 @@ def problem(msh, controls=("w", "u_prev"), *, nu: float = 1e-2, dt: float = 0.1,
     if supg:
         tau = supg_tau(msh_, w_fn, nu_c, dt_c)
         streamline = ufl.dot(ufl.grad(v), w_fn)
+        supg_dx = supg_measure(degree)
         residual = u / dt_c + ufl.dot(ufl.grad(u), w_fn) - nu_c * ufl.div(ufl.grad(u))
-        a = a + tau * ufl.inner(streamline, residual) * ufl.dx
-        L = L + tau * ufl.inner(streamline, source) * ufl.dx
+        a = a + tau * ufl.inner(streamline, residual) * supg_dx
+        L = L + tau * ufl.inner(streamline, source) * supg_dx
     prob = Problem(a, L, bcs, controls={name: fns[name] for name in controls})
     prob.nu, prob.dt = nu_c, dt_c
     return prob

@@ -33,7 +33,8 @@ from __future__ import annotations
 import ufl
 
 from fempdl.forms._common import check_controls, nonnegative_constant, positive_constant
-from fempdl.forms._flow import flow_problem, supg_tau, taylor_hood, vector_function, warn_if_convection_dominated
+from fempdl.forms._flow import (flow_problem, supg_measure, supg_tau, taylor_hood, vector_function,
+                               warn_if_convection_dominated)
 from fempdl.mesh import as_tagged
 from fempdl.problem import Problem
 
@@ -76,7 +77,8 @@ def problem(msh, controls=("w", "u_prev"), *, nu: float = 1e-2, dt: float = 0.1,
     if supg:
         tau = supg_tau(tagged.mesh, w_fn, nu_c, dt_c)
         streamline = ufl.dot(ufl.grad(v), w_fn)
+        supg_dx = supg_measure(degree)
         residual = u / dt_c + ufl.dot(ufl.grad(u), w_fn) - nu_c * ufl.div(ufl.grad(u)) + ufl.grad(p)
-        a = a + tau * ufl.inner(streamline, residual) * ufl.dx
-        L = L + tau * ufl.inner(streamline, source) * ufl.dx
+        a = a + tau * ufl.inner(streamline, residual) * supg_dx
+        L = L + tau * ufl.inner(streamline, source) * supg_dx
     return flow_problem(W, a, L, bcs, enclosed, fns, controls, nu=nu_c, dt=dt_c, grad_div=gamma)
