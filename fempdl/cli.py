@@ -65,7 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from fempdl import experiments, scene, tradeoff
+    from fempdl import experiments, parallel, scene, tradeoff
+
+    parallel.abort_on_error()  # under mpirun: one rank's error ends the job, never a hang
 
     if args.command == "scenes":
         for name in scene.available():
