@@ -55,3 +55,18 @@ def comma_list(kind):
     def parse(text: str) -> list:
         return [kind(item) for item in text.split(",") if item]
     return parse
+
+
+def apply_defaults(parser, args, defaults: dict, mesh_sizes, solvers) -> None:
+    """Fill the options left unset from ``defaults`` and check --sizes, --solvers and --ks."""
+    for key, value in defaults.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    for size in args.sizes:
+        if size not in mesh_sizes:
+            parser.error(f"--sizes: unknown size {size!r}; choose from {sorted(mesh_sizes)}")
+    for name in args.solvers:
+        if name not in solvers:
+            parser.error(f"--solvers: unknown solver {name!r}; choose from {sorted(solvers)}")
+    if not args.ks or min(args.ks) < 1:
+        parser.error(f"--ks must be integers >= 1, got {args.ks}")

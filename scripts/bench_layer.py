@@ -79,7 +79,7 @@ from petsc4py import PETSc
 
 import fempdl
 from fempdl.bridge_torch import SolveLayer
-from bench_common import comma_list, machine_info, write_json_atomically
+from bench_common import apply_defaults, comma_list, machine_info, write_json_atomically
 from fempdl.ksp_adjoint import KSPOptions
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.meshgen)
@@ -406,17 +406,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                  "solvers": ["jacobi", "gmres"]} if args.quick
                 else {"sizes": ["small", "large"], "ks": [10, 50, 200], "batch": 32, "repeats": 3,
                       "min_time": 1.0, "solvers": ["jacobi", "gmres"]})
-    for key, value in defaults.items():
-        if getattr(args, key) is None:
-            setattr(args, key, value)
-    for size in args.sizes:
-        if size not in MESH_SIZES:
-            parser.error(f"--sizes: unknown size {size!r}; choose from {sorted(MESH_SIZES)}")
-    for name in args.solvers:
-        if name not in SOLVERS:
-            parser.error(f"--solvers: unknown solver {name!r}; choose from {sorted(SOLVERS)}")
-    if not args.ks or min(args.ks) < 1:
-        parser.error(f"--ks must be integers >= 1, got {args.ks}")
+    apply_defaults(parser, args, defaults, MESH_SIZES, SOLVERS)
     if args.batch < 2 or args.repeats < 1 or args.min_time < 0:
         parser.error("--batch must be >= 2 (batching is compared with B single calls), --repeats >= 1 "
                      "and --min-time >= 0")

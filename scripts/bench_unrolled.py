@@ -143,7 +143,7 @@ import fempdl
 import fempdl.meshgen
 from fempdl import unrolled
 from fempdl.bridge_torch import SolveLayer
-from bench_common import comma_list, machine_info, write_json_atomically
+from bench_common import apply_defaults, comma_list, machine_info, write_json_atomically
 from fempdl.ksp_adjoint import KSPOptions
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.meshgen)
@@ -588,17 +588,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                 else {"sizes": ["small", "large"], "ks": [5, 20, 100], "batch": 32, "repeats": 3,
                       "heavy_repeats": 1, "memory_repeats": 2, "min_time": 1.0, "memory": True,
                       "solvers": list(SOLVERS)})
-    for key, value in defaults.items():
-        if getattr(args, key) is None:
-            setattr(args, key, value)
-    for size in args.sizes:
-        if size not in MESH_SIZES:
-            parser.error(f"--sizes: unknown size {size!r}; choose from {sorted(MESH_SIZES)}")
-    for name in args.solvers:
-        if name not in SOLVERS:
-            parser.error(f"--solvers: unknown solver {name!r}; choose from {list(SOLVERS)}")
-    if not args.ks or min(args.ks) < 1:
-        parser.error(f"--ks must be integers >= 1, got {args.ks}")
+    apply_defaults(parser, args, defaults, MESH_SIZES, SOLVERS)
     if min(args.batch, args.repeats, args.heavy_repeats, args.memory_repeats) < 1 or args.min_time < 0 \
             or not args.heavy_gib > 0:
         parser.error("--batch, --repeats, --heavy-repeats and --memory-repeats must be >= 1, --min-time >= 0, "
