@@ -3,7 +3,8 @@
 ``fempdl run [SCENE]`` trains a scene with PRDP (or a fixed ``--k``, or the
 converged cap) and, unless ``--no-baseline``, with the converged baseline too,
 then prints the K schedule, final metric, inner iterations and wall time of
-each. ``fempdl tradeoff SCENE`` sweeps fixed caps, runs the baseline and PRDP,
+each; under ``mpirun -n P`` it needs ``--parallel data`` (every batch spread
+over the ranks) or ``--parallel mesh`` (the mesh distributed over them). ``fempdl tradeoff SCENE`` sweeps fixed caps, runs the baseline and PRDP,
 and writes a table, plots and the IC/PR savings split. ``fempdl scenes`` lists
 the bundled scenes.
 """
@@ -51,6 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--epochs", type=_positive_int, help="override the scene's number of epochs")
     run.add_argument("--no-baseline", action="store_true", help="skip the converged baseline run")
     run.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    run.add_argument("--parallel", choices=("data", "mesh"),
+                     help="under mpirun: spread every batch over the ranks (data) or distribute the mesh (mesh)")
 
     trade = sub.add_parser("tradeoff", help="sweep fixed K, the converged baseline and PRDP; table and plots")
     trade.add_argument("scene", help="bundled scene name or path to a .toml file")
@@ -67,7 +70,14 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from fempdl import experiments, parallel, scene, tradeoff
 
+    from mpi4py import MPI
+
     parallel.abort_on_error()  # under mpirun: one rank's error ends the job, never a hang
+    if args.command != "scenes" and getattr(args, "parallel", None) is None and MPI.COMM_WORLD.size > 1:
+        # Without a mode every rank would train the same run and write the same files.
+        print(f"fempdl: running on {MPI.COMM_WORLD.size} ranks needs `fempdl run SCENE --parallel data|mesh`",
+              file=sys.stderr)
+        return 2
 
     if args.command == "scenes":
         for name in scene.available():
@@ -91,22 +101,30 @@ def main(argv=None) -> int:
         print("wrote " + ", ".join(str(p) for p in paths))
         return 0
 
+    try:
+        experiments.check_parallel(sc, args.parallel)
+    except ValueError as err:
+        print(f"fempdl: {err}", file=sys.stderr)
+        return 2
     out = args.out or Path("runs") / sc.name
     runs = {}
     baseline = None
+    common = {"progress": progress, "parallel": args.parallel}
     if not args.no_baseline or args.converged:
-        baseline = experiments.run(sc, "converged", out_dir=out / "converged", resume=_can_resume(args, out / "converged"),
-                                   progress=progress)
+        baseline = experiments.run(sc, "converged", out_dir=out / "converged",
+                                   resume=_can_resume(args, out / "converged"), **common)
     if not args.converged:
         mode, k, label = ("fixed", args.k, f"K={args.k}") if args.k else ("prdp", None, "PRDP")
         sub = out / (f"k{args.k}" if args.k else "prdp")
-        runs[label] = experiments.run(sc, mode, k, out_dir=sub, resume=_can_resume(args, sub), progress=progress,
-                                      k_eps_value=None if baseline is None else baseline.k_eps)
+        runs[label] = experiments.run(sc, mode, k, out_dir=sub, resume=_can_resume(args, sub),
+                                      k_eps_value=None if baseline is None else baseline.k_eps, **common)
     if baseline is not None:
         runs[f"K_eps={baseline.k_eps}"] = baseline
-    print(f"scene {sc.name}: {sc.description}")
-    print(tradeoff.comparison_table(runs))
-    print(f"metrics and checkpoints in {out}")
+    if MPI.COMM_WORLD.rank == 0:
+        ranks = f" on {MPI.COMM_WORLD.size} ranks ({args.parallel})" if args.parallel else ""
+        print(f"scene {sc.name}: {sc.description}{ranks}")
+        print(tradeoff.comparison_table(runs))
+        print(f"metrics and checkpoints in {out}")
     return 0
 
 

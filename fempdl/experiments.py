@@ -38,9 +38,10 @@ from fempdl import _dolfinx, forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
 from fempdl.networks import GraphConvNet, ResidualMLP, normalised_adjacency
+from fempdl.parallel import shard
 from fempdl.prdp import PRDP
 from fempdl.scene import Scene
-from fempdl.training import Trainer, nmse
+from fempdl.training import Trainer, nmse, sample_nmse
 
 __all__ = ["build_task", "k_eps", "run", "RunResult", "MODES"]
 
@@ -97,9 +98,13 @@ def smooth_fields(coords: np.ndarray, count: int, modes: int, rng: np.random.Gen
     return out.reshape(count, -1)
 
 
-def source_modes(coords: np.ndarray, count: int) -> np.ndarray:
-    """(n, P) smooth modes phi_p(x) = prod_d sin(p pi x_d) over the bounding box."""
+def source_modes(coords: np.ndarray, count: int, comm: MPI.Comm = MPI.COMM_SELF) -> np.ndarray:
+    """(n, P) smooth modes phi_p(x) = prod_d sin(p pi x_d) over the bounding box.
+
+    ``coords`` are this rank's rows; the box is that of all ranks of ``comm``."""
     lo, hi = coords.min(axis=0), coords.max(axis=0)
+    comm.Allreduce(MPI.IN_PLACE, lo, op=MPI.MIN)
+    comm.Allreduce(MPI.IN_PLACE, hi, op=MPI.MAX)
     dims = [d for d in range(coords.shape[1]) if hi[d] > lo[d]]
     unit = (coords[:, dims] - lo[dims]) / (hi[dims] - lo[dims])
     return np.stack([np.prod(np.sin(np.pi * p * unit), axis=1) for p in range(1, count + 1)], axis=1)
@@ -113,7 +118,32 @@ def optimisation_step(optimizer, loss: torch.Tensor) -> float:
     return loss.item()
 
 
-class EmulatorTask:
+class Task:
+    """What :class:`~fempdl.training.Trainer` trains; subclasses define the physics.
+
+    A task has ``model``, ``optimizer``, ``scheduler`` (or None), ``layers``
+    (the capped layers whose iterations are counted), ``train_size``,
+    ``val_size``, and two functions of sample indices (a LongTensor):
+
+    * ``loss(idx)``: the training loss of those samples, a mean over them (so a
+      batch split into shards is the shard losses weighted by their sizes);
+    * ``validation_errors(idx)``: one error per validation sample; the
+      validation metric is their mean over all ``val_size`` samples.
+    """
+
+    val_size = 1
+
+    def train_step(self, idx) -> float:
+        """One optimizer step on the samples ``idx``; returns the loss."""
+        return optimisation_step(self.optimizer, self.loss(idx))
+
+    def validate(self) -> float:
+        """The validation metric: the mean error over every validation sample."""
+        with torch.no_grad():
+            return float(self.validation_errors(torch.arange(self.val_size)).double().mean())
+
+
+class EmulatorTask(Task):
     """Network step u0 -> u1, capped physics step u1 -> u2, loss nMSE(u2, u2_ref).
 
     The physics step is the scene's PDE: a heat step (control u0) or a
@@ -148,7 +178,7 @@ class EmulatorTask:
         self.train_u0, self.train_u2 = u0[:n_train].float(), trajectory[2][:n_train].float()
         self.val_u0 = u0[n_train:].float()
         self.val_targets = [state[n_train:].float() for state in trajectory[2::2]]
-        self.train_size = n_train
+        self.train_size, self.val_size = n_train, n_val
         self.layer = SolveLayer(self.problem, options, diff=scene.solver["diff"])
         self.layers = [self.layer]
         self.model = self._network(scene.network)
@@ -171,17 +201,17 @@ class EmulatorTask:
         return GraphConvNet(adjacency, self.problem.dof_coordinates()[:, :self.problem.V.mesh.geometry.dim],
                             spec["hidden"], spec["layers"])
 
-    def train_step(self, idx) -> float:
+    def loss(self, idx) -> torch.Tensor:
         u2 = self.physics(self.layer, self.model(self.train_u0[idx]))
-        return optimisation_step(self.optimizer, nmse(u2, self.train_u2[idx]))
+        return nmse(u2, self.train_u2[idx])
 
-    def validate(self) -> float:
-        with torch.no_grad():
-            u, errors = self.val_u0, []
-            for target in self.val_targets:
-                u = self.physics(self.reference, self.model(u))
-                errors.append(float(nmse(u, target)))
-            return float(np.mean(errors))
+    def validation_errors(self, idx) -> torch.Tensor:
+        """Per sample: the nMSE of every (network, converged step) pair, averaged over the rollout."""
+        u, errors = self.val_u0[idx], []
+        for target in self.val_targets:
+            u = self.physics(self.reference, self.model(u))
+            errors.append(sample_nmse(u, target[idx]))
+        return torch.stack(errors).mean(0)
 
     def close(self) -> None:
         self.layer.close()
@@ -199,17 +229,24 @@ class _Theta(torch.nn.Module):
         self.theta = torch.nn.Parameter(torch.tensor(init, dtype=torch.float64))
 
 
-class InverseTask:
-    """Gradient descent on the source amplitudes theta through the capped Poisson layer."""
+class InverseTask(Task):
+    """Gradient descent on the source amplitudes theta through the capped Poisson layer.
+
+    With ``comm`` of more than one rank the mesh is distributed over it: the
+    layer, the modes and the reference hold each rank's owned DOFs, the nMSE
+    sums over all ranks, and theta is replicated (its gradient is the sum of
+    the ranks' contributions: the Trainer's ``parallel="mesh"``).
+    """
 
     train_size = 1
 
-    def __init__(self, scene: Scene, options: KSPOptions):
-        msh = mesh.load(scene.mesh["name"], MPI.COMM_SELF, h=scene.mesh["h"])
+    def __init__(self, scene: Scene, options: KSPOptions, comm: MPI.Comm = MPI.COMM_SELF):
+        msh = mesh.load(scene.mesh["name"], comm, h=scene.mesh["h"])
         pde = scene.pde
+        self.comm = comm
         self.problem = forms.poisson.problem(msh, controls=("f",), kappa=pde["kappa"], degree=pde["degree"])
         self.theta_ref = torch.tensor(scene.inverse["theta_ref"], dtype=torch.float64)
-        self.modes = torch.as_tensor(source_modes(self.problem.dof_coordinates(), len(self.theta_ref)))
+        self.modes = torch.as_tensor(source_modes(self.problem.dof_coordinates(), len(self.theta_ref), comm))
         reference = SolveLayer(self.problem, KSPOptions.preset("lu"))
         with torch.no_grad():
             self.u_ref = reference(f=self.modes @ self.theta_ref)
@@ -219,14 +256,13 @@ class InverseTask:
         self.model = _Theta(scene.inverse["theta_init"])
         self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
 
-    def train_step(self, idx) -> float:
+    def loss(self, idx) -> torch.Tensor:
         u = self.layer(f=self.modes @ self.model.theta)
-        return optimisation_step(self.optimizer, nmse(u, self.u_ref))
+        return nmse(u, self.u_ref, self.comm)
 
-    def validate(self) -> float:
-        with torch.no_grad():
-            err = self.model.theta - self.theta_ref
-            return float((err @ err) / (self.theta_ref @ self.theta_ref))
+    def validation_errors(self, idx) -> torch.Tensor:
+        err = self.model.theta - self.theta_ref
+        return ((err @ err) / (self.theta_ref @ self.theta_ref)).reshape(1)
 
     def k_eps_rhs(self) -> dict:
         return {"f": self.modes @ self.theta_ref}
@@ -255,12 +291,32 @@ def make_optimizer(spec: dict, params):
     return optimizer, scheduler
 
 
-def build_task(scene: Scene, options: KSPOptions):
-    """The training task of a scene, with its layer solving under ``options``."""
+def build_task(scene: Scene, options: KSPOptions, parallel: str | None = None,
+               comm: MPI.Comm = MPI.COMM_WORLD):
+    """The training task of a scene, with its layer solving under ``options``.
+
+    ``parallel="mesh"`` distributes the mesh over ``comm``; every other mode
+    builds the whole problem on each rank (``COMM_SELF``)."""
+    check_parallel(scene, parallel)
     if scene.task == "hybrid":
         from fempdl.hybrid import HybridTask
         return HybridTask(scene, options)
-    return (EmulatorTask if scene.task == "emulator" else InverseTask)(scene, options)
+    if scene.task == "emulator":
+        return EmulatorTask(scene, options)
+    return InverseTask(scene, options, comm if parallel == "mesh" else MPI.COMM_SELF)
+
+
+def check_parallel(scene: Scene, parallel: str | None) -> None:
+    """Raise ``ValueError`` when the scene's task cannot train in the ``parallel`` mode."""
+    if parallel not in (None, "data", "mesh"):
+        raise ValueError(f"parallel must be None, 'data' or 'mesh', got {parallel!r}")
+    if parallel == "data" and scene.task == "inverse":
+        raise ValueError(f"scene {scene.name!r}: --parallel data splits batches of samples, and the inverse task "
+                         "has one; use --parallel mesh to distribute its mesh instead")
+    if parallel == "mesh" and scene.task != "inverse":
+        raise ValueError(f"scene {scene.name!r}: --parallel mesh distributes the mesh, but the {scene.task} task's "
+                         "network (an MLP or graph network on whole DOF vectors) needs the whole field on every "
+                         "rank; use --parallel data to spread its samples over the ranks instead")
 
 
 def solver_options(scene: Scene, k: int | None, rtol: float | None = None) -> KSPOptions:
@@ -268,30 +324,38 @@ def solver_options(scene: Scene, k: int | None, rtol: float | None = None) -> KS
     return KSPOptions.preset(scene.solver["preset"], max_it=k, rtol=rtol)
 
 
-def k_eps(task, options: KSPOptions) -> int:
-    """Largest iteration count the solver needs to reach its rtol on the task's reference inputs."""
+def k_eps(task, options: KSPOptions, shard_over: MPI.Comm = MPI.COMM_SELF) -> int:
+    """Largest iteration count the solver needs to reach its rtol on the task's reference inputs.
+
+    With ``shard_over`` the samples are spread over its ranks (data-parallel
+    runs, where every rank holds the whole problem) and the maximum is theirs."""
     probe = SolveLayer(task.problem, dataclasses.replace(options, engine="petsc"))
     inputs = {name: torch.atleast_2d(value) for name, value in task.k_eps_rhs().items()}
     most = 0
     with torch.no_grad():
-        for i in range(next(iter(inputs.values())).shape[0]):
+        for i in shard(torch.arange(next(iter(inputs.values())).shape[0]), shard_over).tolist():
             probe(**{name: value[i] for name, value in inputs.items()})
             most = max(most, probe.stats.last.iterations)
     probe.close()
-    return most
+    return shard_over.allreduce(most, op=MPI.MAX)
 
 
 def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None = None, resume: bool = False,
         epochs: int | None = None, progress: bool = False, k_eps_value: int | None = None,
-        stop_after: int | None = None) -> RunResult:
-    """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp")."""
+        stop_after: int | None = None, parallel: str | None = None,
+        comm: MPI.Comm = MPI.COMM_WORLD) -> RunResult:
+    """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp").
+
+    ``parallel`` ("data" or "mesh") trains on the ranks of ``comm`` together
+    (:mod:`fempdl.parallel`); every rank returns the same result."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
     if (mode == "fixed") != (k is not None):
         raise ValueError("give k exactly when mode='fixed'")
-    task = build_task(scene, solver_options(scene, k or 1))
-    keps = k_eps_value if k_eps_value is not None else k_eps(task, solver_options(scene, None,
-                                                                                  scene.data["k_eps_rtol"]))
+    task = build_task(scene, solver_options(scene, k or 1), parallel, comm)
+    keps = k_eps_value if k_eps_value is not None else k_eps(
+        task, solver_options(scene, None, scene.data["k_eps_rtol"]),
+        shard_over=comm if parallel == "data" else MPI.COMM_SELF)
     prdp = None
     if mode == "converged":
         task.layer.max_it = keps
@@ -301,7 +365,7 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
                     delta=p["delta"], ema_window=p["ema_window"], k_cap=p["k_cap"] or keps)
     trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer["batch"],
                       out_dir=out_dir, prdp=prdp, seed=scene.data["seed"], progress=progress,
-                      stop_after=stop_after, stop_at=scene.optimizer["stop_at"])
+                      stop_after=stop_after, stop_at=scene.optimizer["stop_at"], parallel=parallel, comm=comm)
     try:
         rows = trainer.run(resume=resume)
     finally:

@@ -40,11 +40,11 @@ from scipy.spatial import cKDTree
 
 from fempdl import _dolfinx, forms, mesh
 from fempdl.bridge_torch import SolveLayer
-from fempdl.experiments import make_optimizer, optimisation_step, smooth_fields
+from fempdl.experiments import Task, make_optimizer, smooth_fields
 from fempdl.ksp_adjoint import KSPOptions
 from fempdl.networks import ResidualMLP
 from fempdl.scene import Scene
-from fempdl.training import nmse
+from fempdl.training import sample_nmse
 
 __all__ = ["HybridTask", "channel_problem", "VelocityTransfer"]
 
@@ -137,7 +137,7 @@ def _fine_reference(mesh_name: str, coarse_h, fine_h: float, pde_items: tuple, c
     return np.stack([transfer(state.numpy()) for state in states])
 
 
-class HybridTask:
+class HybridTask(Task):
     """Coarse Oseen stepper + network correction, trained over unrolled steps (module docstring)."""
 
     def __init__(self, scene: Scene, options: KSPOptions):
@@ -151,7 +151,7 @@ class HybridTask:
                                     hyb["perturbation"], data["modes"], data["seed"])
         states = torch.as_tensor(reference, dtype=torch.float32)
         self.train_states, self.val_states = states[:, :n_train], states[:, n_train:]
-        self.train_size = n_train
+        self.train_size, self.val_size = n_train, n_val
         self.u_dofs = torch.as_tensor(self.problem.fields["u"])
         free = ~np.isin(self.problem.fields["u"], self.problem.bc_dofs)
         self.model = ResidualMLP(len(self.u_dofs), scene.network["hidden"], scene.network["layers"],
@@ -161,8 +161,8 @@ class HybridTask:
         self.layers = [self.layer]
         self.reference = SolveLayer(self.problem, KSPOptions.preset("lu"))
         with torch.no_grad():
-            self.uncorrected_metric = self._rollout_error(self.reference, lambda u: u, self.val_states,
-                                                          self.rollout)
+            self.uncorrected_metric = float(self._rollout_errors(self.reference, lambda u: u, self.val_states,
+                                                                 self.rollout).double().mean())
 
     def advance(self, layer: SolveLayer, u: torch.Tensor, steps: int, correct=None) -> list[torch.Tensor]:
         """``steps`` hybrid steps from velocities ``u`` (B, n_u); returns every new state."""
@@ -173,18 +173,16 @@ class HybridTask:
             out.append(u)
         return out
 
-    def _rollout_error(self, layer, correct, states, steps) -> float:
+    def _rollout_errors(self, layer, correct, states, steps) -> torch.Tensor:
+        """Per sample: the nMSE of every step of a ``steps``-step rollout, averaged over the steps."""
         predicted = self.advance(layer, states[0], steps, correct)
-        return float(torch.stack([nmse(u, ref) for u, ref in zip(predicted, states[1:])]).mean())
+        return torch.stack([sample_nmse(u, ref) for u, ref in zip(predicted, states[1:])]).mean(0)
 
-    def train_step(self, idx) -> float:
-        predicted = self.advance(self.layer, self.train_states[0, idx], self.steps)
-        loss = torch.stack([nmse(u, self.train_states[k + 1, idx]) for k, u in enumerate(predicted)]).mean()
-        return optimisation_step(self.optimizer, loss)
+    def loss(self, idx) -> torch.Tensor:
+        return self._rollout_errors(self.layer, self.model, self.train_states[:, idx], self.steps).mean()
 
-    def validate(self) -> float:
-        with torch.no_grad():
-            return self._rollout_error(self.reference, self.model, self.val_states, self.rollout)
+    def validation_errors(self, idx) -> torch.Tensor:
+        return self._rollout_errors(self.reference, self.model, self.val_states[:, idx], self.rollout)
 
     def k_eps_rhs(self) -> dict:
         """K_eps is measured on the first step of the validation samples."""

@@ -1,4 +1,4 @@
-"""MPI process-group helpers.
+"""MPI process-group helpers: aborting a failed job, and the reductions of parallel training.
 
 :func:`abort_on_error` makes an uncaught exception on any rank end the whole
 job. Without it a failing rank exits through ``MPI_Finalize`` (mpi4py's exit
@@ -8,15 +8,33 @@ its traceback (prefixed with its rank) and calls ``MPI_Abort``, and mpirun ends
 every rank with a non-zero exit. ``fempdl`` installs it whenever it runs on
 more than one rank; scripts can call it themselves, or run as
 ``mpirun -n P python -m mpi4py script.py``, which does the same.
+
+Parallel training (:class:`fempdl.training.Trainer`) has two modes:
+
+* ``"data"``: every rank holds the whole problem (a mesh on ``COMM_SELF``) and
+  the same model; a batch is cut into one contiguous :func:`shard` per rank,
+  each rank's loss is weighted by its share of the batch and
+  :func:`sum_gradients` adds the ranks' gradients, so every rank applies the
+  serial batch gradient (up to the order of the float additions).
+* ``"mesh"``: the mesh is distributed over the ranks and the model's
+  parameters are replicated. Sums over DOFs go through :func:`allreduce_sum`,
+  which is differentiable; each rank's backward then reaches the parameters
+  only through its own DOFs, and :func:`sum_gradients` adds those parts.
+
+:func:`check_identical` is the guard of both: values every rank must agree on
+(the iteration cap K, the validation metric, a fingerprint of the parameters)
+are compared after every epoch, and a mismatch is an error, not a silent drift.
 """
 from __future__ import annotations
 
 import sys
 import traceback
 
+import numpy as np
+import torch
 from mpi4py import MPI
 
-__all__ = ["abort_on_error"]
+__all__ = ["abort_on_error", "allreduce_sum", "check_identical", "shard", "sum_gradients"]
 
 
 def abort_on_error(comm: MPI.Comm = MPI.COMM_WORLD, exit_code: int = 1) -> None:
@@ -36,3 +54,72 @@ def abort_on_error(comm: MPI.Comm = MPI.COMM_WORLD, exit_code: int = 1) -> None:
         comm.Abort(exit_code)
 
     sys.excepthook = hook
+
+
+def shard(indices: torch.Tensor, comm: MPI.Comm) -> torch.Tensor:
+    """This rank's contiguous part of ``indices``; the parts' sizes differ by at most one (some may be empty)."""
+    bounds = np.linspace(0, len(indices), comm.size + 1).round().astype(int)
+    return indices[bounds[comm.rank]:bounds[comm.rank + 1]]
+
+
+def sum_gradients(parameters, comm: MPI.Comm) -> None:
+    """Replace every parameter's ``.grad`` by its sum over the ranks of ``comm`` (one Allreduce).
+
+    A rank that has no gradient for a parameter (it had no samples) adds zeros;
+    a parameter that has none on any rank keeps ``grad = None``, as in a serial
+    step, so the optimizer skips it there too. The sum is taken in float64.
+    """
+    parameters = [p for p in parameters if p.requires_grad]
+    has = np.array([p.grad is not None for p in parameters], dtype=np.int32)
+    comm.Allreduce(MPI.IN_PLACE, has, op=MPI.MAX)
+    active = [p for p, flag in zip(parameters, has) if flag]
+    if not active:
+        return
+    flat = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).detach().reshape(-1).double()
+                      for p in active]).numpy()
+    comm.Allreduce(MPI.IN_PLACE, flat, op=MPI.SUM)
+    offset = 0
+    for p in active:
+        p.grad = torch.from_numpy(flat[offset:offset + p.numel()]).reshape(p.shape).to(p.dtype).clone()
+        offset += p.numel()
+
+
+class _AllreduceSum(torch.autograd.Function):
+    # The sum is replicated, and what every rank computes from it is the same
+    # loss, counted once: d loss / d (this rank's part) = d loss / d (sum), so
+    # the backward passes the gradient through unchanged.
+    @staticmethod
+    def forward(ctx, local, comm):
+        total = local.detach().numpy().copy()
+        comm.Allreduce(MPI.IN_PLACE, total, op=MPI.SUM)
+        return torch.from_numpy(total)
+
+    @staticmethod
+    def backward(ctx, grad):
+        return grad, None
+
+
+def allreduce_sum(local: torch.Tensor, comm: MPI.Comm) -> torch.Tensor:
+    """The sum of ``local`` over the ranks of ``comm``, differentiable (CPU tensors, same shape on every rank).
+
+    Use it only where every rank goes on to compute the same loss from the
+    result (see the module docstring); the identity on one rank."""
+    if comm.size == 1:
+        return local
+    return _AllreduceSum.apply(local, comm)
+
+
+def _same(a, b) -> bool:
+    return a == b or (a != a and b != b)   # NaN on every rank is agreement
+
+
+def check_identical(comm: MPI.Comm, **values) -> None:
+    """Raise ``RuntimeError`` naming the values that are not equal on every rank of ``comm``."""
+    if comm.size == 1:
+        return
+    gathered = comm.allgather(values)
+    differing = [name for name in values if any(not _same(other[name], values[name]) for other in gathered)]
+    if differing:
+        listing = "; ".join(f"{name}: " + ", ".join(f"rank {r}: {g[name]!r}" for r, g in enumerate(gathered))
+                            for name in differing)
+        raise RuntimeError(f"parallel training went out of step ({listing}); the ranks must agree on these")

@@ -1,8 +1,9 @@
 """The training loop: mini-batches, validation, PRDP, metrics files and resumable checkpoints.
 
-:class:`Trainer` runs epochs of ``task.train_step(batch_indices)`` over shuffled
-mini-batches, then ``task.validate()``; it steps the PRDP controller (if any)
-with the validation metric and writes, after every epoch:
+:class:`Trainer` runs epochs of optimizer steps on ``task.loss(batch_indices)``
+over shuffled mini-batches, then validates (the mean of
+``task.validation_errors``); it steps the PRDP controller (if any) with the
+validation metric and writes, after every epoch:
 
 * ``metrics.csv`` and ``metrics.json``: one row per epoch with the train loss
   (mean over the epoch's batches), the validation metric, the K used, the
@@ -18,9 +19,20 @@ the last completed epoch intact. ``run(resume=True)`` restores all of it and
 continues; with the same settings the resumed run produces the same metrics as
 an uninterrupted one.
 
-A task provides: ``model`` (nn.Module), ``optimizer``, ``scheduler`` (or None),
-``layers`` (the SolveLayers whose iterations are counted), ``train_size``,
-``train_step(indices) -> float`` and ``validate() -> float``.
+A task (:class:`fempdl.experiments.Task`) provides: ``model`` (nn.Module),
+``optimizer``, ``scheduler`` (or None), ``layers`` (the SolveLayers whose
+iterations are counted), ``train_size``, ``val_size``, ``loss(indices)`` (the
+mean over those samples) and ``validation_errors(indices)`` (one per sample).
+
+Under MPI (``parallel="data"`` or ``"mesh"``, :mod:`fempdl.parallel`) every
+rank runs this loop in step: in data mode each takes its shard of every batch
+and of the validation samples, and the metric rows count the iterations and
+solve time of all ranks; in mesh mode every rank works on every sample of a
+distributed mesh and the rows are rank 0's (the ranks' iterations are the same
+collective solves). The gradients are summed over the ranks before every
+optimizer step, K, the metric and the parameters are checked to agree after
+every epoch, and only rank 0 writes files (the checkpoint keeps each rank's
+layer counters, so a resumed run needs the same number of ranks).
 """
 from __future__ import annotations
 
@@ -37,18 +49,32 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from mpi4py import MPI
+
+from fempdl import parallel
 from fempdl.prdp import PRDP
 
-__all__ = ["Trainer", "nmse", "write_atomically"]
+__all__ = ["Trainer", "nmse", "sample_nmse", "write_atomically"]
+PARALLEL_MODES = ("data", "mesh")
 
 CHECKPOINT = "checkpoint.pt"
 METRIC_FIELDS = ("epoch", "train_loss", "val_metric", "k", "forward_iterations", "backward_iterations",
                  "total_iterations", "solve_time", "wall_time")
 
 
-def nmse(u: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+def sample_nmse(u: torch.Tensor, ref: torch.Tensor, comm: MPI.Comm = MPI.COMM_SELF) -> torch.Tensor:
+    """Per sample ||u_i - ref_i||^2 / ||ref_i||^2 for (B, n) rows, shape (B,).
+
+    On a mesh distributed over ``comm`` the rows hold each rank's owned DOFs
+    and the norms sum over all ranks (differentiably)."""
+    sums = torch.stack([((u - ref) ** 2).sum(-1), (ref ** 2).sum(-1)])
+    error, scale = parallel.allreduce_sum(sums, comm)
+    return error / scale
+
+
+def nmse(u: torch.Tensor, ref: torch.Tensor, comm: MPI.Comm = MPI.COMM_SELF) -> torch.Tensor:
     """Normalised MSE, PRDP paper eq. 56: mean_i ||u_i - ref_i||^2 / ||ref_i||^2."""
-    return (((u - ref) ** 2).sum(-1) / (ref ** 2).sum(-1)).mean()
+    return sample_nmse(u, ref, comm).mean()
 
 
 def write_atomically(path: Path, write) -> None:
@@ -78,6 +104,8 @@ class Trainer:
         stop_after: stop (as if interrupted) after this many epochs of this call.
         stop_at: end training once the validation metric is at or below this
             (the cost to reach a target accuracy is then the iterations used).
+        parallel: ``None`` (serial), ``"data"`` or ``"mesh"`` (module docstring).
+        comm: the ranks that train together in a parallel mode.
     """
 
     task: object
@@ -89,12 +117,19 @@ class Trainer:
     progress: bool = False
     stop_after: int | None = None
     stop_at: float | None = None
+    parallel: str | None = None
+    comm: MPI.Comm = dataclasses.field(default_factory=lambda: MPI.COMM_WORLD)
     rows: list = dataclasses.field(default_factory=list)
 
     def __post_init__(self):
+        if self.parallel not in (None, *PARALLEL_MODES):
+            raise ValueError(f"parallel must be None or one of {list(PARALLEL_MODES)}, got {self.parallel!r}")
+        if self.parallel is None:
+            self.comm = MPI.COMM_SELF
+        self._writer = self.comm.rank == 0
         self._shuffle = torch.Generator().manual_seed(self.seed)
         self._elapsed = 0.0
-        if self.out_dir is not None:
+        if self.out_dir is not None and self._writer:
             self.out_dir = Path(self.out_dir)
             self.out_dir.mkdir(parents=True, exist_ok=True)
 
@@ -108,17 +143,18 @@ class Trainer:
         if self._reached_target():
             return self.rows
         bar = tqdm(range(start_epoch, self.epochs), initial=start_epoch, total=self.epochs,
-                   disable=not self.progress, desc="epochs")
+                   disable=not (self.progress and self._writer), desc="epochs")
         done = 0
         for epoch in bar:
             t0 = time.perf_counter()
             k_used = self.k
-            losses = [self.task.train_step(idx) for idx in self._batches()]
-            metric = float(self.task.validate())
+            losses = [self._train_step(idx) for idx in self._batches()]
+            metric = self._validate()
             if self.prdp is not None:
                 self.prdp.step(metric)
             if self.task.scheduler is not None:
                 self.task.scheduler.step()
+            parallel.check_identical(self.comm, k=self.k, val_metric=metric, parameters=self._fingerprint())
             self._elapsed += time.perf_counter() - t0
             self.rows.append(self._row(epoch, float(np.mean(losses)), metric, k_used))
             bar.set_postfix(loss=f"{self.rows[-1]['train_loss']:.2e}", val=f"{metric:.2e}", K=k_used)
@@ -132,22 +168,59 @@ class Trainer:
         return self.stop_at is not None and bool(self.rows) and self.rows[-1]["val_metric"] <= self.stop_at
 
     # ------------------------------------------------------------------ steps
+    def _train_step(self, idx: torch.Tensor) -> float:
+        """One optimizer step on the batch ``idx`` (this rank's shard of it in data mode); the batch loss."""
+        share = parallel.shard(idx, self.comm) if self.parallel == "data" else idx
+        self.task.optimizer.zero_grad()
+        value = 0.0
+        if len(share):
+            loss = self.task.loss(share)
+            if len(share) < len(idx):
+                loss = loss * (len(share) / len(idx))
+            loss.backward()
+            value = loss.item()
+        if self.parallel is not None:
+            parallel.sum_gradients(self.task.model.parameters(), self.comm)
+        self.task.optimizer.step()
+        return self.comm.allreduce(value) if self.parallel == "data" else value
+
+    def _validate(self) -> float:
+        """The mean validation error over all samples (each rank validates its shard in data mode)."""
+        idx = torch.arange(self.task.val_size)
+        if self.parallel == "data":
+            idx = parallel.shard(idx, self.comm)
+        with torch.no_grad():
+            total = float(self.task.validation_errors(idx).double().sum()) if len(idx) else 0.0
+        if self.parallel == "data":
+            total = self.comm.allreduce(total)
+        return total / self.task.val_size
+
+    def _fingerprint(self) -> float:
+        with torch.no_grad():
+            return float(sum(p.double().abs().sum() for p in self.task.model.parameters()))
+
     def _batches(self):
         order = torch.randperm(self.task.train_size, generator=self._shuffle)
         for start in range(0, len(order), self.batch):
             yield order[start:start + self.batch]
 
     def _row(self, epoch: int, loss: float, metric: float, k) -> dict:
-        fwd = sum(layer.stats.forward_iterations for layer in self.task.layers)
-        bwd = sum(layer.stats.backward_iterations for layer in self.task.layers)
+        counts = [sum(layer.stats.forward_iterations for layer in self.task.layers),
+                  sum(layer.stats.backward_iterations for layer in self.task.layers),
+                  sum(layer.stats.solve_time for layer in self.task.layers)]
+        if self.parallel == "data":   # every rank solved its own samples: the run's cost is the sum
+            counts = [self.comm.allreduce(c) for c in counts]
+        fwd, bwd, solve_time = counts
         return {"epoch": epoch, "train_loss": loss, "val_metric": metric, "k": k,
                 "forward_iterations": fwd, "backward_iterations": bwd, "total_iterations": fwd + bwd,
-                "solve_time": sum(layer.stats.solve_time for layer in self.task.layers),
-                "wall_time": self._elapsed}
+                "solve_time": solve_time, "wall_time": self.comm.allreduce(self._elapsed, op=MPI.MAX)}
 
     # -------------------------------------------------------------- files
     def _save(self, epoch: int) -> None:
         if self.out_dir is None:
+            return
+        layer_stats = self.comm.gather([dataclasses.asdict(layer.stats) for layer in self.task.layers])
+        if not self._writer:
             return
         write_atomically(self.out_dir / "metrics.json", lambda p: p.write_text(json.dumps(self.rows, indent=1)))
 
@@ -163,7 +236,7 @@ class Trainer:
             "scheduler": None if self.task.scheduler is None else self.task.scheduler.state_dict(),
             "prdp": None if self.prdp is None else self.prdp.state_dict(),
             "k": self.k,
-            "layer_stats": [dataclasses.asdict(layer.stats) for layer in self.task.layers],
+            "layer_stats_by_rank": layer_stats,
             "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate(),
                     "shuffle": self._shuffle.get_state()},
         }
@@ -187,7 +260,11 @@ class Trainer:
         elif state["k"] is not None:
             for layer in self.task.layers:
                 layer.max_it = state["k"]
-        for layer, saved in zip(self.task.layers, state["layer_stats"]):
+        by_rank = state["layer_stats_by_rank"]
+        if len(by_rank) != self.comm.size:
+            raise ValueError(f"{path} was written by a run on {len(by_rank)} rank(s); "
+                             f"resume it on {len(by_rank)}, not {self.comm.size}")
+        for layer, saved in zip(self.task.layers, by_rank[self.comm.rank]):
             for key, value in saved.items():
                 if key != "last":
                     setattr(layer.stats, key, value)

@@ -1,11 +1,13 @@
-"""Layers on a mesh distributed over MPI ranks give the serial numbers.
+"""Under mpirun: distributed layers and parallel training give the serial numbers.
 
-The scripts in ``tests/mpi/`` run under ``mpirun -n 2`` in a subprocess (with
-a timeout, so a hang fails the test instead of stalling the suite) and write
-their results from rank 0; the comparison is in DOF-coordinate order.
+The scripts in ``tests/mpi/`` run under ``mpirun -n 2`` (and ``-n 1`` for the
+serial side) in a subprocess, with a timeout so that a hang fails the test
+instead of stalling the suite, and write their results from rank 0; layer
+results are compared in DOF-coordinate order.
 """
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -20,11 +22,13 @@ TIMEOUT = 300
 
 
 def mpirun(ranks: int, script: str, *args: str, timeout: float = TIMEOUT) -> subprocess.CompletedProcess:
+    """``mpirun -n ranks python SCRIPT args`` (a script in tests/mpi, or ``-m module``)."""
     launcher = shutil.which("mpirun")
     assert launcher is not None, "mpirun is not installed (Debian: openmpi-bin, pulled in by python3-mpi4py)"
     env = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1",
            "OMP_NUM_THREADS": "1"}
-    command = [launcher, "--oversubscribe", "-n", str(ranks), sys.executable, str(SCRIPTS / script), *args]
+    target = [script] if script == "-m" else [str(SCRIPTS / script)]
+    command = [launcher, "--oversubscribe", "-n", str(ranks), sys.executable, *target, *args]
     return subprocess.run(command, env=env, capture_output=True, text=True, timeout=timeout)
 
 
@@ -68,3 +72,105 @@ def test_an_error_on_one_rank_ends_the_job_instead_of_hanging():
     assert "[rank 1] RuntimeError: injected failure on rank 1" in done.stderr
     assert "[rank 1] aborting all 2 ranks" in done.stderr
     assert "unreachable" not in done.stdout
+
+
+@pytest.fixture(scope="module", params=["data", "mesh"])
+def training_results(request, tmp_path_factory):
+    """Rows of the tiny scene trained in one parallel mode, on 1 rank and on 2."""
+    out = tmp_path_factory.mktemp(f"training-{request.param}")
+    results = {}
+    for ranks in (1, 2):
+        path = out / f"ranks{ranks}.json"
+        done = mpirun(ranks, "parallel_training.py", request.param, str(path))
+        assert done.returncode == 0, done.stderr[-3000:]
+        results[ranks] = json.loads(path.read_text())
+    return request.param, results
+
+
+def _column(rows, key):
+    return np.array([row[key] for row in rows], dtype=float)
+
+
+def test_parallel_training_follows_the_serial_run(training_results):
+    mode, results = training_results
+    serial, split = results[1]["rows"], results[2]["rows"]
+    assert results[2]["ranks"] == 2 and len(split) == len(serial) == 8
+    # Data mode sums float32 gradients in another order; mesh mode is float64 with sums over DOFs split in two.
+    tolerance = 1e-6 if mode == "data" else 1e-12
+    for key in ("train_loss", "val_metric"):
+        a, b = _column(serial, key), _column(split, key)
+        assert np.abs(a - b).max() <= tolerance * np.abs(a).max(), (key, a, b)
+    # Serial and parallel runs take the same solves and the same PRDP decisions; K really moved.
+    for key in ("k", "forward_iterations", "backward_iterations"):
+        assert [row[key] for row in split] == [row[key] for row in serial], key
+    assert len({row["k"] for row in serial}) >= 2
+    assert results[2]["k_eps"] == results[1]["k_eps"]
+
+
+def test_every_rank_uses_the_same_k(training_results):
+    _, results = training_results
+    first, second = results[2]["ks_by_rank"]
+    assert first == second == [row["k"] for row in results[1]["rows"]]
+
+
+def test_a_resumed_parallel_run_continues_the_uninterrupted_one(training_results):
+    _, results = training_results
+    full, resumed = results[2]["rows"], results[2]["resumed_rows"]
+    for key in ("train_loss", "val_metric"):
+        a, b = _column(full, key), _column(resumed, key)
+        assert np.abs(a - b).max() <= 1e-12 * np.abs(a).max(), key   # the mesh may be re-partitioned
+    assert [row["total_iterations"] for row in full] == [row["total_iterations"] for row in resumed]
+    assert results[2]["written_rows"] == resumed   # rank 0 wrote the metrics of the whole run
+
+
+def test_ranks_that_disagree_are_an_error_that_names_the_values(training_results):
+    _, results = training_results
+    assert results[2]["check_message"] == ("parallel training went out of step (value: rank 0: 0, rank 1: 1); "
+                                           "the ranks must agree on these")
+    assert results[1]["check_message"] == ""
+
+
+TINY_SCENE = """
+[scene]
+name = "tiny-cli-parallel"
+task = "emulator"
+[mesh]
+name = "lshape"
+h = 0.25
+[pde]
+type = "heat"
+dt = 0.002
+[data]
+train = 8
+validation = 2
+modes = 2
+[network]
+hidden = 8
+[optimizer]
+epochs = 2
+batch = 4
+"""
+
+
+def test_fempdl_run_parallel_data_under_mpirun(tmp_path):
+    path = tmp_path / "tiny.toml"
+    path.write_text(TINY_SCENE)
+    done = mpirun(2, "-m", "fempdl.cli", "run", str(path), "--parallel", "data", "--k", "3", "--no-baseline",
+                  "--out", str(tmp_path / "out"))
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.count("scene tiny-cli-parallel") == 1   # rank 0 prints
+    assert "on 2 ranks (data)" in done.stdout
+    rows = json.loads((tmp_path / "out" / "k3" / "metrics.json").read_text())
+    # 8 samples x 2 epochs, one forward and one adjoint solve of K = 3 each, over both ranks.
+    assert [row["total_iterations"] for row in rows] == [8 * 2 * 3, 2 * 8 * 2 * 3]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["run", "poisson-inverse", "--parallel", "data"], "has one; use --parallel mesh"),
+    (["run", "heat-emulator-2d", "--parallel", "mesh"], "use --parallel data"),
+    (["run", "heat-emulator-2d"], "needs `fempdl run SCENE --parallel data|mesh`"),
+])
+def test_fempdl_refuses_parallel_modes_that_do_not_fit(args, message):
+    done = mpirun(2, "-m", "fempdl.cli", *args, timeout=120)
+    assert done.returncode == 2
+    assert message in done.stderr
