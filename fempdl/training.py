@@ -145,6 +145,7 @@ class Trainer:
         bar = tqdm(range(start_epoch, self.epochs), initial=start_epoch, total=self.epochs,
                    disable=not (self.progress and self._writer), desc="epochs")
         done = 0
+        self.comm.barrier()   # the ranks finish building their tasks at different times; time from here
         for epoch in bar:
             t0 = time.perf_counter()
             k_used = self.k

@@ -18,18 +18,18 @@ import numpy as np
 import pytest
 
 SCRIPTS = Path(__file__).parent / "mpi"
+EXAMPLES = Path(__file__).parent.parent / "scripts"
 TIMEOUT = 300
+MPI_ENV = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1", "OMP_NUM_THREADS": "1"}
 
 
 def mpirun(ranks: int, script: str, *args: str, timeout: float = TIMEOUT) -> subprocess.CompletedProcess:
-    """``mpirun -n ranks python SCRIPT args`` (a script in tests/mpi, or ``-m module``)."""
+    """``mpirun -n ranks python SCRIPT args`` (a script in tests/mpi, a path, or ``-m module``)."""
     launcher = shutil.which("mpirun")
     assert launcher is not None, "mpirun is not installed (Debian: openmpi-bin, pulled in by python3-mpi4py)"
-    env = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1",
-           "OMP_NUM_THREADS": "1"}
-    target = [script] if script == "-m" else [str(SCRIPTS / script)]
+    target = [script] if script == "-m" or os.path.isabs(script) else [str(SCRIPTS / script)]
     command = [launcher, "--oversubscribe", "-n", str(ranks), sys.executable, *target, *args]
-    return subprocess.run(command, env=env, capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(command, env=MPI_ENV, capture_output=True, text=True, timeout=timeout)
 
 
 @pytest.fixture(scope="module")
@@ -174,3 +174,28 @@ def test_fempdl_refuses_parallel_modes_that_do_not_fit(args, message):
     done = mpirun(2, "-m", "fempdl.cli", *args, timeout=120)
     assert done.returncode == 2
     assert message in done.stderr
+
+
+def test_the_distributed_mesh_example_recovers_the_serial_source():
+    finals = {}
+    for ranks in (1, 2):
+        done = mpirun(ranks, str(EXAMPLES / "mpi_distributed_mesh.py"), "--h", "0.05", "--steps", "20")
+        assert done.returncode == 0, done.stderr[-3000:]
+        last = done.stdout.strip().splitlines()[-1]
+        assert last.startswith(f"{ranks} rank(s),"), done.stdout
+        finals[ranks] = float(last.rsplit(" ", 1)[1])
+    assert finals[2] == pytest.approx(finals[1], rel=1e-8)
+    assert finals[1] < 0.2   # 20 steps moved theta towards theta_ref (the start is 0.62 away)
+
+
+def test_the_data_parallel_example_script_trains_a_scene(tmp_path):
+    path = tmp_path / "tiny.toml"
+    path.write_text(TINY_SCENE)
+    venv_fempdl = Path(sys.executable).parent / "fempdl"
+    assert venv_fempdl.exists(), "the example runs the venv's fempdl command"
+    done = subprocess.run(["bash", str(EXAMPLES / "mpi_data_parallel.sh"), "2", str(path), "--k", "2",
+                           "--no-baseline", "--out", str(tmp_path / "out")],
+                          env=MPI_ENV, capture_output=True, text=True, timeout=TIMEOUT)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "on 2 ranks (data)" in done.stdout
+    assert (tmp_path / "out" / "k2" / "metrics.csv").exists()
