@@ -34,13 +34,14 @@ import numpy as np
 import torch
 from mpi4py import MPI
 
-from fempdl import _dolfinx, forms, mesh
+from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
-from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
+from fempdl.ksp_adjoint import KSPOptions
 from fempdl.networks import GraphConvNet, ResidualMLP, normalised_adjacency
 from fempdl.parallel import shard
 from fempdl.prdp import PRDP
 from fempdl.scene import Scene
+from fempdl.system import assemble_scipy
 from fempdl.training import Trainer, nmse, sample_nmse
 
 __all__ = ["build_task", "k_eps", "run", "RunResult", "MODES"]
@@ -273,12 +274,7 @@ class InverseTask(Task):
 
 def operator_pattern(problem) -> "sp.csr_matrix":
     """The assembled operator without boundary conditions: its pattern is the DOF graph."""
-    A = _dolfinx.create_matrix(problem.a_form)
-    try:
-        _dolfinx.assemble_matrix_into(A, problem.a_form)
-        return petsc_to_scipy(A)
-    finally:
-        A.destroy()
+    return assemble_scipy(problem.a_form)
 
 
 def make_optimizer(spec: dict, params):

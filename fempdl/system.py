@@ -32,7 +32,7 @@ from fempdl import _dolfinx
 from fempdl.ksp_adjoint import CappedSolver, CumulativeStats, KSPOptions, capped_solve_stats, petsc_to_scipy
 from fempdl.problem import Problem
 
-__all__ = ["LinearSystem"]
+__all__ = ["LinearSystem", "assemble_scipy"]
 
 
 class LinearSystem:
@@ -475,3 +475,13 @@ def _value_of(obj) -> np.ndarray:
     if hasattr(obj, "x"):
         return obj.x.array
     return np.asarray(obj.value)
+
+
+def assemble_scipy(form) -> sp.csr_matrix:
+    """A compiled bilinear form assembled without boundary conditions, as scipy CSR (local rows)."""
+    A = _dolfinx.create_matrix(form)
+    try:
+        _dolfinx.assemble_matrix_into(A, form)
+        return petsc_to_scipy(A)
+    finally:
+        A.destroy()

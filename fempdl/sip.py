@@ -1,0 +1,206 @@
+"""Scale-invariant physics (SIP) training: inverse-physics updates fed back through an L2 proxy loss.
+
+The network predicts physical parameters x0 (a source, an initial state) from
+observations; the physics P maps them to outcomes y = P(x0). Instead of
+backpropagating ||P(x0) - y*||^2 through P, an inverse-physics update gives
+
+    x* = x0 + U(y* | x0),
+
+and the network is trained on the proxy loss 1/2 ||x0 - stopgrad(x*)||^2 with
+any torch optimizer (:func:`sip_step`). The inverse updates here:
+
+* :class:`GradientStep`: x* = x0 - eta * dL/dx0 (L = 1/2 ||P(x0) - y*||^2 per
+  sample). With eta = 1 the proxy gradient equals backpropagation's exactly
+  (paper 001, Theorem 1); it is the baseline, not a useful inverse.
+* :class:`ExactLinearInverse`: for a layer whose right-hand side is affine in
+  the control, A u = C m + c (Poisson's source: C = M the mass matrix; a heat
+  step's initial state: C = M - (1 - theta) dt K), the exact inverse of the
+  discrete map is one application of the operator and one solve with C:
+
+      x* = x0 + eta * C^{-1} A_full (y* - P(x0))   (on the free DOFs),
+
+  with A_full the operator assembled without boundary conditions and C, A_full
+  restricted to the rows and columns of the DOFs off the Dirichlet boundary.
+  P only sees the free rows, so P(x*) = y* for eta = 1. The control's values
+  at Dirichlet DOFs reach the free rows only through the mass coupling and
+  are not determined by y*; both inverses keep x0's values there, so the
+  answer is unique.
+  For Poisson C is the mass matrix: no implicit solve of the PDE is needed.
+  For a heat step it is the backward heat equation: it multiplies mode k by
+  1 + dt lambda_k, so noise in y* at high frequencies is amplified without
+  bound; use the damped inverse below.
+* :class:`GaussNewtonInverse`: capped CG on the (optionally Tikhonov-damped)
+  normal equations (J^T J + alpha I) dx = J^T (y* - P(x0)), with J v and
+  J^T w from the layer's own forward and adjoint solves (dx, too, is zero at
+  the Dirichlet DOFs). ``alpha > 0`` is the
+  damping of the heat inverse: along a singular pair (sigma_k) of J the
+  update multiplies the residual by sigma_k / (sigma_k^2 + alpha) instead of
+  1/sigma_k (for a heat step sigma_k falls like 1/(1 + dt lambda_k)), so no
+  component is amplified by more than 1/(2 sqrt(alpha)). Its cap ``max_it`` is
+  a knob like a layer's, for PRDP to drive.
+
+Shapes: x0 is (B, n_x) (the control's DOFs), y* is (B, n_y) (the layer's
+output DOFs); every update returns (B, n_x) without a graph.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse.linalg as spla
+import torch
+
+from fempdl.bridge_torch import SolveLayer
+from fempdl.system import assemble_scipy
+
+__all__ = ["ExactLinearInverse", "GaussNewtonInverse", "GradientStep", "proxy_loss", "sip_step"]
+
+
+def proxy_loss(x0: torch.Tensor, x_star: torch.Tensor) -> torch.Tensor:
+    """1/2 ||x0 - stopgrad(x*)||^2 per sample, summed over the (B, n) batch.
+
+    Summed, not averaged: its gradient with respect to x0 is then x0 - x*, the
+    inverse update itself, for every sample."""
+    return 0.5 * ((x0 - x_star.detach()) ** 2).sum()
+
+
+def sip_step(model: torch.nn.Module, optimizer, inputs: torch.Tensor, y_target: torch.Tensor,
+             inverse) -> tuple[float, torch.Tensor]:
+    """One SIP training step: x0 = model(inputs), x* = inverse(x0, y*), a step on the proxy loss.
+
+    Returns the proxy loss and x* (B, n_x)."""
+    x0 = model(inputs)
+    x_star = inverse(x0.detach(), y_target)
+    loss = proxy_loss(x0, x_star)
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+    return loss.item(), x_star
+
+
+class _LayerInverse:
+    """Common part: a layer, the control the update acts on, the other inputs held fixed.
+
+    ``free``: the control DOFs an update may change (all but the Dirichlet DOFs
+    when the control lives on the solution space)."""
+
+    def __init__(self, layer: SolveLayer, control: str, fixed: dict | None):
+        problem = layer.problem
+        if control not in problem.control_names:
+            raise ValueError(f"unknown control {control!r}; the layer's controls are {list(problem.control_names)}")
+        self.layer, self.control, self.fixed = layer, control, dict(fixed or {})
+        n = problem.control_size(control)
+        on_solution_space = problem.control(control).function_space == problem.V
+        self.free = np.setdiff1d(np.arange(n), problem.bc_dofs) if on_solution_space else np.arange(n)
+
+    def physics(self, x: torch.Tensor) -> torch.Tensor:
+        return self.layer(**{self.control: x}, **self.fixed)
+
+
+class GradientStep(_LayerInverse):
+    """x* = x0 - eta * d/dx0 [1/2 ||P(x0) - y*||^2] for every sample (one adjoint solve)."""
+
+    def __init__(self, layer: SolveLayer, control: str, eta: float = 1.0, fixed: dict | None = None):
+        super().__init__(layer, control, fixed)
+        self.eta = float(eta)
+
+    def __call__(self, x0: torch.Tensor, y_target: torch.Tensor) -> torch.Tensor:
+        x = x0.detach().clone().requires_grad_(True)
+        with torch.enable_grad():
+            residual = self.physics(x) - y_target
+            (grad,) = torch.autograd.grad(0.5 * (residual ** 2).sum(), x)
+        return (x0 - self.eta * grad).detach()
+
+
+class ExactLinearInverse(_LayerInverse):
+    """x* = x0 + eta C^{-1} A_full (y* - P(x0)) for a control the right-hand side is affine in (module docstring).
+
+    Serial (the operators are assembled into scipy matrices); C is factorised
+    once. The matrix must not depend on a control that varies (pass none)."""
+
+    def __init__(self, layer: SolveLayer, control: str, eta: float = 1.0, fixed: dict | None = None):
+        super().__init__(layer, control, fixed)
+        problem = layer.problem
+        if problem.V.mesh.comm.size > 1:
+            raise ValueError("ExactLinearInverse assembles serial scipy operators; run it on one process")
+        if control not in problem.affine_rhs_controls:
+            raise ValueError(f"ExactLinearInverse needs a control the right-hand side is affine in; {control!r} is "
+                             f"not (affine: {sorted(problem.affine_rhs_controls)}); use GaussNewtonInverse")
+        varying = sorted(set(self.fixed) & problem.matrix_controls)
+        if varying:
+            raise ValueError(f"ExactLinearInverse assembles the operator once; the matrix depends on {varying}")
+        if problem.control(control).function_space != problem.V:
+            raise ValueError(f"ExactLinearInverse needs the control on the solution space; {control!r} is not")
+        self.eta = float(eta)
+        self.operator = assemble_scipy(problem.a_form)[self.free]
+        control_matrix = assemble_scipy(problem.rhs_matrix_form(control))[self.free][:, self.free]
+        self._solve_control_matrix = spla.factorized(control_matrix.tocsc())
+
+    def __call__(self, x0: torch.Tensor, y_target: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            residual = (y_target - self.physics(x0)).double().numpy()
+        step = np.zeros(residual.shape[:1] + (x0.shape[1],))
+        step[:, self.free] = np.stack([self._solve_control_matrix(self.operator @ r) for r in residual])
+        return (x0 + self.eta * torch.as_tensor(step, dtype=x0.dtype)).detach()
+
+
+class GaussNewtonInverse(_LayerInverse):
+    """x* = x0 + eta dx, dx from ``max_it`` CG iterations on (J^T J + alpha I) dx = J^T (y* - P(x0)).
+
+    J v = P(v) - P(0) and J^T w (one adjoint solve) come from the layer, so the
+    control must enter the right-hand side affinely (then P is affine and J
+    is exact); ``damping`` = alpha (Tikhonov). ``max_it`` is the CG cap (PRDP
+    may move it), ``rtol`` stops earlier on the normal-equation residual.
+    After a call, ``last_iterations`` is the number of CG iterations run.
+    """
+
+    def __init__(self, layer: SolveLayer, control: str, *, damping: float = 0.0, max_it: int = 20,
+                 rtol: float = 0.0, eta: float = 1.0, fixed: dict | None = None):
+        super().__init__(layer, control, fixed)
+        if control not in layer.problem.affine_rhs_controls:
+            raise ValueError(f"GaussNewtonInverse needs a control the right-hand side is affine in (exact J); "
+                             f"{control!r} is not (affine: {sorted(layer.problem.affine_rhs_controls)})")
+        if not damping >= 0.0:
+            raise ValueError(f"damping must be >= 0, got {damping}")
+        if int(max_it) < 1:
+            raise ValueError(f"max_it must be >= 1, got {max_it}")
+        self.damping, self.max_it, self.rtol, self.eta = float(damping), int(max_it), float(rtol), float(eta)
+        self.last_iterations = 0
+
+    def __call__(self, x0: torch.Tensor, y_target: torch.Tensor) -> torch.Tensor:
+        x0d = x0.detach().double()
+        with torch.no_grad():
+            offset = self.physics(torch.zeros_like(x0d))              # P(0): the affine part
+
+            def normal(v):                                            # (J^T J + alpha) v
+                return self._adjoint(self.physics(v) - offset) + self.damping * v
+
+            rhs = self._adjoint(y_target.double() - self.physics(x0d))
+            dx = torch.zeros_like(x0d)
+            r, p = rhs.clone(), rhs.clone()
+            rr = (r * r).sum(-1)
+            stop = (self.rtol * rhs.norm(dim=-1)) ** 2
+            self.last_iterations = 0
+            for _ in range(self.max_it):
+                active = rr > stop
+                if not bool(active.any()) or not bool((rr > 0).any()):
+                    break
+                q = normal(p)
+                pq = (p * q).sum(-1)
+                alpha = torch.where(active & (pq > 0), rr / torch.where(pq > 0, pq, 1.0), 0.0)
+                dx += alpha[:, None] * p
+                r -= alpha[:, None] * q
+                rr_new = (r * r).sum(-1)
+                beta = torch.where(rr > 0, rr_new / torch.where(rr > 0, rr, 1.0), 0.0)
+                p = r + beta[:, None] * p
+                rr = rr_new
+                self.last_iterations += 1
+        return (x0d + self.eta * dx).to(x0.dtype)
+
+    def _adjoint(self, w: torch.Tensor) -> torch.Tensor:
+        """J^T w for every sample (one adjoint solve of the layer), zero off the free control DOFs."""
+        v = w.new_zeros(w.shape[0], self.layer.problem.control_size(self.control)).requires_grad_(True)
+        with torch.enable_grad():
+            (grad,) = torch.autograd.grad(self.physics(v), v, grad_outputs=w)
+        out = torch.zeros_like(grad)
+        out[:, self.free] = grad[:, self.free]
+        return out
+
