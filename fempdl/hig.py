@@ -1,0 +1,145 @@
+"""Half-inverse gradients (HIG): a network optimizer that half-inverts the network + solver Jacobian.
+
+For a batch of B inputs, the network (weights theta, P of them) predicts x_i
+and the physics maps them to outcomes y_i = physics(x_i) in R^m; the loss L
+depends on the y_i. HIG stacks the per-sample Jacobians dy_i/dtheta into
+J of shape (B m, P) and the loss gradients dL/dy_i into g of length B m,
+takes the SVD J = U S V^T and updates
+
+    delta theta = -eta * max(S)^beta * V S^kappa U^T g,
+
+where singular values at or below tau * max(S) are dropped (their S^kappa
+is set to 0). kappa = 1, beta = 0 is gradient descent (V S U^T g = J^T g);
+kappa = -1 is the Gauss-Newton pseudo-inverse step J^+ g; kappa = -1/2
+(the default) is the half-inverse of paper 002. beta = -1 - kappa rescales
+the largest singular value to one.
+
+The Jacobian is J_i = J_physics(x_i) J_net(x_i): the network part by
+``torch.func`` (vmap of jacrev over the samples), the physics part by
+backward passes with the m unit vectors as output gradients (for a
+:class:`fempdl.bridge_torch.SolveLayer`, m adjoint solves per sample, in one
+batched call); a physics that is linear in x (a source or an initial state of
+a fixed-matrix layer) has the same Jacobian for every sample, and
+``linear_physics=True`` computes it once. The SVD costs O(B m P min(B m, P)) and
+J takes 8 B m P bytes: :class:`HIG` refuses, with the size it would need, a
+Jacobian larger than ``max_jacobian_bytes``.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch.func import functional_call, jacrev, vmap
+
+__all__ = ["HIG", "half_inverse_update"]
+
+
+def half_inverse_update(jacobian: torch.Tensor, g: torch.Tensor, *, kappa: float = -0.5, beta: float = 0.0,
+                        tau: float = 1e-5) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """max(S)^beta V S^kappa U^T g for J = U S V^T (shape (R, P), g of length R); S; the rank kept.
+
+    Singular values <= tau * max(S) are dropped, and so are the numerically
+    zero ones (<= eps max(R, P) max(S), the numerical rank's bound) at any tau."""
+    if jacobian.ndim != 2 or g.shape != jacobian.shape[:1]:
+        raise ValueError(f"expected J of shape (R, P) and g of length R, got {tuple(jacobian.shape)} and "
+                         f"{tuple(g.shape)}")
+    U, S, Vh = torch.linalg.svd(jacobian, full_matrices=False)
+    largest = S.max() if S.numel() else torch.zeros((), dtype=S.dtype)
+    if not largest > 0:
+        return torch.zeros(jacobian.shape[1], dtype=jacobian.dtype), S, 0
+    floor = torch.finfo(S.dtype).eps * max(jacobian.shape)
+    keep = S > max(tau, floor) * largest
+    powered = torch.where(keep, S.clamp_min(torch.finfo(S.dtype).tiny) ** kappa, torch.zeros_like(S))
+    return largest ** beta * (Vh.T @ (powered * (U.T @ g))), S, int(keep.sum())
+
+
+class HIG:
+    """Half-inverse gradient steps on the parameters of ``model`` (module docstring).
+
+    Args:
+        model: the network; its trainable parameters are updated in place.
+        lr: eta.
+        kappa, beta, tau: the exponent, the prefactor exponent and the relative
+            truncation of the singular values.
+        max_jacobian_bytes: refuse a stacked Jacobian larger than this
+            (default 1 GiB).
+
+    After a step, ``last_rank`` is the number of singular values kept and
+    ``last_singular_values`` all of them (descending).
+    """
+
+    def __init__(self, model: torch.nn.Module, lr: float = 1.0, *, kappa: float = -0.5, beta: float = 0.0,
+                 tau: float = 1e-5, max_jacobian_bytes: int = 1 << 30):
+        if not lr > 0:
+            raise ValueError(f"lr must be > 0, got {lr}")
+        if not tau >= 0:
+            raise ValueError(f"tau must be >= 0, got {tau}")
+        self.model, self.lr, self.kappa, self.beta, self.tau = model, float(lr), float(kappa), float(beta), float(tau)
+        self.max_jacobian_bytes = int(max_jacobian_bytes)
+        self.names = [name for name, p in model.named_parameters() if p.requires_grad]
+        if not self.names:
+            raise ValueError("the model has no trainable parameters")
+        self.last_rank = 0
+        self.last_singular_values = None
+
+    @property
+    def parameters(self) -> list[torch.nn.Parameter]:
+        named = dict(self.model.named_parameters())
+        return [named[name] for name in self.names]
+
+    def jacobian(self, inputs: torch.Tensor, physics: Callable | None = None,
+                 linear_physics: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """(y, J): outcomes (B, m) and the stacked Jacobian (B m, P) in float64."""
+        params = {name: p.detach() for name, p in zip(self.names, self.parameters)}
+        n_params = sum(p.numel() for p in params.values())
+        with torch.no_grad():
+            x = self.model(inputs)
+            y = x if physics is None else physics(x)
+        batch, m = y.shape
+        needed = 8 * batch * (m + x.shape[1]) * n_params
+        if needed > self.max_jacobian_bytes:
+            raise MemoryError(f"HIG needs a ({batch * m} x {n_params}) Jacobian plus the network's "
+                              f"({batch * x.shape[1]} x {n_params}): {needed / 2**20:.1f} MiB, more than "
+                              f"max_jacobian_bytes = {self.max_jacobian_bytes / 2**20:.1f} MiB; use a smaller batch, "
+                              "fewer outputs or a smaller network, or raise the bound")
+
+        def network(p, sample):
+            return functional_call(self.model, p, (sample[None],))[0]
+
+        per_param = vmap(jacrev(network), in_dims=(None, 0))(params, inputs)       # name -> (B, n_x, *shape)
+        j_net = torch.cat([per_param[name].reshape(batch, x.shape[1], -1) for name in self.names], dim=2)
+        j_net = j_net.double()
+        if physics is None:
+            return y.double(), j_net.reshape(batch * m, n_params)
+        j_phys = self._physics_jacobian(physics, x, m, linear_physics)                # (B, m, n_x)
+        return y.double(), torch.bmm(j_phys, j_net).reshape(batch * m, n_params)
+
+    @staticmethod
+    def _physics_jacobian(physics: Callable, x: torch.Tensor, m: int, linear: bool) -> torch.Tensor:
+        rows = []
+        for sample in (x[:1] if linear else x):
+            repeated = sample.detach().expand(m, -1).clone().requires_grad_(True)
+            with torch.enable_grad():
+                out = physics(repeated)
+                (grad,) = torch.autograd.grad(out, repeated, grad_outputs=torch.eye(m, dtype=out.dtype))
+            rows.append(grad.double())
+        jac = torch.stack(rows)
+        return jac.expand(x.shape[0], -1, -1) if linear else jac
+
+    def step(self, inputs: torch.Tensor, loss_fn: Callable[[torch.Tensor], torch.Tensor],
+             physics: Callable | None = None, linear_physics: bool = False) -> float:
+        """One HIG update for the batch ``inputs``; ``loss_fn(y)`` is the scalar loss of the outcomes
+        ``y = physics(model(inputs))`` (B, m). Returns the loss before the update."""
+        y, jac = self.jacobian(inputs, physics, linear_physics)
+        y = y.detach().requires_grad_(True)
+        with torch.enable_grad():
+            loss = loss_fn(y)
+            (g,) = torch.autograd.grad(loss, y)
+        update, self.last_singular_values, self.last_rank = half_inverse_update(
+            jac, g.reshape(-1), kappa=self.kappa, beta=self.beta, tau=self.tau)
+        offset = 0
+        with torch.no_grad():
+            for p in self.parameters:
+                p -= self.lr * update[offset:offset + p.numel()].reshape(p.shape).to(p.dtype)
+                offset += p.numel()
+        return float(loss.detach())
