@@ -19,8 +19,9 @@ The Jacobian is J_i = J_physics(x_i) J_net(x_i): the network part by
 backward passes with the m unit vectors as output gradients (for a
 :class:`fempdl.bridge_torch.SolveLayer`, m adjoint solves per sample, in one
 batched call); a physics that is linear in x (a source or an initial state of
-a fixed-matrix layer) has the same Jacobian for every sample, and
-``linear_physics=True`` computes it once. The SVD costs O(B m P min(B m, P)) and
+a fixed-matrix layer) has the same Jacobian for every sample and every step:
+``linear_physics=True`` computes it on the first step and reuses it (per
+physics callable). The SVD costs O(B m P min(B m, P)) and
 J takes 8 B m P bytes: :class:`HIG` refuses, with the size it would need, a
 Jacobian larger than ``max_jacobian_bytes``.
 """
@@ -81,6 +82,7 @@ class HIG:
             raise ValueError("the model has no trainable parameters")
         self.last_rank = 0
         self.last_singular_values = None
+        self._constant_jacobians = {}
 
     @property
     def parameters(self) -> list[torch.nn.Parameter]:
@@ -111,20 +113,25 @@ class HIG:
         j_net = j_net.double()
         if physics is None:
             return y.double(), j_net.reshape(batch * m, n_params)
-        j_phys = self._physics_jacobian(physics, x, m, linear_physics)                # (B, m, n_x)
+        if linear_physics:
+            if physics not in self._constant_jacobians:
+                self._constant_jacobians[physics] = self._physics_jacobian(physics, x[:1], m)[0]
+            j_phys = self._constant_jacobians[physics].expand(batch, -1, -1)            # (B, m, n_x)
+        else:
+            j_phys = self._physics_jacobian(physics, x, m)
         return y.double(), torch.bmm(j_phys, j_net).reshape(batch * m, n_params)
 
     @staticmethod
-    def _physics_jacobian(physics: Callable, x: torch.Tensor, m: int, linear: bool) -> torch.Tensor:
+    def _physics_jacobian(physics: Callable, x: torch.Tensor, m: int) -> torch.Tensor:
+        """(B, m, n_x): per sample, m backward passes (one batched call) with unit output gradients."""
         rows = []
-        for sample in (x[:1] if linear else x):
+        for sample in x:
             repeated = sample.detach().expand(m, -1).clone().requires_grad_(True)
             with torch.enable_grad():
                 out = physics(repeated)
                 (grad,) = torch.autograd.grad(out, repeated, grad_outputs=torch.eye(m, dtype=out.dtype))
             rows.append(grad.double())
-        jac = torch.stack(rows)
-        return jac.expand(x.shape[0], -1, -1) if linear else jac
+        return torch.stack(rows)
 
     def step(self, inputs: torch.Tensor, loss_fn: Callable[[torch.Tensor], torch.Tensor],
              physics: Callable | None = None, linear_physics: bool = False) -> float:
