@@ -167,13 +167,22 @@ class GaussNewtonInverse(_LayerInverse):
 
     def __call__(self, x0: torch.Tensor, y_target: torch.Tensor) -> torch.Tensor:
         x0d = x0.detach().double()
+        # P(0) is the affine part of P; its graph is kept, so every J^T w below is one adjoint solve.
+        zero = torch.zeros_like(x0d).requires_grad_(True)
+        with torch.enable_grad():
+            offset = self.physics(zero)
+
+        def adjoint(w):                                               # J^T w, zero off the free DOFs
+            (grad,) = torch.autograd.grad(offset, zero, grad_outputs=w, retain_graph=True)
+            out = torch.zeros_like(grad)
+            out[:, self.free] = grad[:, self.free]
+            return out
+
         with torch.no_grad():
-            offset = self.physics(torch.zeros_like(x0d))              # P(0): the affine part
-
             def normal(v):                                            # (J^T J + alpha) v
-                return self._adjoint(self.physics(v) - offset) + self.damping * v
+                return adjoint(self.physics(v) - offset) + self.damping * v
 
-            rhs = self._adjoint(y_target.double() - self.physics(x0d))
+            rhs = adjoint(y_target.double() - self.physics(x0d))
             dx = torch.zeros_like(x0d)
             r, p = rhs.clone(), rhs.clone()
             rr = (r * r).sum(-1)
@@ -194,13 +203,3 @@ class GaussNewtonInverse(_LayerInverse):
                 rr = rr_new
                 self.last_iterations += 1
         return (x0d + self.eta * dx).to(x0.dtype)
-
-    def _adjoint(self, w: torch.Tensor) -> torch.Tensor:
-        """J^T w for every sample (one adjoint solve of the layer), zero off the free control DOFs."""
-        v = w.new_zeros(w.shape[0], self.layer.problem.control_size(self.control)).requires_grad_(True)
-        with torch.enable_grad():
-            (grad,) = torch.autograd.grad(self.physics(v), v, grad_outputs=w)
-        out = torch.zeros_like(grad)
-        out[:, self.free] = grad[:, self.free]
-        return out
-
