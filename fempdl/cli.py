@@ -4,13 +4,19 @@
 converged cap) and, unless ``--no-baseline``, with the converged baseline too,
 then prints the K schedule, final metric, inner iterations and wall time of
 each; under ``mpirun -n P`` it needs ``--parallel data`` (every batch spread
-over the ranks) or ``--parallel mesh`` (the mesh distributed over them). ``fempdl tradeoff SCENE`` sweeps fixed caps, runs the baseline and PRDP,
-and writes a table, plots and the IC/PR savings split. ``fempdl scenes`` lists
-the bundled scenes.
+over the ranks) or ``--parallel mesh`` (the mesh distributed over them). On a
+sip or hig scene it trains the scene's method (SIP, HIG) and Adam with
+backpropagation. ``fempdl tradeoff SCENE`` sweeps fixed caps, runs the
+baseline and PRDP, and writes a table, plots and the IC/PR savings split.
+``fempdl compare SCENE`` runs a sip or hig scene's method and Adam with
+backpropagation side by side, at equal iterations and at equal training time,
+and writes the ratios and plots of the error against both. ``fempdl scenes``
+lists the bundled scenes.
 """
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -62,13 +68,27 @@ def build_parser() -> argparse.ArgumentParser:
     trade.add_argument("--epochs", type=_positive_int, help="override the scene's number of epochs")
     trade.add_argument("--no-progress", action="store_true")
 
+    comp = sub.add_parser("compare", help="a sip or hig scene's method against Adam + backprop; ratios and plots")
+    comp.add_argument("scene", help="bundled scene name or path to a .toml file (task sip or hig)")
+    comp.add_argument("--out", type=Path, help="output directory (default runs/SCENE/compare)")
+    comp.add_argument("--epochs", type=_positive_int, help="override the scene's number of epochs")
+    comp.add_argument("--equal-iterations-only", action="store_true",
+                      help="do not extend the baseline to the method's training time")
+    comp.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
+    comp.add_argument("--no-progress", action="store_true")
+
     sub.add_parser("scenes", help="list the bundled scenes")
     return parser
 
 
 def main(argv=None) -> int:
+    # Before torch loads its OpenMP runtime: under the default spin-then-sleep policy, torch's threads
+    # stall 10-80x when another process holds a core (scripts/bench_unrolled.py); passive waiting costs
+    # microseconds per parallel region. The environment's own setting wins.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     args = build_parser().parse_args(argv)
     from fempdl import experiments, parallel, scene, tradeoff
+    from fempdl.scene import METHOD_TASKS
 
     from mpi4py import MPI
 
@@ -91,6 +111,13 @@ def main(argv=None) -> int:
     if args.epochs is not None:
         sc.optimizer["epochs"] = args.epochs
     progress = not args.no_progress and sys.stderr.isatty()
+    if (args.command == "compare") != (sc.task in METHOD_TASKS) and args.command != "run":
+        use = "fempdl compare" if sc.task in METHOD_TASKS else "fempdl tradeoff"
+        print(f"fempdl: `fempdl {args.command}` does not apply to the {sc.task} scene {sc.name!r}; use `{use}`",
+              file=sys.stderr)
+        return 2
+    if sc.task in METHOD_TASKS:
+        return _methods(args, sc, progress)
     if args.command == "tradeoff":
         out = args.out or Path("runs") / sc.name / "tradeoff"
         runs = tradeoff.sweep(sc, ks=args.ks, out_dir=out, progress=progress)
@@ -125,6 +152,35 @@ def main(argv=None) -> int:
         print(f"scene {sc.name}: {sc.description}{ranks}")
         print(tradeoff.comparison_table(runs))
         print(f"metrics and checkpoints in {out}")
+    return 0
+
+
+def _methods(args, sc, progress: bool) -> int:
+    """`fempdl run` and `fempdl compare` on a sip or hig scene: its method and Adam with backpropagation."""
+    from fempdl import compare, inversion
+
+    if args.command == "run":
+        if args.k or args.prdp or args.converged or args.parallel:
+            print(f"fempdl: --k, --prdp, --converged and --parallel choose solver caps and ranks for PRDP scenes; "
+                  f"the {sc.task} scene {sc.name!r} solves with LU on one process", file=sys.stderr)
+            return 2
+        out = args.out or Path("runs") / sc.name
+        names = [sc.task] + ([] if args.no_baseline else [compare.BASELINE])
+        runs = {name: inversion.run(sc, name, out_dir=out / name, progress=progress,
+                                    resume=_can_resume(args, out / name)) for name in names}
+        print(f"scene {sc.name}: {sc.description}")
+        print(compare.table(sc, runs))
+        print(f"metrics and checkpoints in {out}")
+        return 0
+    out = args.out or Path("runs") / sc.name / "compare"
+    runs = compare.compare(sc, out, equal_time=not args.equal_iterations_only, resume=args.resume,
+                           progress=progress)
+    split = compare.summary(sc, runs)
+    paths = compare.write_report(sc, runs, split, out)
+    print(f"scene {sc.name}: {sc.description}")
+    print(compare.table(sc, runs))
+    print("\n".join(compare.summary_lines(split)))
+    print("wrote " + ", ".join(str(p) for p in paths))
     return 0
 
 

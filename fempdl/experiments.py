@@ -51,11 +51,14 @@ MODES = ("fixed", "converged", "prdp")
 
 @dataclasses.dataclass
 class RunResult:
-    """What a run produced; ``rows`` are the per-epoch metrics of :class:`Trainer`."""
+    """What a run produced; ``rows`` are the per-epoch metrics of :class:`Trainer`.
+
+    ``mode`` is a run mode of :data:`MODES`, or the training method of a sip or
+    hig scene (:mod:`fempdl.inversion`), whose runs have no ``k_eps``."""
 
     scene: str
     mode: str
-    k_eps: int
+    k_eps: int | None
     rows: list
     out_dir: str | None
 
@@ -294,6 +297,9 @@ def build_task(scene: Scene, options: KSPOptions, parallel: str | None = None,
     ``parallel="mesh"`` distributes the mesh over ``comm``; every other mode
     builds the whole problem on each rank (``COMM_SELF``)."""
     check_parallel(scene, parallel)
+    if scene.task in ("sip", "hig"):
+        raise ValueError(f"scene {scene.name!r} compares training methods, not solver caps: train it with "
+                         "fempdl.inversion.run (the commands `fempdl run` and `fempdl compare` do)")
     if scene.task == "hybrid":
         from fempdl.hybrid import HybridTask
         return HybridTask(scene, options)
@@ -306,6 +312,10 @@ def check_parallel(scene: Scene, parallel: str | None) -> None:
     """Raise ``ValueError`` when the scene's task cannot train in the ``parallel`` mode."""
     if parallel not in (None, "data", "mesh"):
         raise ValueError(f"parallel must be None, 'data' or 'mesh', got {parallel!r}")
+    if parallel is not None and scene.task in ("sip", "hig"):
+        raise ValueError(f"scene {scene.name!r}: {scene.task} scenes train on one process (the exact inverse "
+                         "assembles serial scipy operators and HIG decomposes the whole batch's Jacobian at once); "
+                         "run them without mpirun")
     if parallel == "data" and scene.task == "inverse":
         raise ValueError(f"scene {scene.name!r}: --parallel data splits batches of samples, and the inverse task "
                          "has one; use --parallel mesh to distribute its mesh instead")
@@ -359,7 +369,7 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
         p = scene.prdp
         prdp = PRDP(task.layers, k0=p["k0"], dk=p["dk"], tau_step=p["tau_step"], tau_stop=p["tau_stop"],
                     delta=p["delta"], ema_window=p["ema_window"], k_cap=p["k_cap"] or keps)
-    trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer["batch"],
+    trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer.get("batch", 1),
                       out_dir=out_dir, prdp=prdp, seed=scene.data["seed"], progress=progress,
                       stop_after=stop_after, stop_at=scene.optimizer["stop_at"], parallel=parallel, comm=comm)
     try:

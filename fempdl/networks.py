@@ -1,8 +1,10 @@
-"""Networks on DOF vectors: a residual MLP and a graph convolution over the mesh.
+"""Networks on DOF vectors: a plain MLP, a residual MLP and a graph convolution over the mesh.
 
-Both map a batch of fields (B, n) on the owned DOFs of a space to (B, n) and
-learn a correction: ``u + net(u)``, so an untrained network is close to the
-identity (one heat step changes a field only a little).
+:func:`mlp` maps (B, n_in) to (B, n_out) (an observation to a source, in the
+SIP and HIG tasks). The other two map a batch of fields (B, n) on the owned
+DOFs of a space to (B, n) and learn a correction: ``u + net(u)``, so an
+untrained network is close to the identity (one heat step changes a field
+only a little).
 
 The graph network uses the mesh's connectivity: two DOFs are neighbours when
 they share a cell, i.e. when the assembled stiffness matrix couples them.
@@ -19,7 +21,17 @@ import torch
 
 from fempdl.sparse import sparse_to_torch
 
-__all__ = ["ResidualMLP", "GraphConvNet", "normalised_adjacency"]
+__all__ = ["ResidualMLP", "GraphConvNet", "mlp", "normalised_adjacency"]
+
+
+def mlp(n_in: int, n_out: int, hidden: int, layers: int, activation=torch.nn.GELU) -> torch.nn.Sequential:
+    """``layers`` hidden layers of width ``hidden``, each followed by ``activation()``, then a linear output."""
+    widths = [n_in] + [hidden] * layers
+    blocks = []
+    for a, b in zip(widths[:-1], widths[1:]):
+        blocks += [torch.nn.Linear(a, b), activation()]
+    blocks.append(torch.nn.Linear(widths[-1], n_out))
+    return torch.nn.Sequential(*blocks)
 
 
 class ResidualMLP(torch.nn.Module):
@@ -35,15 +47,10 @@ class ResidualMLP(torch.nn.Module):
     def __init__(self, n: int, hidden: int = 128, layers: int = 2, *, mask: torch.Tensor | None = None,
                  start_at_identity: bool = False):
         super().__init__()
-        widths = [n] + [hidden] * layers
-        blocks = []
-        for a, b in zip(widths[:-1], widths[1:]):
-            blocks += [torch.nn.Linear(a, b), torch.nn.GELU()]
-        blocks.append(torch.nn.Linear(widths[-1], n))
+        self.net = mlp(n, n, hidden, layers)
         if start_at_identity:
-            torch.nn.init.zeros_(blocks[-1].weight)
-            torch.nn.init.zeros_(blocks[-1].bias)
-        self.net = torch.nn.Sequential(*blocks)
+            torch.nn.init.zeros_(self.net[-1].weight)
+            torch.nn.init.zeros_(self.net[-1].bias)
         if mask is not None and tuple(mask.shape) != (n,):
             raise ValueError(f"mask must have shape ({n},), got {tuple(mask.shape)}")
         self.register_buffer("mask", None if mask is None else mask.detach().clone())

@@ -4,27 +4,41 @@ A scene declares only what its task needs. Sections and keys (defaults in
 brackets; ``required`` has none)::
 
     [scene]      name (required), description [""],
-                 task (required: "emulator" | "inverse" | "hybrid")
+                 task (required: "emulator" | "inverse" | "hybrid" | "sip" | "hig")
     [mesh]       name (required: bundled name or path to a .msh), h [bundled default]
-    [pde]        type (required: "heat" | "burgers" for emulators, "poisson" for inverse,
-                 "oseen" for hybrid), degree [1; 2 for oseen], kappa [1.0] (heat, poisson),
+    [pde]        type (required: "heat" | "burgers" for emulators, "poisson" for inverse
+                 and hig, "poisson" | "heat" for sip, "oseen" for hybrid), degree [1; 2 for oseen], kappa [1.0] (heat, poisson),
                  dt [0.01] (heat, burgers, oseen), theta [1.0] (heat), nu [0.01] (burgers,
                  oseen), inflow [1.0] (oseen: peak of the parabolic inlet profile)
-    [data]       seed [0], k_eps_rtol [1e-5], and for emulators and hybrids train [64],
-                 validation [16], modes [4], rollout [1] (steps of the validation rollout)
-    [network]    type ["mlp"] ("mlp" | "graph"; heat only), hidden [128], layers [2]
-                                                                   (emulator, hybrid)
+    [data]       seed [0], k_eps_rtol [1e-5] (not sip, hig), and for all but inverse
+                 train [64], validation [16], modes [4], rollout [1] (steps of the validation
+                 rollout; emulator, hybrid); for sip and hig: truths ["smooth"] ("smooth" |
+                 "rectangles": sums of ``modes`` sine modes or boxes), noise [0.0] (Gaussian
+                 noise on the observations, relative to their largest value), resample
+                 [false] (draw new training truths every epoch)
+    [network]    type ["mlp"] ("mlp" | "graph"; heat emulators only), hidden [128],
+                 layers [2] (hidden layers; 0: linear)   (emulator, hybrid, sip, hig)
+    [sip]        inverse (required: "exact" | "gauss-newton"), eta [1.0], and for
+                 gauss-newton damping [0.0] (Tikhonov alpha), cg_iterations [20]  (sip only)
+    [hig]        lr [1.0], kappa [-0.5], beta [0.0], tau [1e-5], method ["auto"] ("auto" |
+                 "svd" | "gram"), max_jacobian_mib [1024]                     (hig only)
+    [baseline]   lr [the optimizer's lr; 1e-3 for hig]: Adam with backpropagation through
+                 the physics, the method's comparison                    (sip, hig)
     [inverse]    theta_ref (required), theta_init (required)                  (inverse only)
     [hybrid]     fine_h (required: the reference mesh size), steps [2] (unrolled training
                  steps), spinup [10] (fine steps from rest before sampling),
                  perturbation [0.2] (initial perturbation, relative to inflow) (hybrid only)
-    [optimizer]  type ["adam"] ("adam" | "sgd"), lr [1e-3], decay [1.0], epochs [30],
-                 batch [16] (emulators, hybrids), stop_at [none]: end once the validation
-                 metric is <= it
+    [optimizer]  type ["adam"] ("adam" | "sgd"), lr [1e-3], decay [1.0] (not hig: HIG is
+                 its optimizer), epochs [30], batch [16] (not inverse), stop_at [none]: end
+                 once the validation metric is <= it
     [solver]     preset ["jacobi"] ("jacobi" | "cg" | "gmres" | "gmres-ilu" | "schur": the
                  capped solver; "schur" is for oseen and only it),
-                 diff ["implicit"] ("implicit" | "unrolled")
-    [prdp]       k0 [1], dk [1], tau_step [0.95], tau_stop [0.9], delta [3], ema_window [6], k_cap [none]
+                 diff ["implicit"] ("implicit" | "unrolled")                 (not sip, hig)
+    [prdp]       k0 [1], dk [1], tau_step [0.95], tau_stop [0.9], delta [3], ema_window [6],
+                 k_cap [none]                                              (not sip, hig)
+
+sip and hig scenes solve their physics with LU (exact solutions and
+gradients): they compare training methods, not solver caps.
 
 Unknown sections or keys, keys that do not apply to the task or PDE, wrong
 types, out-of-range values and missing required keys raise :class:`SceneError`
@@ -61,7 +75,7 @@ class _Key:
 _POSITIVE = 1e-300
 SCHEMA: dict[str, dict[str, _Key]] = {
     "scene": {"name": _Key(str), "description": _Key(str, ""),
-              "task": _Key(str, choices=("emulator", "inverse", "hybrid"))},
+              "task": _Key(str, choices=("emulator", "inverse", "hybrid", "sip", "hig"))},
     "mesh": {"name": _Key(str), "h": _Key(float, None, minimum=_POSITIVE)},
     "pde": {"type": _Key(str, choices=("heat", "poisson", "burgers", "oseen")),
             "dt": _Key(float, 0.01, minimum=_POSITIVE), "theta": _Key(float, 1.0, minimum=0.0, maximum=1.0),
@@ -69,10 +83,19 @@ SCHEMA: dict[str, dict[str, _Key]] = {
             "nu": _Key(float, 0.01, minimum=_POSITIVE), "inflow": _Key(float, 1.0, minimum=_POSITIVE)},
     "data": {"train": _Key(int, 64, minimum=1), "validation": _Key(int, 16, minimum=1),
              "modes": _Key(int, 4, minimum=1), "seed": _Key(int, 0, minimum=0),
-             "k_eps_rtol": _Key(float, 1e-5, minimum=_POSITIVE, maximum=0.5), "rollout": _Key(int, 1, minimum=1)},
+             "k_eps_rtol": _Key(float, 1e-5, minimum=_POSITIVE, maximum=0.5), "rollout": _Key(int, 1, minimum=1),
+             "truths": _Key(str, "smooth", choices=("smooth", "rectangles")), "noise": _Key(float, 0.0, minimum=0.0),
+             "resample": _Key(bool, False)},
     "network": {"type": _Key(str, "mlp", choices=("mlp", "graph")), "hidden": _Key(int, 128, minimum=1),
-                "layers": _Key(int, 2, minimum=1)},
+                "layers": _Key(int, 2, minimum=0)},
     "inverse": {"theta_ref": _Key(list), "theta_init": _Key(list)},
+    "sip": {"inverse": _Key(str, choices=("exact", "gauss-newton")), "eta": _Key(float, 1.0, minimum=_POSITIVE),
+            "damping": _Key(float, 0.0, minimum=0.0), "cg_iterations": _Key(int, 20, minimum=1)},
+    "hig": {"lr": _Key(float, 1.0, minimum=_POSITIVE), "kappa": _Key(float, -0.5), "beta": _Key(float, 0.0),
+            "tau": _Key(float, 1e-5, minimum=0.0, maximum=1.0),
+            "method": _Key(str, "auto", choices=("auto", "svd", "gram")),
+            "max_jacobian_mib": _Key(float, 1024.0, minimum=_POSITIVE)},
+    "baseline": {"lr": _Key(float, None, minimum=_POSITIVE)},
     "hybrid": {"fine_h": _Key(float, minimum=_POSITIVE), "steps": _Key(int, 2, minimum=1),
                "spinup": _Key(int, 10, minimum=0), "perturbation": _Key(float, 0.2, minimum=0.0)},
     "optimizer": {"type": _Key(str, "adam", choices=("adam", "sgd")), "lr": _Key(float, 1e-3, minimum=_POSITIVE),
@@ -92,14 +115,25 @@ _TASK_SECTIONS = {
     "inverse": {"required": {"scene", "mesh", "pde", "inverse"}, "optional": {"data", "optimizer", "solver", "prdp"}},
     "hybrid": {"required": {"scene", "mesh", "pde", "hybrid"},
                "optional": {"data", "network", "optimizer", "solver", "prdp"}},
+    "sip": {"required": {"scene", "mesh", "pde", "sip"}, "optional": {"data", "network", "optimizer", "baseline"}},
+    "hig": {"required": {"scene", "mesh", "pde", "hig"}, "optional": {"data", "network", "optimizer", "baseline"}},
 }
 # The PDEs each task is built for.
-_TASK_PDES = {"emulator": ("heat", "burgers"), "inverse": ("poisson",), "hybrid": ("oseen",)}
+_TASK_PDES = {"emulator": ("heat", "burgers"), "inverse": ("poisson",), "hybrid": ("oseen",),
+              "sip": ("poisson", "heat"), "hig": ("poisson",)}
+# Tasks that compare a training method with Adam and backpropagation (fempdl.inversion).
+METHOD_TASKS = ("sip", "hig")
+_INVERSION_DATA = {"truths", "noise", "resample"}
 
 
 # Keys a task or PDE type does not use: setting them is an error, not a silent no-op.
 _NOT_FOR = {
-    ("task", "inverse"): {"data": {"train", "validation", "modes", "rollout"}, "optimizer": {"batch"}},
+    ("task", "inverse"): {"data": {"train", "validation", "modes", "rollout"} | _INVERSION_DATA,
+                          "optimizer": {"batch"}},
+    ("task", "emulator"): {"data": _INVERSION_DATA},
+    ("task", "hybrid"): {"data": _INVERSION_DATA},
+    ("task", "sip"): {"data": {"k_eps_rtol", "rollout"}},
+    ("task", "hig"): {"data": {"k_eps_rtol", "rollout"}, "optimizer": {"type", "lr", "decay"}},
     ("pde", "poisson"): {"pde": {"dt", "theta", "nu", "inflow"}},
     ("pde", "heat"): {"pde": {"nu", "inflow"}},
     ("pde", "burgers"): {"pde": {"theta", "kappa", "inflow"}},
@@ -122,11 +156,14 @@ class Scene:
     pde: dict
     data: dict
     optimizer: dict
-    solver: dict
-    prdp: dict
+    solver: dict | None = None
+    prdp: dict | None = None
     network: dict | None = None
     inverse: dict | None = None
     hybrid: dict | None = None
+    sip: dict | None = None
+    hig: dict | None = None
+    baseline: dict | None = None
     source: str = ""
 
     def as_dict(self) -> dict:
@@ -184,24 +221,28 @@ def parse(text: str, source: str = "<string>") -> Scene:
             if given:
                 raise SceneError(f"{source}: [{name}] {', '.join(given)} do(es) not apply to {what} {value!r}; "
                                  "remove them")
+            if what == "task":   # a task's section holds only the keys it uses
+                for key in keys:
+                    values[name].pop(key, None)
     pde = values["pde"]
     if pde["type"] not in _TASK_PDES[task]:
         raise SceneError(f"{source}: [pde] type {pde['type']!r} does not apply to task {task!r}; "
                          f"it takes {list(_TASK_PDES[task])}")
-    _check_flow(values, source)
-    solver = values["solver"]
-    if solver["diff"] == "unrolled" and solver["preset"] not in ("jacobi", "cg"):
-        raise SceneError(f"{source}: [solver] diff = 'unrolled' needs preset 'jacobi' or 'cg', "
-                         f"got {solver['preset']!r}")
-    prdp = values["prdp"]
-    if prdp["k_cap"] is not None and prdp["k_cap"] < prdp["k0"]:
-        raise SceneError(f"{source}: [prdp] k_cap must be >= k0 ({prdp['k0']}), got {prdp['k_cap']}")
+    if task in METHOD_TASKS:
+        _check_method(values, raw, source)
+    else:
+        _check_flow(values, source)
+        solver = values["solver"]
+        if solver["diff"] == "unrolled" and solver["preset"] not in ("jacobi", "cg"):
+            raise SceneError(f"{source}: [solver] diff = 'unrolled' needs preset 'jacobi' or 'cg', "
+                             f"got {solver['preset']!r}")
+        prdp = values["prdp"]
+        if prdp["k_cap"] is not None and prdp["k_cap"] < prdp["k0"]:
+            raise SceneError(f"{source}: [prdp] k_cap must be >= k0 ({prdp['k0']}), got {prdp['k_cap']}")
     if task == "inverse":
         _check_inverse(values["inverse"], source)
-    return Scene(name=header["name"], task=task, description=header["description"],
-                 mesh=values["mesh"], pde=values["pde"], data=values["data"], optimizer=values["optimizer"],
-                 solver=values["solver"], prdp=values["prdp"], network=values.get("network"),
-                 inverse=values.get("inverse"), hybrid=values.get("hybrid"), source=source)
+    return Scene(name=header["name"], task=task, description=header["description"], source=source,
+                 **{name: values.get(name) for name in SCHEMA if name != "scene"})
 
 
 def _check_flow(values: dict, source: str) -> None:
@@ -219,6 +260,25 @@ def _check_flow(values: dict, source: str) -> None:
     if flow and network is not None and network["type"] != "mlp":
         raise SceneError(f"{source}: [network] type {network['type']!r} works on scalar fields; "
                          f"{pde['type']} states are vector fields: use 'mlp'")
+
+
+def _check_method(values: dict, raw: dict, source: str) -> None:
+    """The SIP / HIG scenes: degree default, an MLP, the inverse's keys, the baseline's learning rate."""
+    pde, network = values["pde"], values["network"]
+    if pde["degree"] is None:
+        pde["degree"] = 1
+    if network["type"] != "mlp":
+        raise SceneError(f"{source}: [network] type must be 'mlp' for the {values['scene']['task']} task "
+                         f"(a dense network from the observation to the source), got {network['type']!r}")
+    sip = values.get("sip")
+    if sip is not None and sip["inverse"] == "exact":
+        given = sorted({"damping", "cg_iterations"} & set(raw["sip"]))
+        if given:
+            raise SceneError(f"{source}: [sip] {', '.join(given)} do(es) not apply to inverse 'exact' "
+                             "(they set the Gauss-Newton inverse); remove them or use inverse = 'gauss-newton'")
+    baseline = values["baseline"]
+    if baseline["lr"] is None:
+        baseline["lr"] = values["optimizer"]["lr"] if sip is not None else 1e-3
 
 
 def _section(raw: dict, name: str, source: str) -> dict:
@@ -245,7 +305,7 @@ def _checked(value, spec: _Key, where: str):
     kind = spec.kind
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
-    if isinstance(value, bool) or not isinstance(value, kind):
+    if (isinstance(value, bool) and kind is not bool) or not isinstance(value, kind):
         raise SceneError(f"{where} must be of type {kind.__name__}, got {value!r} ({type(value).__name__})")
     if kind is float and not math.isfinite(value):
         raise SceneError(f"{where} must be finite, got {value!r}")

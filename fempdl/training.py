@@ -8,7 +8,8 @@ validation metric and writes, after every epoch:
 * ``metrics.csv`` and ``metrics.json``: one row per epoch with the train loss
   (mean over the epoch's batches), the validation metric, the K used, the
   cumulative forward and backward inner iterations of the task's layers, the
-  cumulative solve time and the total training time;
+  cumulative solve time, the cumulative time in training steps (without
+  validation) and the total training time;
 * ``checkpoint.pt``: model, optimizer, LR scheduler, PRDP state, the layers'
   cumulative counters, the RNG states (torch, numpy, Python, the shuffling
   generator) and the metrics so far.
@@ -22,7 +23,11 @@ an uninterrupted one.
 A task (:class:`fempdl.experiments.Task`) provides: ``model`` (nn.Module),
 ``optimizer``, ``scheduler`` (or None), ``layers`` (the SolveLayers whose
 iterations are counted), ``train_size``, ``val_size``, ``loss(indices)`` (the
-mean over those samples) and ``validation_errors(indices)`` (one per sample).
+mean over those samples), ``validation_errors(indices)`` (one per sample) and
+``train_step(indices)`` (one optimizer step in a serial run; the base class
+steps ``optimizer`` on ``loss``; a task with its own update, HIG's, replaces
+it), and may have ``start_epoch(epoch)`` (called before every epoch, e.g. to
+draw new training data).
 
 Under MPI (``parallel="data"`` or ``"mesh"``, :mod:`fempdl.parallel`) every
 rank runs this loop in step: in data mode each takes its shard of every batch
@@ -59,7 +64,7 @@ PARALLEL_MODES = ("data", "mesh")
 
 CHECKPOINT = "checkpoint.pt"
 METRIC_FIELDS = ("epoch", "train_loss", "val_metric", "k", "forward_iterations", "backward_iterations",
-                 "total_iterations", "solve_time", "wall_time")
+                 "total_iterations", "solve_time", "train_time", "wall_time")
 
 
 def sample_nmse(u: torch.Tensor, ref: torch.Tensor, comm: MPI.Comm = MPI.COMM_SELF) -> torch.Tensor:
@@ -104,6 +109,8 @@ class Trainer:
         stop_after: stop (as if interrupted) after this many epochs of this call.
         stop_at: end training once the validation metric is at or below this
             (the cost to reach a target accuracy is then the iterations used).
+        stop_at_time: end training once the time in training steps reaches
+            this many seconds (a comparison at equal training time).
         parallel: ``None`` (serial), ``"data"`` or ``"mesh"`` (module docstring).
         comm: the ranks that train together in a parallel mode.
     """
@@ -117,6 +124,7 @@ class Trainer:
     progress: bool = False
     stop_after: int | None = None
     stop_at: float | None = None
+    stop_at_time: float | None = None
     parallel: str | None = None
     comm: MPI.Comm = dataclasses.field(default_factory=lambda: MPI.COMM_WORLD)
     rows: list = dataclasses.field(default_factory=list)
@@ -128,7 +136,7 @@ class Trainer:
             self.comm = MPI.COMM_SELF
         self._writer = self.comm.rank == 0
         self._shuffle = torch.Generator().manual_seed(self.seed)
-        self._elapsed = 0.0
+        self._elapsed = self._train_time = 0.0
         if self.out_dir is not None and self._writer:
             self.out_dir = Path(self.out_dir)
             self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -147,9 +155,12 @@ class Trainer:
         done = 0
         self.comm.barrier()   # the ranks finish building their tasks at different times; time from here
         for epoch in bar:
+            if hasattr(self.task, "start_epoch"):
+                self.task.start_epoch(epoch)
             t0 = time.perf_counter()
             k_used = self.k
             losses = [self._train_step(idx) for idx in self._batches()]
+            self._train_time += time.perf_counter() - t0
             metric = self._validate()
             if self.prdp is not None:
                 self.prdp.step(metric)
@@ -166,11 +177,17 @@ class Trainer:
         return self.rows
 
     def _reached_target(self) -> bool:
-        return self.stop_at is not None and bool(self.rows) and self.rows[-1]["val_metric"] <= self.stop_at
+        if not self.rows:
+            return False
+        last = self.rows[-1]
+        return ((self.stop_at is not None and last["val_metric"] <= self.stop_at)
+                or (self.stop_at_time is not None and last["train_time"] >= self.stop_at_time))
 
     # ------------------------------------------------------------------ steps
     def _train_step(self, idx: torch.Tensor) -> float:
         """One optimizer step on the batch ``idx`` (this rank's shard of it in data mode); the batch loss."""
+        if self.parallel is None:
+            return self.task.train_step(idx)
         share = parallel.shard(idx, self.comm) if self.parallel == "data" else idx
         self.task.optimizer.zero_grad()
         value = 0.0
@@ -180,8 +197,7 @@ class Trainer:
                 loss = loss * (len(share) / len(idx))
             loss.backward()
             value = loss.item()
-        if self.parallel is not None:
-            parallel.sum_gradients(self.task.model.parameters(), self.comm)
+        parallel.sum_gradients(self.task.model.parameters(), self.comm)
         self.task.optimizer.step()
         return self.comm.allreduce(value) if self.parallel == "data" else value
 
@@ -214,7 +230,8 @@ class Trainer:
         fwd, bwd, solve_time = counts
         return {"epoch": epoch, "train_loss": loss, "val_metric": metric, "k": k,
                 "forward_iterations": fwd, "backward_iterations": bwd, "total_iterations": fwd + bwd,
-                "solve_time": solve_time, "wall_time": self.comm.allreduce(self._elapsed, op=MPI.MAX)}
+                "solve_time": solve_time, "train_time": self.comm.allreduce(self._train_time, op=MPI.MAX),
+                "wall_time": self.comm.allreduce(self._elapsed, op=MPI.MAX)}
 
     # -------------------------------------------------------------- files
     def _save(self, epoch: int) -> None:
@@ -232,7 +249,7 @@ class Trainer:
                 writer.writerows(self.rows)
         write_atomically(self.out_dir / "metrics.csv", write_csv)
         state = {
-            "epoch": epoch, "rows": self.rows, "elapsed": self._elapsed,
+            "epoch": epoch, "rows": self.rows, "elapsed": self._elapsed, "train_time": self._train_time,
             "model": self.task.model.state_dict(), "optimizer": self.task.optimizer.state_dict(),
             "scheduler": None if self.task.scheduler is None else self.task.scheduler.state_dict(),
             "prdp": None if self.prdp is None else self.prdp.state_dict(),
@@ -275,4 +292,5 @@ class Trainer:
         self._shuffle.set_state(state["rng"]["shuffle"])
         self.rows = list(state["rows"])
         self._elapsed = state["elapsed"]
+        self._train_time = state.get("train_time", 0.0)
         return state["epoch"] + 1

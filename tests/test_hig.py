@@ -103,6 +103,29 @@ def test_truncation_drops_the_singular_values_below_tau():
     assert torch.allclose(update, 2.0 ** -0.5 * kept(2, -0.5), rtol=1e-6)
 
 
+def test_the_gram_path_equals_the_svd_and_knows_its_resolution():
+    torch.manual_seed(1)
+    U, _ = torch.linalg.qr(torch.randn(20, 20, dtype=torch.float64))
+    V, _ = torch.linalg.qr(torch.randn(60, 20, dtype=torch.float64))
+    S = torch.logspace(0, -4, 20, dtype=torch.float64)
+    J, g = U @ torch.diag(S) @ V.T, torch.randn(20, dtype=torch.float64)
+    for kappa, beta in ((-0.5, 0.0), (-1.0, 0.0), (1.0, 0.0), (-0.5, -0.5)):
+        by_svd, _, rank_svd = half_inverse_update(J, g, kappa=kappa, beta=beta, tau=1e-3, method="svd")
+        by_gram, singular, rank_gram = half_inverse_update(J, g, kappa=kappa, beta=beta, tau=1e-3, method="gram")
+        assert rank_svd == rank_gram == int((S > 1e-3).sum())
+        assert torch.allclose(singular, S, rtol=1e-6, atol=0)
+        assert (by_gram - by_svd).norm() <= 1e-8 * by_svd.norm()
+    # A singular value of 1e-8 max is below the Gram matrix's resolution (sqrt(eps * 60) = 1.2e-7):
+    # "gram" drops it even at tau = 0; "auto" sees that tau asks for it and takes the SVD.
+    S[-1] = 1e-8
+    J = U @ torch.diag(S) @ V.T
+    assert half_inverse_update(J, g, tau=0.0, method="gram")[2] == 19
+    assert half_inverse_update(J, g, tau=1e-9, method="auto")[2] == 20
+    assert half_inverse_update(J, g, tau=1e-5, method="auto")[2] == half_inverse_update(J, g, tau=1e-5)[2] == 19
+    with pytest.raises(ValueError, match="method must be 'auto', 'svd' or 'gram'"):
+        half_inverse_update(J, g, method="qr")
+
+
 def test_a_jacobian_over_the_memory_bound_is_refused_with_its_size(poisson_layer):
     model, inputs, physics, loss_fn = _setup(poisson_layer)
     with pytest.raises(MemoryError, match=r"HIG needs a \(\d+ x \d+\) Jacobian .* MiB, more than "

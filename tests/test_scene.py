@@ -12,7 +12,7 @@ from fempdl import scene
 from fempdl.scene import SCHEMA, SceneError
 
 EXPECTED_BUNDLED = {"heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
-                    "burgers-emulator", "ns-hybrid"}
+                    "burgers-emulator", "ns-hybrid", "sip-poisson", "sip-heat", "hig-poisson"}
 
 EMULATOR = {"scene": 'name = "t"\ntask = "emulator"', "mesh": 'name = "lshape"', "pde": 'type = "heat"'}
 INVERSE = {"scene": 'name = "t"\ntask = "inverse"', "mesh": 'name = "lshape"', "pde": 'type = "poisson"',
@@ -20,6 +20,9 @@ INVERSE = {"scene": 'name = "t"\ntask = "inverse"', "mesh": 'name = "lshape"', "
 HYBRID = {"scene": 'name = "t"\ntask = "hybrid"', "mesh": 'name = "obstacle"', "pde": 'type = "oseen"',
           "hybrid": "fine_h = 0.05", "solver": 'preset = "schur"'}
 BURGERS = {**EMULATOR, "pde": 'type = "burgers"', "solver": 'preset = "gmres"'}
+SIP = {"scene": 'name = "t"\ntask = "sip"', "mesh": 'name = "lshape"', "pde": 'type = "poisson"',
+       "sip": 'inverse = "exact"'}
+HIG = {"scene": 'name = "t"\ntask = "hig"', "mesh": 'name = "lshape"', "pde": 'type = "poisson"', "hig": "lr = 0.5"}
 
 
 def toml(extra: dict | None = None, *, base: dict = EMULATOR, drop: tuple = ()) -> str:
@@ -49,17 +52,29 @@ def test_available_lists_the_bundled_files():
     assert set(names) == files
 
 
+def _keys_for(task: str, section: str) -> set:
+    """The schema's keys of a section, less those the task does not use."""
+    return set(SCHEMA[section]) - scene._NOT_FOR.get(("task", task), {}).get(section, set())
+
+
 @pytest.mark.parametrize("name", scene.available())
 def test_bundled_scene_loads_with_its_tasks_sections(name):
     sc = scene.load(name)
     assert sc.name == name
     assert sc.source == f"bundled:{name}"
     assert sc.description.strip()
-    assert sc.task in ("emulator", "inverse", "hybrid")
+    assert sc.task in ("emulator", "inverse", "hybrid", "sip", "hig")
     assert sc.mesh["name"]
-    for section in ("mesh", "pde", "data", "optimizer", "solver", "prdp"):
-        assert set(getattr(sc, section)) == set(SCHEMA[section]), section
-    if sc.task in ("emulator", "hybrid"):
+    sections = ("mesh", "pde", "data", "optimizer") + (("network", "baseline") if sc.task in scene.METHOD_TASKS
+                                                       else ("solver", "prdp"))
+    for section in sections:
+        assert set(getattr(sc, section)) == _keys_for(sc.task, section), section
+    if sc.task in scene.METHOD_TASKS:
+        assert sc.solver is None and sc.prdp is None and sc.inverse is None
+        assert (sc.sip is not None, sc.hig is not None) == (sc.task == "sip", sc.task == "hig")
+        assert sc.optimizer["batch"] <= sc.data["train"]
+        assert sc.baseline["lr"] > 0
+    elif sc.task in ("emulator", "hybrid"):
         assert sc.inverse is None
         assert set(sc.network) == set(SCHEMA["network"])
         assert sc.network["type"] in ("mlp", "graph")
@@ -75,9 +90,10 @@ def test_bundled_scene_loads_with_its_tasks_sections(name):
         assert theta_ref != theta_init
         assert sc.pde["type"] == "poisson"
         assert sc.optimizer["stop_at"] is not None and sc.optimizer["stop_at"] > 0
-    if sc.prdp["k_cap"] is not None:
-        assert sc.prdp["k_cap"] >= sc.prdp["k0"]
-    assert 0 < sc.prdp["tau_stop"] <= 1 and 0 < sc.prdp["tau_step"] <= 1
+    if sc.prdp is not None:
+        if sc.prdp["k_cap"] is not None:
+            assert sc.prdp["k_cap"] >= sc.prdp["k0"]
+        assert 0 < sc.prdp["tau_stop"] <= 1 and 0 < sc.prdp["tau_step"] <= 1
 
 
 @pytest.mark.parametrize("name", scene.available())
@@ -127,9 +143,25 @@ def test_parse_fills_the_schema_defaults():
             else getattr(sc, section)
         if values is None:
             continue
+        assert set(values) == _keys_for(sc.task, section), section
         for key, spec in keys.items():
-            if spec.default is not scene._REQUIRED and (section, key) != ("pde", "degree"):
+            if key in values and spec.default is not scene._REQUIRED and (section, key) != ("pde", "degree"):
                 assert values[key] == spec.default, (section, key)
+
+
+def test_method_scene_defaults():
+    sip = scene.parse(toml({"optimizer": "lr = 0.02"}, base=SIP))
+    assert sip.solver is None and sip.prdp is None and sip.hig is None
+    assert sip.sip == {"inverse": "exact", "eta": 1.0, "damping": 0.0, "cg_iterations": 20}
+    assert sip.baseline == {"lr": 0.02}          # the method's learning rate unless given
+    assert sip.data == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "truths": "smooth", "noise": 0.0,
+                        "resample": False}
+    assert sip.network == {"type": "mlp", "hidden": 128, "layers": 2} and sip.pde["degree"] == 1
+    hig = scene.parse(toml({"network": "layers = 0"}, base=HIG))
+    assert hig.baseline == {"lr": 1e-3} and hig.network["layers"] == 0
+    assert hig.hig == {"lr": 0.5, "kappa": -0.5, "beta": 0.0, "tau": 1e-5, "method": "auto",
+                       "max_jacobian_mib": 1024.0}
+    assert hig.optimizer == {"epochs": 30, "batch": 16, "stop_at": None}
 
 
 def test_given_values_override_only_their_keys():
@@ -229,7 +261,7 @@ BAD = {
     "unrolled-gmres": (toml({"solver": 'preset = "gmres"\ndiff = "unrolled"'}),
                        ["[solver] diff = 'unrolled' needs preset 'jacobi' or 'cg', got 'gmres'"]),
     "task-choice": ('[scene]\nname = "t"\ntask = "forward"\n',
-                    ["[scene] task must be one of ['emulator', 'inverse', 'hybrid'], got 'forward'"]),
+                    ["[scene] task must be one of ['emulator', 'inverse', 'hybrid', 'sip', 'hig'], got 'forward'"]),
     "choice-is-case-sensitive": (toml({"optimizer": 'type = "Adam"'}), ["[optimizer] type must be one of ['adam', 'sgd'], got 'Adam'"]),
     # minimum
     "negative-lr": (toml({"optimizer": "lr = -0.1"}), ["[optimizer] lr must be > 0, got -0.1"]),
@@ -274,6 +306,33 @@ BAD = {
                             "allowed: ['data', 'inverse', 'mesh', 'optimizer', 'pde', 'prdp', 'scene', 'solver']"]),
     "inverse-on-emulator": (toml({"inverse": "theta_ref = [1.0]\ntheta_init = [2.0]"}),
                             ["section(s) ['inverse'] do not apply to task 'emulator'", "'network'"]),
+    # sip and hig scenes
+    "sip-without-sip": (toml(base=SIP, drop=("sip",)), ["task 'sip' needs section(s) ['sip']"]),
+    "sip-inverse-choice": (toml(base={**SIP, "sip": 'inverse = "newton"'}),
+                           ["[sip] inverse must be one of ['exact', 'gauss-newton'], got 'newton'"]),
+    "sip-exact-with-damping": (toml({"sip": "damping = 0.1\ncg_iterations = 5"}, base=SIP),
+                               ["[sip] cg_iterations, damping do(es) not apply to inverse 'exact'"]),
+    "sip-negative-damping": (toml(base={**SIP, "sip": 'inverse = "gauss-newton"\ndamping = -1.0'}),
+                             ["[sip] damping must be >= 0, got -1.0"]),
+    "sip-oseen": (toml(base={**SIP, "pde": 'type = "oseen"'}),
+                  ["[pde] type 'oseen' does not apply to task 'sip'", "['poisson', 'heat']"]),
+    "sip-graph": (toml({"network": 'type = "graph"'}, base=SIP), ["[network] type must be 'mlp' for the sip task"]),
+    "sip-solver": (toml({"solver": 'preset = "cg"'}, base=SIP), ["section(s) ['solver'] do not apply to task 'sip'"]),
+    "sip-prdp": (toml({"prdp": "k0 = 2"}, base=SIP), ["section(s) ['prdp'] do not apply to task 'sip'"]),
+    "sip-rollout": (toml({"data": "rollout = 2"}, base=SIP), ["[data] rollout do(es) not apply to task 'sip'"]),
+    "sip-truths-choice": (toml({"data": 'truths = "noise"'}, base=SIP),
+                          ["[data] truths must be one of ['smooth', 'rectangles'], got 'noise'"]),
+    "sip-negative-noise": (toml({"data": "noise = -0.1"}, base=SIP), ["[data] noise must be >= 0, got -0.1"]),
+    "sip-resample-string": (toml({"data": 'resample = "yes"'}, base=SIP),
+                            ["[data] resample must be of type bool, got 'yes' (str)"]),
+    "noise-on-emulator": (toml({"data": "noise = 0.1"}), ["[data] noise do(es) not apply to task 'emulator'"]),
+    "hig-heat": (toml(base={**HIG, "pde": 'type = "heat"'}), ["[pde] type 'heat' does not apply to task 'hig'"]),
+    "hig-optimizer-lr": (toml({"optimizer": "lr = 0.1"}, base=HIG),
+                         ["[optimizer] lr do(es) not apply to task 'hig'"]),
+    "hig-tau-above-1": (toml(base={**HIG, "hig": "tau = 2.0"}), ["[hig] tau must be <= 1, got 2.0"]),
+    "hig-method-choice": (toml(base={**HIG, "hig": 'method = "qr"'}),
+                          ["[hig] method must be one of ['auto', 'svd', 'gram'], got 'qr'"]),
+    "baseline-on-emulator": (toml({"baseline": "lr = 0.1"}), ["section(s) ['baseline'] do not apply to task 'emulator'"]),
     # theta lists
     "theta-lengths": (toml(base={**INVERSE, "inverse": "theta_ref = [1.0, 2.0]\ntheta_init = [1.0]"}),
                       ["[inverse] theta_ref and theta_init must have the same length", "got [1.0, 2.0] and [1.0]"]),

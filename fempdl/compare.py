@@ -1,0 +1,153 @@
+"""A training method against Adam with backpropagation, at equal iterations and at equal training time.
+
+:func:`compare` trains a sip or hig scene twice from the same initial network
+(:mod:`fempdl.inversion`): with the scene's method for its epochs, then with
+the baseline for as many; if the baseline used less training time (time in
+optimizer steps, validation excluded), it is resumed and goes on until it has
+used the method's time, at most ``max_factor`` times the iterations.
+:func:`summary` gives the ratios method / baseline of the validation metric
+
+* at equal iterations: after the method's last iteration;
+* at equal time: the method's final metric against the baseline's at the last
+  epoch that ended within the method's training time;
+
+and :func:`write_report` writes ``compare.json``, ``compare.csv`` and
+``error_vs_cost.png`` (the metric against iterations and against training
+time, one curve per run).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+from fempdl import inversion
+from fempdl.experiments import RunResult
+from fempdl.scene import Scene
+from fempdl.training import write_atomically
+
+__all__ = ["compare", "summary", "summary_lines", "table", "write_report"]
+
+BASELINE = "backprop"
+
+
+def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_time: bool = True,
+            max_factor: int = 20, resume: bool = False, progress: bool = False) -> dict[str, RunResult]:
+    """Train the scene's method and the baseline (module docstring); runs keyed by method.
+
+    Each run keeps its metrics and checkpoint under ``out_dir``/<method>;
+    ``resume`` continues runs that have a checkpoint."""
+    out_dir = Path(out_dir)
+    method = inversion.method_of(scene)
+
+    def train(name: str, **kwargs) -> RunResult:
+        sub = out_dir / name
+        return inversion.run(scene, name, out_dir=sub, progress=progress,
+                             resume=resume and (sub / "checkpoint.pt").exists(), **kwargs)
+
+    runs = {method: train(method, epochs=epochs)}
+    n = len(runs[method].rows)
+    runs[BASELINE] = train(BASELINE, epochs=n)
+    budget = runs[method].rows[-1]["train_time"]
+    if equal_time and runs[BASELINE].rows[-1]["train_time"] < budget:
+        sub = out_dir / BASELINE
+        runs[BASELINE] = inversion.run(scene, BASELINE, out_dir=sub, progress=progress, resume=True,
+                                       epochs=max_factor * n, stop_at_time=budget)
+    return runs
+
+
+def steps_per_epoch(scene: Scene) -> int:
+    return math.ceil(scene.data["train"] / scene.optimizer["batch"])
+
+
+def summary(scene: Scene, runs: dict[str, RunResult]) -> dict:
+    """Ratios method / baseline of the validation metric at equal iterations and at equal training time."""
+    method = inversion.method_of(scene)
+    ours, base = runs[method].rows, runs[BASELINE].rows
+    n = min(len(ours), len(base))
+    budget = ours[-1]["train_time"]
+    within = [row for row in base if row["train_time"] <= budget] or base[:1]
+    steps = steps_per_epoch(scene)
+    return {
+        "method": method, "metric": "x error" if scene.task == "sip" else "observation nMSE",
+        "iterations": n * steps,
+        "method_metric": ours[n - 1]["val_metric"], "baseline_metric": base[n - 1]["val_metric"],
+        "ratio_equal_iterations": ours[n - 1]["val_metric"] / base[n - 1]["val_metric"],
+        "equal_time_seconds": budget,
+        "baseline_iterations_in_that_time": len(within) * steps,
+        "baseline_metric_at_equal_time": within[-1]["val_metric"],
+        "ratio_equal_time": ours[-1]["val_metric"] / within[-1]["val_metric"],
+        "seconds_per_iteration": {name: r.rows[-1]["train_time"] / (len(r.rows) * steps) for name, r in runs.items()},
+    }
+
+
+def table(scene: Scene, runs: dict[str, RunResult]) -> str:
+    """Text table of the runs: iterations, final metric, training time, against the baseline."""
+    base = runs.get(BASELINE)
+    steps = steps_per_epoch(scene)
+    header = f"{'run':<10} {'iterations':>10} {'final metric':>12} {'train s':>8} {'metric vs base':>14} {'s/it':>8}"
+    lines = [header, "-" * len(header)]
+    for name, r in runs.items():
+        iterations, seconds = len(r.rows) * steps, r.rows[-1]["train_time"]
+        ratio = "" if base is None else f"{r.final_metric / base.final_metric:.3f}x"
+        lines.append(f"{name:<10} {iterations:>10,d} {r.final_metric:>12.3e} {seconds:>8.1f} {ratio:>14} "
+                     f"{seconds / iterations:>8.4f}")
+    return "\n".join(lines)
+
+
+def summary_lines(split: dict) -> list[str]:
+    name = split["method"].upper()
+    return [
+        f"after {split['iterations']} iterations each: {name} {split['metric']} {split['method_metric']:.3e}, "
+        f"Adam + backprop {split['baseline_metric']:.3e}: ratio {split['ratio_equal_iterations']:.3f}",
+        f"at equal training time ({split['equal_time_seconds']:.1f} s, {split['baseline_iterations_in_that_time']} "
+        f"baseline iterations): {name} / Adam + backprop = {split['ratio_equal_time']:.3f}",
+    ]
+
+
+def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir: Path) -> list[Path]:
+    """compare.json, compare.csv and error_vs_cost.png in ``out_dir``; returns the paths."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = [out_dir / "compare.json", out_dir / "compare.csv", out_dir / "error_vs_cost.png"]
+    report = {"scene": scene.as_dict(), "summary": split,
+              "runs": {name: {"final_metric": r.final_metric, "rows": r.rows} for name, r in runs.items()}}
+    write_atomically(paths[0], lambda p: p.write_text(json.dumps(report, indent=1)))
+
+    def write_csv(p: Path) -> None:
+        with p.open("w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(["run", "iteration", "val_metric", "train_loss", "train_time"])
+            for name, r in runs.items():
+                for row in r.rows:
+                    writer.writerow([name, (row["epoch"] + 1) * steps_per_epoch(scene), row["val_metric"],
+                                     row["train_loss"], row["train_time"]])
+    write_atomically(paths[1], write_csv)
+    _plot(scene, runs, split, paths[2])
+    return paths
+
+
+def _plot(scene: Scene, runs: dict[str, RunResult], split: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = steps_per_epoch(scene)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5), sharey=True)
+    for name, r in runs.items():
+        label = "Adam + backprop" if name == BASELINE else f"{name.upper()}"
+        style = {"color": "black", "linewidth": 2.0} if name != BASELINE else {"color": "tab:blue", "linewidth": 1.2}
+        metric = [row["val_metric"] for row in r.rows]
+        axes[0].loglog([(row["epoch"] + 1) * steps for row in r.rows], metric, label=label, **style)
+        axes[1].semilogy([row["train_time"] for row in r.rows], metric, label=label, **style)
+    axes[0].axvline(split["iterations"], color="gray", linestyle=":", linewidth=1)
+    axes[1].axvline(split["equal_time_seconds"], color="gray", linestyle=":", linewidth=1)
+    axes[0].set_xlabel("training iterations")
+    axes[1].set_xlabel("training time [s] (optimizer steps, validation excluded)")
+    axes[0].set_ylabel(f"validation {split['metric']}")
+    axes[0].legend()
+    fig.suptitle(f"{scene.name}: {split['method'].upper()} against Adam with backpropagation")
+    fig.tight_layout()
+    write_atomically(path, lambda p: fig.savefig(p, format="png", dpi=120))
+    plt.close(fig)

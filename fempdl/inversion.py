@@ -1,0 +1,195 @@
+"""Learning to invert physics: the SIP and HIG scenes, and Adam with backpropagation as their baseline.
+
+A dense network maps an observation y (the layer's output DOFs, n_y) to the
+physical input x that produced it (n_x): a Poisson source f from its solution
+(y = P(f): -div(kappa grad u) = f, u = 0 on the boundary), or the initial
+state u0 of one heat step from the state after it. The truths x are drawn
+from the scene's seed: sums of ``modes`` smooth sine modes or of ``modes``
+random boxes ("rectangles"), zero at the Dirichlet DOFs; the observations are
+the converged (LU) solutions, plus Gaussian noise when ``[data] noise`` > 0.
+With ``[data] resample`` the training truths are drawn anew every epoch
+(seeded by the epoch, so a resumed run draws the same ones).
+
+Three ways to train the same network (``method``):
+
+* ``"sip"``: the proxy loss 1/2 ||x0 - stopgrad(x*)||^2 (mean over samples)
+  with x* from the scene's inverse (:mod:`fempdl.sip`: the exact inverse of
+  an affine right-hand side, or damped Gauss-Newton CG), stepped by the
+  scene's optimizer;
+* ``"hig"``: half-inverse gradient steps (:class:`fempdl.hig.HIG`) on
+  L = 1/2 ||P(x0) - y||^2 (mean over samples); the physics is linear, so its
+  Jacobian is computed once;
+* ``"backprop"``: the baseline, Adam with learning rate ``[baseline] lr`` on
+  the same L, its gradient backpropagated through the layer's adjoint.
+
+The validation metric is what the scene's method is judged by: for sip
+scenes, the relative error of the inferred x on held-out samples,
+||x0 - x||/||x||; for hig scenes, the nMSE of P(x0) against the held-out
+observation, ||P(x0) - y||^2 / ||y||^2 (the loss the method minimises). All
+tensors are float64: the comparison is about conditioning, not precision.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from mpi4py import MPI
+
+from fempdl import forms, mesh
+from fempdl.bridge_torch import SolveLayer
+from fempdl.experiments import RunResult, Task, make_optimizer, smooth_fields
+from fempdl.hig import HIG
+from fempdl.ksp_adjoint import KSPOptions
+from fempdl.networks import mlp
+from fempdl.scene import Scene
+from fempdl.sip import ExactLinearInverse, GaussNewtonInverse, proxy_loss
+from fempdl.training import Trainer, sample_nmse
+
+__all__ = ["METHODS", "InversionTask", "method_of", "rectangle_fields", "run"]
+
+METHODS = ("sip", "hig", "backprop")
+
+
+def method_of(scene: Scene) -> str:
+    """The method a sip or hig scene is about (its baseline is always "backprop")."""
+    if scene.task not in ("sip", "hig"):
+        raise ValueError(f"scene {scene.name!r} is a {scene.task} scene; methods are compared on sip and hig scenes")
+    return scene.task
+
+
+def rectangle_fields(coords: np.ndarray, count: int, boxes: int, rng: np.random.Generator) -> np.ndarray:
+    """(count, n) sums of ``boxes`` indicator functions of random axis-aligned boxes, amplitudes ~ N(0, 1).
+
+    Each box spans 10% to 50% of the bounding box along every axis; ``coords``
+    (n, 3) are the DOF coordinates."""
+    lo, hi = coords.min(axis=0), coords.max(axis=0)
+    dims = [d for d in range(coords.shape[1]) if hi[d] > lo[d]]
+    unit = (coords[:, dims] - lo[dims]) / (hi[dims] - lo[dims])
+    out = np.zeros((count, len(coords)))
+    for sample in out:
+        for _ in range(boxes):
+            width = rng.uniform(0.1, 0.5, len(dims))
+            start = rng.uniform(0.0, 1.0 - width)
+            inside = np.all((unit >= start) & (unit <= start + width), axis=1)
+            sample[inside] += rng.standard_normal()
+    return out
+
+
+class InversionTask(Task):
+    """A network that infers x from y = P(x), trained by ``method`` (module docstring).
+
+    Shapes: observations (B, n_y) in, inferred inputs (B, n_x) out; the
+    network is ``[network] layers`` tanh layers of width ``hidden``.
+    """
+
+    def __init__(self, scene: Scene, method: str):
+        if scene.task not in ("sip", "hig"):
+            raise ValueError(f"InversionTask trains sip and hig scenes, not a {scene.task} scene")
+        if method not in (scene.task, "backprop"):
+            raise ValueError(f"a {scene.task} scene trains with method {scene.task!r} or its baseline 'backprop', "
+                             f"got {method!r}")
+        self.scene, self.method = scene, method
+        pde, data = scene.pde, scene.data
+        msh = mesh.load(scene.mesh["name"], MPI.COMM_SELF, h=scene.mesh["h"])
+        if pde["type"] == "poisson":
+            self.problem, self.control = forms.poisson.problem(msh, controls=("f",), kappa=pde["kappa"],
+                                                               degree=pde["degree"]), "f"
+        else:
+            self.problem, self.control = forms.heat.problem(msh, controls=("u0",), dt=pde["dt"], theta=pde["theta"],
+                                                            kappa=pde["kappa"], degree=pde["degree"]), "u0"
+        self.layer = SolveLayer(self.problem, KSPOptions.preset("lu"))
+        self.layers = [self.layer]
+        self.train_size, self.val_size = data["train"], data["validation"]
+        self.x_val, self.y_val = self._samples(data["validation"], np.random.default_rng([data["seed"], 1]))
+        self.x_train, self.y_train = self._samples(data["train"], np.random.default_rng([data["seed"], 0]))
+        torch.manual_seed(data["seed"])
+        n_x, n_y = self.problem.control_size(self.control), self.problem.output_size
+        self.model = mlp(n_y, n_x, scene.network["hidden"], scene.network["layers"], torch.nn.Tanh).double()
+        self.scheduler = None
+        if method == "backprop":
+            self.optimizer = torch.optim.Adam(self.model.parameters(), lr=scene.baseline["lr"])
+        elif method == "sip":
+            self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
+            self.inverse = self._inverse(scene.sip)
+        else:
+            h = scene.hig
+            self.optimizer = HIG(self.model, lr=h["lr"], kappa=h["kappa"], beta=h["beta"], tau=h["tau"],
+                                 method=h["method"], max_jacobian_bytes=int(h["max_jacobian_mib"] * 2**20))
+
+    # ------------------------------------------------------------ data
+    def _samples(self, count: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """``count`` truths x (zero at the Dirichlet DOFs) and their observations y = P(x) (+ noise)."""
+        draw = smooth_fields if self.scene.data["truths"] == "smooth" else rectangle_fields
+        x = torch.as_tensor(draw(self.problem.dof_coordinates(), count, self.scene.data["modes"], rng))
+        x[:, self.problem.bc_dofs] = 0.0                    # f and u0 live on the solution space
+        with torch.no_grad():
+            y = self.layer(**{self.control: x})
+        noise = self.scene.data["noise"]
+        if noise > 0:
+            scatter = torch.as_tensor(rng.standard_normal(tuple(y.shape)))
+            scatter[:, self.problem.bc_dofs] = 0.0         # the boundary values are known exactly
+            y = y + noise * y.abs().max() * scatter
+        return x, y
+
+    def start_epoch(self, epoch: int) -> None:
+        """With ``[data] resample``: new training truths, seeded by the epoch (the same on a resumed run)."""
+        if self.scene.data["resample"]:
+            rng = np.random.default_rng([self.scene.data["seed"], 2, epoch])
+            self.x_train, self.y_train = self._samples(self.train_size, rng)
+
+    # ------------------------------------------------------------ methods
+    def _inverse(self, spec: dict):
+        if spec["inverse"] == "exact":
+            return ExactLinearInverse(self.layer, self.control, eta=spec["eta"])
+        return GaussNewtonInverse(self.layer, self.control, damping=spec["damping"], max_it=spec["cg_iterations"],
+                                  eta=spec["eta"])
+
+    def physics(self, x: torch.Tensor) -> torch.Tensor:
+        return self.layer(**{self.control: x})
+
+    def loss(self, idx) -> torch.Tensor:
+        """The method's training loss on the samples ``idx``, a mean over them."""
+        y = self.y_train[idx]
+        x0 = self.model(y)
+        if self.method == "sip":
+            return proxy_loss(x0, self.inverse(x0.detach(), y)) / len(idx)
+        return self._physics_loss(self.physics(x0), y)
+
+    @staticmethod
+    def _physics_loss(u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        return 0.5 * ((u - y) ** 2).sum(-1).mean()
+
+    def train_step(self, idx) -> float:
+        if self.method != "hig":
+            return super().train_step(idx)
+        y = self.y_train[idx]
+        return self.optimizer.step(y, lambda u: self._physics_loss(u, y), physics=self.physics,
+                                   linear_physics=True)
+
+    def validation_errors(self, idx) -> torch.Tensor:
+        x0 = self.model(self.y_val[idx])
+        if self.scene.task == "sip":
+            return (x0 - self.x_val[idx]).norm(dim=-1) / self.x_val[idx].norm(dim=-1)
+        return sample_nmse(self.physics(x0), self.y_val[idx])
+
+    def close(self) -> None:
+        self.layer.close()
+
+
+def run(scene: Scene, method: str, *, out_dir: Path | None = None, resume: bool = False, epochs: int | None = None,
+        progress: bool = False, stop_after: int | None = None, stop_at_time: float | None = None) -> RunResult:
+    """Train a sip or hig scene with ``method`` (its own, or "backprop"); metrics and checkpoints in ``out_dir``.
+
+    ``stop_at_time`` ends the run once its training steps took that many
+    seconds (a resumed run can so be extended to equal training time)."""
+    task = InversionTask(scene, method)
+    trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer["batch"],
+                      out_dir=out_dir, seed=scene.data["seed"], progress=progress, stop_after=stop_after,
+                      stop_at=scene.optimizer["stop_at"], stop_at_time=stop_at_time)
+    try:
+        rows = trainer.run(resume=resume)
+    finally:
+        task.close()
+    return RunResult(scene=scene.name, mode=method, k_eps=None, rows=rows,
+                     out_dir=None if out_dir is None else str(out_dir))
