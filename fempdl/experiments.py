@@ -133,6 +133,11 @@ class Task:
       batch split into shards is the shard losses weighted by their sizes);
     * ``validation_errors(idx)``: one error per validation sample; the
       validation metric is their mean over all ``val_size`` samples.
+
+    ``train_step(idx)`` is one step of ``optimizer`` on ``loss(idx)``; a task
+    whose optimizer makes its own update (HIG, :mod:`fempdl.inversion`)
+    replaces it. A task may also define ``start_epoch(epoch)``, which the
+    Trainer calls before every epoch (to draw new training data).
     """
 
     val_size = 1

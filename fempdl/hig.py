@@ -40,6 +40,8 @@ def half_inverse_update(jacobian: torch.Tensor, g: torch.Tensor, *, kappa: float
                         tau: float = 1e-5, method: str = "auto") -> tuple[torch.Tensor, torch.Tensor, int]:
     """max(S)^beta V S^kappa U^T g for J = U S V^T (shape (R, P), g of length R); S; the rank kept.
 
+    S holds the singular values of J without its zero rows (at most as many as its nonzero rows).
+
     Singular values <= tau * max(S) are dropped, and so are the ones below
     the method's resolution at any tau: eps max(R, P) max(S) for the SVD.
 
@@ -55,6 +57,11 @@ def half_inverse_update(jacobian: torch.Tensor, g: torch.Tensor, *, kappa: float
                          f"{tuple(g.shape)}")
     if method not in ("auto", "svd", "gram"):
         raise ValueError(f"method must be 'auto', 'svd' or 'gram', got {method!r}")
+    # Outputs no weight moves (a layer's Dirichlet values) give zero rows: they add nothing to U S V^T or
+    # to U^T g, and dropping them first makes the decomposition smaller (half the rows on a coarse mesh).
+    moving = jacobian.abs().amax(dim=1) > 0
+    if not bool(moving.all()):
+        jacobian, g = jacobian[moving], g[moving]
     rows, cols = jacobian.shape
     resolution = torch.finfo(jacobian.dtype).eps * max(rows, cols)
     if method == "auto":
@@ -121,9 +128,6 @@ class HIG:
     def load_state_dict(self, state: dict) -> None:
         self.lr, self.kappa, self.beta, self.tau = state["lr"], state["kappa"], state["beta"], state["tau"]
         self.method = state["method"]
-
-    def zero_grad(self) -> None:
-        """Nothing to clear: a step computes its own Jacobian (here so HIG fits where an optimizer does)."""
 
     @property
     def parameters(self) -> list[torch.nn.Parameter]:

@@ -338,3 +338,83 @@ def test_tradeoff_csv_matches_json(tradeoff_run):
         assert int(row["total_iterations"]) == entry["total_iterations"]
         assert float(row["final_metric"]) == entry["final_metric"]
     assert {r["mode"] for r in rows} == {"fixed", "converged", "prdp"}
+
+
+# ------------------------------------------------------------------ sip / hig scenes: run and compare
+TINY_SIP = """
+[scene]
+name = "tiny-sip"
+task = "sip"
+description = "tiny Poisson source inference for the CLI tests"
+[mesh]
+name = "lshape"
+h = 0.3
+[pde]
+type = "poisson"
+[data]
+train = 8
+validation = 4
+[network]
+layers = 0
+[sip]
+inverse = "exact"
+[optimizer]
+lr = 3e-2
+epochs = 4
+batch = 8
+"""
+METHOD_ROW = re.compile(r"^(?P<run>sip|backprop) +(?P<its>[\d,]+) +(?P<metric>\S+e[+-]\d+) +(?P<time>[\d.]+) +"
+                        r"(?P<ratio>[\d.]+)x +(?P<per_it>[\d.]+)$")
+
+
+@pytest.fixture(scope="module")
+def tiny_sip(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("sip") / "tiny-sip.toml"
+    path.write_text(TINY_SIP)
+    return path
+
+
+def _method_rows(stdout: str) -> dict[str, dict]:
+    rows = {}
+    for line in stdout.splitlines():
+        match = METHOD_ROW.match(line)
+        if match:
+            rows[match["run"]] = {"its": int(match["its"].replace(",", "")), "metric": float(match["metric"]),
+                                  "ratio": float(match["ratio"])}
+    return rows
+
+
+def test_run_on_a_sip_scene_trains_the_method_and_the_baseline(tiny_sip, tmp_path):
+    code, stdout, stderr = call(["run", tiny_sip, "--out", tmp_path, "--no-progress"])
+    assert code == 0, stderr
+    rows = _method_rows(stdout)
+    assert set(rows) == {"sip", "backprop"} and rows["sip"]["its"] == rows["backprop"]["its"] == 4
+    for name in rows:
+        saved = metrics(tmp_path / name)
+        assert len(saved) == 4 and rows[name]["metric"] == pytest.approx(saved[-1]["val_metric"], rel=1e-3)
+    assert rows["backprop"]["ratio"] == 1.0
+    assert rows["sip"]["ratio"] == pytest.approx(rows["sip"]["metric"] / rows["backprop"]["metric"], abs=1e-3)
+
+
+def test_compare_writes_the_report_and_prints_both_ratios(tiny_sip, tmp_path):
+    code, stdout, stderr = call(["compare", tiny_sip, "--out", tmp_path, "--epochs", "3", "--no-progress"])
+    assert code == 0, stderr
+    report = json.loads((tmp_path / "compare.json").read_text())
+    split = report["summary"]
+    assert split["iterations"] == 3 and len(report["runs"]["sip"]["rows"]) == 3
+    assert len(report["runs"]["backprop"]["rows"]) >= 3
+    assert f"ratio {split['ratio_equal_iterations']:.3f}" in stdout
+    assert f"SIP / Adam + backprop = {split['ratio_equal_time']:.3f}" in stdout
+    assert (tmp_path / "error_vs_cost.png").read_bytes()[:8] == PNG_SIGNATURE
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["run", "{sip}", "--k", "3"], "--k, --prdp, --converged and --parallel choose solver caps"),
+    (["run", "{sip}", "--prdp"], "--k, --prdp, --converged and --parallel choose solver caps"),
+    (["tradeoff", "{sip}"], "`fempdl tradeoff` does not apply to the sip scene 'tiny-sip'; use `fempdl compare`"),
+    (["compare", "{tiny}"], "`fempdl compare` does not apply to the emulator scene 'tiny-emulator'; "
+                            "use `fempdl tradeoff`"),
+])
+def test_method_commands_refuse_what_does_not_apply(argv, fragment, tiny, tiny_sip):
+    code, _, stderr = call([a.format(sip=tiny_sip, tiny=tiny) for a in argv])
+    assert code == 2 and fragment in stderr
