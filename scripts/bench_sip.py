@@ -9,7 +9,10 @@ observation nMSE for hig-poisson) after equal iterations and at equal
 training time, their ratios method / baseline, and the seconds per
 iteration. OpenMP threads wait passively (``OMP_WAIT_POLICY=PASSIVE`` unless
 the environment sets it; the policy is recorded): the default policy made HIG
-steps 2-10x slower, at random, whenever another process held a core. Each
+steps 2-10x slower, at random, whenever another process held a core. Torch runs
+on one thread (``--threads``): at these sizes (a 264 x 2.1k Jacobian) a HIG
+step took 20-26 ms on one thread and 40-42 ms on two, and two threads slowed
+further, to 100-170 ms, in periods when this shared machine was busy. Each
 scene's report (JSON, CSV, the plot against iterations and
 time) goes to ``bench-results/sip/<scene>/``; the summary to
 ``bench-results/bench_sip.json`` (``--out``).
@@ -24,6 +27,8 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")    # before torch starts its threads (bench_unrolled.py)
 
+import torch  # noqa: E402
+
 from fempdl import compare, scene  # noqa: E402
 
 from bench_common import comma_list, machine_info, write_json_atomically  # noqa: E402
@@ -36,7 +41,10 @@ def main(argv=None) -> int:
     parser.add_argument("--scenes", type=comma_list(str), default=SCENES)
     parser.add_argument("--epochs", type=int, help="override every scene's epochs")
     parser.add_argument("--out", type=Path, default=Path("bench-results/bench_sip.json"))
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch threads for both methods (default 1: faster at these sizes, see above)")
     args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
     results = {"machine": machine_info(), "settings": {k: str(v) for k, v in vars(args).items()}}
     for name in args.scenes:
         sc = scene.load(name)
