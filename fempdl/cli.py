@@ -16,7 +16,6 @@ lists the bundled scenes.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -82,10 +81,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    # Before torch loads its OpenMP runtime: under the default spin-then-sleep policy, torch's threads
-    # stall 10-80x when another process holds a core (scripts/bench_unrolled.py); passive waiting costs
-    # microseconds per parallel region. The environment's own setting wins.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     args = build_parser().parse_args(argv)
     from fempdl import experiments, parallel, scene, tradeoff
     from fempdl.scene import METHOD_TASKS
@@ -175,7 +170,7 @@ def _methods(args, sc, progress: bool) -> int:
     out = args.out or Path("runs") / sc.name / "compare"
     runs = compare.compare(sc, out, equal_time=not args.equal_iterations_only, resume=args.resume,
                            progress=progress)
-    split = compare.summary(sc, runs)
+    split = compare.summary(sc, runs, equal_time=not args.equal_iterations_only)
     paths = compare.write_report(sc, runs, split, out)
     print(f"scene {sc.name}: {sc.description}")
     print(compare.table(sc, runs))

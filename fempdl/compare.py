@@ -61,13 +61,18 @@ def steps_per_epoch(scene: Scene) -> int:
     return math.ceil(scene.data["train"] / scene.optimizer["batch"])
 
 
-def summary(scene: Scene, runs: dict[str, RunResult]) -> dict:
-    """Ratios method / baseline of the validation metric at equal iterations and at equal training time."""
+def summary(scene: Scene, runs: dict[str, RunResult], equal_time: bool = True) -> dict:
+    """Ratios method / baseline of the validation metric at equal iterations and at equal training time.
+
+    The equal-time entries are None without ``equal_time`` (the baseline was not
+    extended) or when the baseline's first epoch already took longer than the
+    method's whole run; ``baseline_reached_time`` is False when the baseline
+    stopped at its iteration cap before using the method's time."""
     method = inversion.method_of(scene)
     ours, base = runs[method].rows, runs[BASELINE].rows
     n = min(len(ours), len(base))
     budget = ours[-1]["train_time"]
-    within = [row for row in base if row["train_time"] <= budget] or base[:1]
+    within = [row for row in base if row["train_time"] <= budget] if equal_time else []
     steps = steps_per_epoch(scene)
     return {
         "method": method, "metric": "x error" if scene.task == "sip" else "observation nMSE",
@@ -76,8 +81,9 @@ def summary(scene: Scene, runs: dict[str, RunResult]) -> dict:
         "ratio_equal_iterations": ours[n - 1]["val_metric"] / base[n - 1]["val_metric"],
         "equal_time_seconds": budget,
         "baseline_iterations_in_that_time": len(within) * steps,
-        "baseline_metric_at_equal_time": within[-1]["val_metric"],
-        "ratio_equal_time": ours[-1]["val_metric"] / within[-1]["val_metric"],
+        "baseline_reached_time": base[-1]["train_time"] >= budget,
+        "baseline_metric_at_equal_time": within[-1]["val_metric"] if within else None,
+        "ratio_equal_time": ours[-1]["val_metric"] / within[-1]["val_metric"] if within else None,
         "seconds_per_iteration": {name: r.rows[-1]["train_time"] / (len(r.rows) * steps) for name, r in runs.items()},
     }
 
@@ -86,7 +92,7 @@ def table(scene: Scene, runs: dict[str, RunResult]) -> str:
     """Text table of the runs: iterations, final metric, training time, against the baseline."""
     base = runs.get(BASELINE)
     steps = steps_per_epoch(scene)
-    header = f"{'run':<10} {'iterations':>10} {'final metric':>12} {'train s':>8} {'metric vs base':>14} {'s/it':>8}"
+    header = f"{'run':<10} {'iterations':>10} {'final metric':>12} {'train s':>8} {'final vs base':>14} {'s/it':>8}"
     lines = [header, "-" * len(header)]
     for name, r in runs.items():
         iterations, seconds = len(r.rows) * steps, r.rows[-1]["train_time"]
@@ -98,12 +104,17 @@ def table(scene: Scene, runs: dict[str, RunResult]) -> str:
 
 def summary_lines(split: dict) -> list[str]:
     name = split["method"].upper()
-    return [
-        f"after {split['iterations']} iterations each: {name} {split['metric']} {split['method_metric']:.3e}, "
-        f"Adam + backprop {split['baseline_metric']:.3e}: ratio {split['ratio_equal_iterations']:.3f}",
-        f"at equal training time ({split['equal_time_seconds']:.1f} s, {split['baseline_iterations_in_that_time']} "
-        f"baseline iterations): {name} / Adam + backprop = {split['ratio_equal_time']:.3f}",
-    ]
+    lines = [f"after {split['iterations']} iterations each: {name} {split['metric']} {split['method_metric']:.3e}, "
+             f"Adam + backprop {split['baseline_metric']:.3e}: ratio {split['ratio_equal_iterations']:.3f}"]
+    if split["ratio_equal_time"] is None:
+        lines.append("no comparison at equal training time (the baseline was not run to the method's time, or "
+                     "its first epoch took longer than the method's whole run)")
+        return lines
+    capped = "" if split["baseline_reached_time"] else ", the baseline stopped at its iteration cap before"
+    lines.append(f"at equal training time ({split['equal_time_seconds']:.1f} s, "
+                 f"{split['baseline_iterations_in_that_time']} baseline iterations{capped}): "
+                 f"{name} / Adam + backprop = {split['ratio_equal_time']:.3f}")
+    return lines
 
 
 def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir: Path) -> list[Path]:
@@ -142,7 +153,8 @@ def _plot(scene: Scene, runs: dict[str, RunResult], split: dict, path: Path) -> 
         axes[0].loglog([(row["epoch"] + 1) * steps for row in r.rows], metric, label=label, **style)
         axes[1].semilogy([row["train_time"] for row in r.rows], metric, label=label, **style)
     axes[0].axvline(split["iterations"], color="gray", linestyle=":", linewidth=1)
-    axes[1].axvline(split["equal_time_seconds"], color="gray", linestyle=":", linewidth=1)
+    if split["ratio_equal_time"] is not None:
+        axes[1].axvline(split["equal_time_seconds"], color="gray", linestyle=":", linewidth=1)
     axes[0].set_xlabel("training iterations")
     axes[1].set_xlabel("training time [s] (optimizer steps, validation excluded)")
     axes[0].set_ylabel(f"validation {split['metric']}")

@@ -1,6 +1,7 @@
 """Scene -> training task, and the runs that compare capped, PRDP and converged physics.
 
-Three tasks, chosen by the scene's ``task``:
+Three tasks, chosen by the scene's ``task`` (sip and hig scenes, which compare
+training methods, are trained by :mod:`fempdl.inversion`):
 
 * ``emulator`` (the PRDP paper's mixed chain): a network maps u0 to u1, the
   capped physics layer maps u1 to u2, and the training loss is the nMSE of u2

@@ -59,7 +59,10 @@ def half_inverse_update(jacobian: torch.Tensor, g: torch.Tensor, *, kappa: float
         raise ValueError(f"method must be 'auto', 'svd' or 'gram', got {method!r}")
     # Outputs no weight moves (a layer's Dirichlet values) give zero rows: they add nothing to U S V^T or
     # to U^T g, and dropping them first makes the decomposition smaller (half the rows on a coarse mesh).
-    moving = jacobian.abs().amax(dim=1) > 0
+    if not (bool(torch.isfinite(jacobian).all()) and bool(torch.isfinite(g).all())):
+        raise ValueError("the Jacobian or the loss gradient holds NaN or inf: the network or the physics "
+                         "produced non-finite values; lower the learning rate or check the inputs")
+    moving = (jacobian != 0).any(dim=1)
     if not bool(moving.all()):
         jacobian, g = jacobian[moving], g[moving]
     rows, cols = jacobian.shape

@@ -1,7 +1,7 @@
 """The training loop: mini-batches, validation, PRDP, metrics files and resumable checkpoints.
 
-:class:`Trainer` runs epochs of optimizer steps on ``task.loss(batch_indices)``
-over shuffled mini-batches, then validates (the mean of
+:class:`Trainer` runs epochs of optimizer steps (``task.train_step``, by default
+a step on ``task.loss(batch_indices)``) over shuffled mini-batches, then validates (the mean of
 ``task.validation_errors``); it steps the PRDP controller (if any) with the
 validation metric and writes, after every epoch:
 

@@ -124,6 +124,9 @@ def test_the_gram_path_equals_the_svd_and_knows_its_resolution():
     assert half_inverse_update(J, g, tau=1e-5, method="auto")[2] == half_inverse_update(J, g, tau=1e-5)[2] == 19
     with pytest.raises(ValueError, match="method must be 'auto', 'svd' or 'gram'"):
         half_inverse_update(J, g, method="qr")
+    J[3, 5] = float("nan")           # a NaN row must not be dropped as if it were a zero row
+    with pytest.raises(ValueError, match="holds NaN or inf"):
+        half_inverse_update(J, g)
 
 
 def test_a_jacobian_over_the_memory_bound_is_refused_with_its_size(poisson_layer):

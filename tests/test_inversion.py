@@ -99,6 +99,12 @@ def test_rectangles_are_sums_of_box_indicators():
         assert np.array_equal(in_box, field != 0)
 
 
+def test_a_box_always_holds_a_node():
+    coords = np.random.default_rng(0).uniform(0, 1, (12, 3)) * [1.0, 1.0, 0.0]     # few nodes: boxes can miss
+    fields = rectangle_fields(coords, 300, 1, np.random.default_rng(2))
+    assert (np.abs(fields).max(axis=1) > 0).all()
+
+
 def test_noise_has_the_asked_level_and_spares_the_boundary():
     clean, noisy = (InversionTask(sip_scene(pde="heat", noise=level), "sip") for level in (0.0, 0.05))
     try:
@@ -161,7 +167,9 @@ def test_validation_metrics_are_the_x_error_and_the_observation_nmse():
     try:
         with torch.no_grad():
             x0 = task.model(task.y_val)
-            expected = (x0 - task.x_val).norm(dim=1) / task.x_val.norm(dim=1)
+            free = np.setdiff1d(np.arange(x0.shape[1]), task.problem.bc_dofs)
+            assert len(free) < x0.shape[1] and x0[:, task.problem.bc_dofs].abs().max() > 0
+            expected = (x0 - task.x_val)[:, free].norm(dim=1) / task.x_val[:, free].norm(dim=1)
             assert torch.allclose(task.validation_errors(torch.arange(8)), expected, rtol=1e-12)
     finally:
         task.close()
@@ -179,8 +187,9 @@ def test_sip_infers_the_source_better_than_adam_with_backprop_at_equal_iteration
     sc = sip_scene(epochs=100)
     sip, adam = inversion.run(sc, "sip"), inversion.run(sc, "backprop")
     start = sip.rows[0]["val_metric"]
-    # Measured: 0.69 against 1.01 after 100 iterations (63 DOFs, linear network, lr 3e-2 both).
-    assert sip.final_metric < 0.8 * adam.final_metric
+    # Measured, on the free DOFs: 0.63 against 0.72 after 100 iterations (63 DOFs, linear network, lr 3e-2
+    # both); the gap widens with iterations (0.78x at 300).
+    assert sip.final_metric < 0.92 * adam.final_metric
     assert sip.final_metric < 0.8 * start
 
 
@@ -217,7 +226,7 @@ def test_the_wrong_method_or_task_is_refused():
 
 # ------------------------------------------------------------------ comparison and files
 def test_compare_extends_the_baseline_to_equal_time_and_reports_the_ratios(tmp_path):
-    sc = sip_scene(pde="heat", noise=0.01, epochs=4, inverse='inverse = "gauss-newton"\ndamping = 1e-2')
+    sc = sip_scene(pde="heat", noise=0.01, epochs=4, batch=8, inverse='inverse = "gauss-newton"\ndamping = 1e-2')
     runs = compare.compare(sc, tmp_path, max_factor=5)
     sip, base = runs["sip"].rows, runs["backprop"].rows
     assert len(sip) == 4 and 4 <= len(base) <= 20
@@ -226,10 +235,11 @@ def test_compare_extends_the_baseline_to_equal_time_and_reports_the_ratios(tmp_p
     assert base[-1]["train_time"] >= budget or len(base) == 20
     assert len(base) == 4 or base[-2]["train_time"] < budget          # it stopped at the first epoch past it
     split = compare.summary(sc, runs)
-    assert split["iterations"] == 4
+    assert split["iterations"] == 8                        # 2 steps per epoch (16 samples, batch 8)
     assert split["ratio_equal_iterations"] == sip[3]["val_metric"] / base[3]["val_metric"]
     within = [row for row in base if row["train_time"] <= budget]
-    assert split["baseline_iterations_in_that_time"] == len(within)
+    assert split["baseline_iterations_in_that_time"] == 2 * len(within)
+    assert split["baseline_reached_time"] == (base[-1]["train_time"] >= budget)
     assert split["ratio_equal_time"] == sip[-1]["val_metric"] / within[-1]["val_metric"]
     paths = compare.write_report(sc, runs, split, tmp_path)
     assert [p.name for p in paths] == ["compare.json", "compare.csv", "error_vs_cost.png"]
@@ -247,6 +257,9 @@ def test_equal_iterations_only_keeps_the_baseline_at_the_methods_count(tmp_path)
     sc = sip_scene(epochs=3)
     runs = compare.compare(sc, tmp_path, equal_time=False)
     assert len(runs["sip"].rows) == len(runs["backprop"].rows) == 3
+    split = compare.summary(sc, runs, equal_time=False)
+    assert split["ratio_equal_time"] is None and split["baseline_iterations_in_that_time"] == 0
+    assert compare.summary_lines(split)[1].startswith("no comparison at equal training time")
 
 
 @pytest.mark.parametrize("method", ["sip", "hig"])
