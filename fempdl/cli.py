@@ -168,10 +168,8 @@ def _methods(args, sc, progress: bool) -> int:
         print(f"metrics and checkpoints in {out}")
         return 0
     out = args.out or Path("runs") / sc.name / "compare"
-    runs = compare.compare(sc, out, equal_time=not args.equal_iterations_only, resume=args.resume,
-                           progress=progress)
-    split = compare.summary(sc, runs, equal_time=not args.equal_iterations_only)
-    paths = compare.write_report(sc, runs, split, out)
+    runs, split, paths = compare.compare_and_report(sc, out, equal_time=not args.equal_iterations_only,
+                                                    resume=args.resume, progress=progress)
     print(f"scene {sc.name}: {sc.description}")
     print(compare.table(sc, runs))
     print("\n".join(compare.summary_lines(split)))

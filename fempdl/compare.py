@@ -27,7 +27,7 @@ from fempdl.experiments import RunResult
 from fempdl.scene import Scene
 from fempdl.training import write_atomically
 
-__all__ = ["compare", "summary", "summary_lines", "table", "write_report"]
+__all__ = ["compare", "compare_and_report", "summary", "summary_lines", "table", "write_report"]
 
 BASELINE = "backprop"
 
@@ -55,6 +55,14 @@ def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_tim
         runs[BASELINE] = inversion.run(scene, BASELINE, out_dir=sub, progress=progress, resume=True,
                                        epochs=max_factor * n, stop_at_time=budget)
     return runs
+
+
+def compare_and_report(scene: Scene, out_dir: Path, *, equal_time: bool = True, resume: bool = False,
+                       progress: bool = False) -> tuple[dict[str, RunResult], dict, list[Path]]:
+    """:func:`compare`, :func:`summary` and :func:`write_report` into ``out_dir``: (runs, summary, paths)."""
+    runs = compare(scene, out_dir, equal_time=equal_time, resume=resume, progress=progress)
+    split = summary(scene, runs, equal_time=equal_time)
+    return runs, split, write_report(scene, runs, split, out_dir)
 
 
 def steps_per_epoch(scene: Scene) -> int:

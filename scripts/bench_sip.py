@@ -52,9 +52,7 @@ def main(argv=None) -> int:
         if args.epochs:
             sc.optimizer["epochs"] = args.epochs
         report_dir = args.out.parent / "sip" / name
-        runs = compare.compare(sc, report_dir)
-        split = compare.summary(sc, runs)
-        compare.write_report(sc, runs, split, report_dir)
+        runs, split, _ = compare.compare_and_report(sc, report_dir)
         results[name] = {"scene": sc.as_dict(), **split}
         print(f"{name}:\n" + compare.table(sc, runs) + "\n" + "\n".join(compare.summary_lines(split)), flush=True)
         write_json_atomically(results, args.out)
