@@ -14,12 +14,12 @@ Three ways to train the same network (``method``):
 
 * ``"sip"``: the proxy loss 1/2 ||x0 - stopgrad(x*)||^2 (mean over samples)
   with x* from the scene's inverse (:mod:`fempdl.sip`: the exact inverse of
-  an affine right-hand side, or damped Gauss-Newton CG), stepped by the
-  scene's optimizer;
+  an affine right-hand side, its Tikhonov-damped version, or damped
+  Gauss-Newton CG), stepped by the scene's optimizer;
 * ``"hig"``: half-inverse gradient steps (:class:`fempdl.hig.HIG`) on
   L = 1/2 ||P(x0) - y||^2 (mean over samples); the physics is linear, so its
   Jacobian is computed once;
-* ``"backprop"``: the baseline, Adam with learning rate ``[baseline] lr`` on
+* ``"backprop"``: the baseline, Adam with ``[baseline] lr`` and ``decay`` on
   the same L, its gradient backpropagated through the layer's adjoint.
 
 The validation metric is what the scene's method is judged by: for sip
@@ -44,7 +44,7 @@ from fempdl.hig import HIG
 from fempdl.ksp_adjoint import KSPOptions
 from fempdl.networks import mlp
 from fempdl.scene import Scene
-from fempdl.sip import ExactLinearInverse, GaussNewtonInverse, proxy_loss
+from fempdl.sip import ExactLinearInverse, GaussNewtonInverse, TikhonovInverse, proxy_loss
 from fempdl.training import Trainer, sample_nmse
 
 __all__ = ["InversionTask", "method_of", "rectangle_fields", "run"]
@@ -109,7 +109,7 @@ class InversionTask(Task):
         self.model = mlp(n_y, n_x, scene.network["hidden"], scene.network["layers"], torch.nn.Tanh).double()
         self.scheduler = None
         if method == "backprop":
-            self.optimizer = torch.optim.Adam(self.model.parameters(), lr=scene.baseline["lr"])
+            self.optimizer, self.scheduler = make_optimizer({"type": "adam", **scene.baseline}, self.model.parameters())
         elif method == "sip":
             self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
             self.inverse = self._inverse(scene.sip)
@@ -143,6 +143,8 @@ class InversionTask(Task):
     def _inverse(self, spec: dict):
         if spec["inverse"] == "exact":
             return ExactLinearInverse(self.layer, self.control, eta=spec["eta"])
+        if spec["inverse"] == "tikhonov":
+            return TikhonovInverse(self.layer, self.control, damping=spec["damping"], eta=spec["eta"])
         return GaussNewtonInverse(self.layer, self.control, damping=spec["damping"], max_it=spec["cg_iterations"],
                                   eta=spec["eta"])
 

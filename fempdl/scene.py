@@ -17,13 +17,16 @@ brackets; ``required`` has none)::
                  noise on the observations, relative to their largest value), resample
                  [false] (draw new training truths every epoch)
     [network]    type ["mlp"] ("mlp" | "graph"; heat emulators only), hidden [128],
-                 layers [2] (hidden layers; 0: linear)   (emulator, hybrid, sip, hig)
-    [sip]        inverse (required: "exact" | "gauss-newton"), eta [1.0], and for
-                 gauss-newton damping [0.0] (Tikhonov alpha), cg_iterations [20]  (sip only)
+                 layers [2] (hidden layers, 0: linear; graph convolutions, >= 1)
+                                                         (emulator, hybrid, sip, hig)
+    [sip]        inverse (required: "exact" | "tikhonov" | "gauss-newton"), eta [1.0],
+                 damping [0.0] (Tikhonov alpha; tikhonov, gauss-newton), cg_iterations
+                 [20] (gauss-newton)                                          (sip only)
     [hig]        lr [1.0], kappa [-0.5], beta [0.0], tau [1e-5], method ["auto"] ("auto" |
                  "svd" | "gram"), max_jacobian_mib [1024]                     (hig only)
-    [baseline]   lr [the optimizer's lr; 1e-3 for hig]: Adam with backpropagation through
-                 the physics, the method's comparison                    (sip, hig)
+    [baseline]   lr [the optimizer's lr; 1e-3 for hig], decay [the optimizer's decay; 1.0
+                 for hig]: Adam with backpropagation through the physics, the method's
+                 comparison                                                  (sip, hig)
     [inverse]    theta_ref (required), theta_init (required)                  (inverse only)
     [hybrid]     fine_h (required: the reference mesh size), steps [2] (unrolled training
                  steps), spinup [10] (fine steps from rest before sampling),
@@ -89,13 +92,13 @@ SCHEMA: dict[str, dict[str, _Key]] = {
     "network": {"type": _Key(str, "mlp", choices=("mlp", "graph")), "hidden": _Key(int, 128, minimum=1),
                 "layers": _Key(int, 2, minimum=0)},
     "inverse": {"theta_ref": _Key(list), "theta_init": _Key(list)},
-    "sip": {"inverse": _Key(str, choices=("exact", "gauss-newton")), "eta": _Key(float, 1.0, minimum=_POSITIVE),
+    "sip": {"inverse": _Key(str, choices=("exact", "tikhonov", "gauss-newton")), "eta": _Key(float, 1.0, minimum=_POSITIVE),
             "damping": _Key(float, 0.0, minimum=0.0), "cg_iterations": _Key(int, 20, minimum=1)},
     "hig": {"lr": _Key(float, 1.0, minimum=_POSITIVE), "kappa": _Key(float, -0.5), "beta": _Key(float, 0.0),
             "tau": _Key(float, 1e-5, minimum=0.0, maximum=1.0),
             "method": _Key(str, "auto", choices=("auto", "svd", "gram")),
             "max_jacobian_mib": _Key(float, 1024.0, minimum=_POSITIVE)},
-    "baseline": {"lr": _Key(float, None, minimum=_POSITIVE)},
+    "baseline": {"lr": _Key(float, None, minimum=_POSITIVE), "decay": _Key(float, None, minimum=_POSITIVE)},
     "hybrid": {"fine_h": _Key(float, minimum=_POSITIVE), "steps": _Key(int, 2, minimum=1),
                "spinup": _Key(int, 10, minimum=0), "perturbation": _Key(float, 0.2, minimum=0.0)},
     "optimizer": {"type": _Key(str, "adam", choices=("adam", "sgd")), "lr": _Key(float, 1e-3, minimum=_POSITIVE),
@@ -260,10 +263,13 @@ def _check_flow(values: dict, source: str) -> None:
     if flow and network is not None and network["type"] != "mlp":
         raise SceneError(f"{source}: [network] type {network['type']!r} works on scalar fields; "
                          f"{pde['type']} states are vector fields: use 'mlp'")
+    if network is not None and network["type"] == "graph" and network["layers"] < 1:
+        raise SceneError(f"{source}: [network] layers must be >= 1 for a graph network (its layers are the "
+                         f"graph convolutions; with none no node sees its neighbours), got {network['layers']}")
 
 
 def _check_method(values: dict, raw: dict, source: str) -> None:
-    """The SIP / HIG scenes: degree default, an MLP, the inverse's keys, the baseline's learning rate."""
+    """The SIP / HIG scenes: degree default, an MLP, the inverse's keys, the baseline's learning rate and decay."""
     pde, network = values["pde"], values["network"]
     if pde["degree"] is None:
         pde["degree"] = 1
@@ -271,14 +277,17 @@ def _check_method(values: dict, raw: dict, source: str) -> None:
         raise SceneError(f"{source}: [network] type must be 'mlp' for the {values['scene']['task']} task "
                          f"(a dense network from the observation to the source), got {network['type']!r}")
     sip = values.get("sip")
-    if sip is not None and sip["inverse"] == "exact":
-        given = sorted({"damping", "cg_iterations"} & set(raw["sip"]))
+    if sip is not None:
+        unused = {"exact": {"damping", "cg_iterations"}, "tikhonov": {"cg_iterations"}}.get(sip["inverse"], set())
+        given = sorted(unused & set(raw["sip"]))
         if given:
-            raise SceneError(f"{source}: [sip] {', '.join(given)} do(es) not apply to inverse 'exact' "
-                             "(they set the Gauss-Newton inverse); remove them or use inverse = 'gauss-newton'")
+            raise SceneError(f"{source}: [sip] {', '.join(given)} do(es) not apply to inverse {sip['inverse']!r} "
+                             "(cg_iterations sets the Gauss-Newton inverse, damping the damped ones); remove "
+                             "them or choose another inverse")
     baseline = values["baseline"]
-    if baseline["lr"] is None:
-        baseline["lr"] = values["optimizer"]["lr"] if sip is not None else 1e-3
+    for key, hig_default in (("lr", 1e-3), ("decay", 1.0)):
+        if baseline[key] is None:
+            baseline[key] = values["optimizer"][key] if sip is not None else hig_default
 
 
 def _section(raw: dict, name: str, source: str) -> dict:

@@ -38,6 +38,17 @@ any torch optimizer (:func:`sip_step`). The inverse updates here:
   1/sigma_k (for a heat step sigma_k falls like 1/(1 + dt lambda_k)), so no
   component is amplified by more than 1/(2 sqrt(alpha)). Its cap ``max_it`` is
   a knob like a layer's, for PRDP to drive.
+* :class:`TikhonovInverse`: the same damped normal equations solved exactly,
+  through the singular value decomposition of the discrete map's Jacobian
+  (J = U S V^T, built once by n_x tangent solves):
+
+      dx = V diag(s_k / (s_k^2 + alpha)) U^T (y* - P(x0)).
+
+  It is what GaussNewtonInverse converges to as its cap grows. Each call then
+  costs one forward solve and two dense products instead of two solves per CG
+  iteration; the price is 8 (n_y + n_x) n_x bytes for U and V, refused above
+  ``max_matrix_bytes``. ``singular_values`` exposes the spectrum the damping
+  acts on, so alpha can be chosen against the noise level.
 
 Shapes: x0 is (B, n_x) (the control's DOFs), y* is (B, n_y) (the layer's
 output DOFs); every update returns (B, n_x) without a graph.
@@ -51,7 +62,7 @@ import torch
 from fempdl.bridge_torch import SolveLayer
 from fempdl.system import assemble_scipy
 
-__all__ = ["ExactLinearInverse", "GaussNewtonInverse", "GradientStep", "proxy_loss", "sip_step"]
+__all__ = ["ExactLinearInverse", "GaussNewtonInverse", "GradientStep", "TikhonovInverse", "proxy_loss", "sip_step"]
 
 
 def proxy_loss(x0: torch.Tensor, x_star: torch.Tensor) -> torch.Tensor:
@@ -203,3 +214,62 @@ class GaussNewtonInverse(_LayerInverse):
                 rr = rr_new
                 self.last_iterations += 1
         return (x0d + self.eta * dx).to(x0.dtype)
+
+
+class TikhonovInverse(_LayerInverse):
+    """x* = x0 + eta V diag(s / (s^2 + alpha)) U^T (y* - P(x0)), from the SVD J = U S V^T (module docstring).
+
+    J (n_y, n_free) holds P(e_i) - P(0) for the free control DOFs i (one
+    batched forward call; exact because the control enters the right-hand
+    side affinely). It is built and decomposed on the first call, so a
+    training clock counts it. With ``damping`` = alpha = 0 the update is the
+    pseudo-inverse: singular values below n eps s_max are dropped. Serial.
+    """
+
+    def __init__(self, layer: SolveLayer, control: str, *, damping: float, eta: float = 1.0,
+                 fixed: dict | None = None, max_matrix_bytes: int = 2**30):
+        super().__init__(layer, control, fixed)
+        problem = layer.problem
+        if problem.V.mesh.comm.size > 1:
+            raise ValueError("TikhonovInverse decomposes the whole Jacobian on one process; run it serially or "
+                             "use GaussNewtonInverse")
+        if control not in problem.affine_rhs_controls:
+            raise ValueError(f"TikhonovInverse needs a control the right-hand side is affine in (exact J); "
+                             f"{control!r} is not (affine: {sorted(problem.affine_rhs_controls)})")
+        if not damping >= 0.0:
+            raise ValueError(f"damping must be >= 0, got {damping}")
+        n_free, n_y = len(self.free), problem.output_size
+        needed = 8 * (2 * n_y + n_free) * n_free        # J, then U and V
+        if needed > max_matrix_bytes:
+            raise MemoryError(f"TikhonovInverse needs a ({n_y} x {n_free}) Jacobian and its SVD: "
+                              f"{needed / 2**20:.1f} MiB, more than max_matrix_bytes = "
+                              f"{max_matrix_bytes / 2**20:.1f} MiB; use GaussNewtonInverse (matrix-free) or raise "
+                              "the bound")
+        self.damping, self.eta = float(damping), float(eta)
+        self._U = self._filtered_V = None
+        self.singular_values: torch.Tensor | None = None
+
+    def _decompose(self) -> None:
+        n_x = self.layer.problem.control_size(self.control)
+        tangents = torch.zeros(len(self.free) + 1, n_x, dtype=torch.float64)
+        tangents[torch.arange(len(self.free)), torch.as_tensor(self.free)] = 1.0     # the last row is x = 0
+        with torch.no_grad():
+            out = self.physics(tangents)
+        jacobian = (out[:-1] - out[-1]).T                                             # (n_y, n_free)
+        U, s, Vh = torch.linalg.svd(jacobian, full_matrices=False)
+        if self.damping > 0:
+            gain = s / (s * s + self.damping)
+        else:
+            keep = s > max(jacobian.shape) * torch.finfo(s.dtype).eps * s[0]
+            gain = torch.where(keep, 1.0 / torch.where(keep, s, 1.0), 0.0)
+        self._U, self._filtered_V, self.singular_values = U, Vh.T * gain, s
+
+    def __call__(self, x0: torch.Tensor, y_target: torch.Tensor) -> torch.Tensor:
+        if self._U is None:
+            self._decompose()
+        x0d = x0.detach().double()
+        with torch.no_grad():
+            residual = y_target.double() - self.physics(x0d)
+            step = torch.zeros_like(x0d)
+            step[:, self.free] = (residual @ self._U) @ self._filtered_V.T
+        return (x0d + self.eta * step).to(x0.dtype)

@@ -292,5 +292,8 @@ class Trainer:
         self._shuffle.set_state(state["rng"]["shuffle"])
         self.rows = list(state["rows"])
         self._elapsed = state["elapsed"]
+        if "train_time" not in state and self.stop_at_time is not None:
+            raise ValueError(f"{path} was written before fempdl timed training steps (no train_time); it cannot "
+                             "be extended to a training time: rerun it without resume")
         self._train_time = state.get("train_time", 0.0)
         return state["epoch"] + 1

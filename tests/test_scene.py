@@ -150,15 +150,17 @@ def test_parse_fills_the_schema_defaults():
 
 
 def test_method_scene_defaults():
-    sip = scene.parse(toml({"optimizer": "lr = 0.02"}, base=SIP))
+    sip = scene.parse(toml({"optimizer": "lr = 0.02\ndecay = 0.99"}, base=SIP))
     assert sip.solver is None and sip.prdp is None and sip.hig is None
     assert sip.sip == {"inverse": "exact", "eta": 1.0, "damping": 0.0, "cg_iterations": 20}
-    assert sip.baseline == {"lr": 0.02}          # the method's learning rate unless given
+    assert sip.baseline == {"lr": 0.02, "decay": 0.99}          # the method's schedule unless given
+    own = scene.parse(toml({"optimizer": "lr = 0.02\ndecay = 0.99", "baseline": "lr = 0.1\ndecay = 1.0"}, base=SIP))
+    assert own.baseline == {"lr": 0.1, "decay": 1.0}
     assert sip.data == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "truths": "smooth", "noise": 0.0,
                         "resample": False}
     assert sip.network == {"type": "mlp", "hidden": 128, "layers": 2} and sip.pde["degree"] == 1
     hig = scene.parse(toml({"network": "layers = 0"}, base=HIG))
-    assert hig.baseline == {"lr": 1e-3} and hig.network["layers"] == 0
+    assert hig.baseline == {"lr": 1e-3, "decay": 1.0} and hig.network["layers"] == 0
     assert hig.hig == {"lr": 0.5, "kappa": -0.5, "beta": 0.0, "tau": 1e-5, "method": "auto",
                        "max_jacobian_mib": 1024.0}
     assert hig.optimizer == {"epochs": 30, "batch": 16, "stop_at": None}
@@ -255,6 +257,8 @@ BAD = {
     "zero-rollout": (toml({"data": "rollout = 0"}), ["[data] rollout must be >= 1, got 0"]),
     "optimizer-choice": (toml({"optimizer": 'type = "rmsprop"'}),
                          ["[optimizer] type must be one of ['adam', 'sgd'], got 'rmsprop'"]),
+    "graph-without-convolutions": (toml({"network": 'type = "graph"\nlayers = 0'}),
+                                   ["[network] layers must be >= 1 for a graph network", "got 0"]),
     "network-choice": (toml({"network": 'type = "cnn"'}), ["[network] type must be one of ['mlp', 'graph'], got 'cnn'"]),
     "solver-choice": (toml({"solver": 'diff = "adjoint"'}),
                       ["[solver] diff must be one of ['implicit', 'unrolled'], got 'adjoint'"]),
@@ -309,9 +313,11 @@ BAD = {
     # sip and hig scenes
     "sip-without-sip": (toml(base=SIP, drop=("sip",)), ["task 'sip' needs section(s) ['sip']"]),
     "sip-inverse-choice": (toml(base={**SIP, "sip": 'inverse = "newton"'}),
-                           ["[sip] inverse must be one of ['exact', 'gauss-newton'], got 'newton'"]),
+                           ["[sip] inverse must be one of ['exact', 'tikhonov', 'gauss-newton'], got 'newton'"]),
     "sip-exact-with-damping": (toml({"sip": "damping = 0.1\ncg_iterations = 5"}, base=SIP),
                                ["[sip] cg_iterations, damping do(es) not apply to inverse 'exact'"]),
+    "sip-tikhonov-with-cg": (toml(base={**SIP, "sip": 'inverse = "tikhonov"\ndamping = 0.1\ncg_iterations = 5'}),
+                             ["[sip] cg_iterations do(es) not apply to inverse 'tikhonov'"]),
     "sip-negative-damping": (toml(base={**SIP, "sip": 'inverse = "gauss-newton"\ndamping = -1.0'}),
                              ["[sip] damping must be >= 0, got -1.0"]),
     "sip-oseen": (toml(base={**SIP, "pde": 'type = "oseen"'}),

@@ -10,7 +10,7 @@ from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.experiments import smooth_fields
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.sip import ExactLinearInverse, GaussNewtonInverse, GradientStep, proxy_loss, sip_step
+from fempdl.sip import ExactLinearInverse, GaussNewtonInverse, GradientStep, TikhonovInverse, proxy_loss, sip_step
 
 LU = KSPOptions.preset("lu")
 
@@ -92,6 +92,16 @@ def test_the_exact_inverse_refuses_controls_it_cannot_invert(lshape):
         GaussNewtonInverse(layer, "kappa")
     with pytest.raises(ValueError, match="damping must be >= 0"):
         GaussNewtonInverse(layer, "f", damping=-1.0)
+    with pytest.raises(ValueError, match="'kappa' is not"):
+        TikhonovInverse(layer, "kappa", damping=1e-2)
+    with pytest.raises(ValueError, match="damping must be >= 0"):
+        TikhonovInverse(layer, "f", damping=float("nan"))
+    n_free = len(_free(problem))
+    expected_mib = 8 * (2 * problem.output_size + n_free) * n_free / 2**20
+    with pytest.raises(MemoryError, match=rf"\({problem.output_size} x {n_free}\) Jacobian and its SVD: "
+                                          rf"{expected_mib:.1f} MiB, more than max_matrix_bytes = 0.1 MiB; "
+                                          "use GaussNewtonInverse"):
+        TikhonovInverse(layer, "f", damping=1e-2, max_matrix_bytes=2**20 // 10)
     layer.close()
 
 
@@ -112,6 +122,26 @@ def test_gauss_newton_inverse_runs_its_cap_and_converges_to_the_target(lshape):
     early = GaussNewtonInverse(layer, "f", max_it=500, rtol=1e-6)
     early(x0, y_target)
     assert 10 < early.last_iterations < 500
+    layer.close()
+
+
+def test_prdp_raises_the_gauss_newton_cap_when_the_metric_plateaus(lshape):
+    from fempdl.prdp import PRDP
+
+    problem = _poisson(lshape)
+    layer = SolveLayer(problem, LU)
+    y_target = layer(f=_sources(problem, 2, seed=3))
+    x0 = torch.zeros(2, problem.control_size("f"), dtype=torch.float64)
+    inverse = GaussNewtonInverse(layer, "f", max_it=50)
+    controller = PRDP(inverse, k0=2, dk=3, delta=2, ema_window=1, tau_step=0.95, tau_stop=0.9)
+    assert inverse.max_it == 2
+    inverse(x0, y_target)
+    assert inverse.last_iterations == 2
+    for metric in (1.0, 0.5, 0.499):        # progress since the start, then a plateau: K 2 -> 5
+        controller.step(metric)
+    assert inverse.max_it == 5
+    inverse(x0, y_target)
+    assert inverse.last_iterations == 5
     layer.close()
 
 
@@ -137,6 +167,41 @@ def test_damped_heat_inverse_stays_bounded_where_the_exact_one_amplifies_noise(l
     assert error(ExactLinearInverse(layer, "u0")(x0, clean)) < 1e-10
     assert error(exact) > 4.0 * error(damped)   # measured 0.59 against 0.10
     assert error(damped) < 0.15
+    layer.close()
+
+
+def test_tikhonov_inverse_is_converged_gauss_newton_and_bounds_the_gain(lshape):
+    """The SVD solves the damped normal equations that Gauss-Newton CG iterates on: equal once CG has
+    converged. No residual component is amplified by more than 1/(2 sqrt(alpha))."""
+    problem = forms.heat.problem(lshape, controls=("u0",), dt=0.05)
+    layer = SolveLayer(problem, LU)
+    y_target = layer(u0=_sources(problem, 3, seed=6))
+    y_target = y_target + 1e-2 * torch.randn(y_target.shape, generator=torch.Generator().manual_seed(1),
+                                             dtype=torch.float64)
+    x0 = _sources(problem, 3, seed=7)
+    tikhonov = TikhonovInverse(layer, "u0", damping=1e-2, eta=0.8)
+    x_star = tikhonov(x0, y_target)
+    converged = GaussNewtonInverse(layer, "u0", damping=1e-2, max_it=300, rtol=1e-13, eta=0.8)(x0, y_target)
+    assert (x_star - converged).norm() <= 1e-9 * (converged - x0).norm()
+    s = tikhonov.singular_values
+    assert len(s) == len(_free(problem)) and bool((s[:-1] >= s[1:]).all())
+    # For a heat step sigma_k = 1 / (1 + dt lambda_k) (in the Euclidean sense only roughly): all in (0, 1].
+    assert 0.0 < float(s[-1]) < 0.1 * float(s[0]) and float(s[0]) <= 1.0 + 1e-12
+    gain = (x_star - x0).norm(dim=-1) / (0.8 * (y_target - layer(u0=x0)).norm(dim=-1))
+    assert bool((gain <= 1.0 / (2.0 * 1e-2 ** 0.5) + 1e-12).all())
+    # The Dirichlet DOFs keep x0's values.
+    assert torch.equal(x_star[:, problem.bc_dofs], x0[:, problem.bc_dofs])
+    layer.close()
+
+
+def test_undamped_tikhonov_inverse_is_the_exact_inverse(lshape):
+    problem = _poisson(lshape, g=0.3)
+    layer = SolveLayer(problem, LU)
+    y_target = layer(f=_sources(problem, 2, seed=8))
+    x0 = _sources(problem, 2, seed=9)
+    x_star = TikhonovInverse(layer, "f", damping=0.0)(x0, y_target)
+    assert (x_star - ExactLinearInverse(layer, "f")(x0, y_target)).norm() <= 1e-9 * (x_star - x0).norm()
+    assert (layer(f=x_star) - y_target).abs().max() <= 1e-10 * y_target.abs().max()
     layer.close()
 
 
