@@ -16,7 +16,7 @@ further, to 100-170 ms, in periods when this shared machine was busy. Each
 scene's report (JSON, CSV, the plot against iterations and
 time) goes to ``bench-results/sip/<scene>/``; the summary to
 ``bench-results/bench_sip.json`` (``--out``).
-Run: ``python scripts/bench_sip.py`` (about 10 minutes on 2 cores).
+Run: ``python scripts/bench_sip.py`` (a few minutes on 2 cores).
 """
 from __future__ import annotations
 
