@@ -150,7 +150,7 @@ class SceneError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
-    """A validated scene: one dict per section with every default filled in."""
+    """A validated scene: one dict per section, holding the keys its task and PDE use, defaults filled in."""
 
     name: str
     task: str
@@ -224,9 +224,8 @@ def parse(text: str, source: str = "<string>") -> Scene:
             if given:
                 raise SceneError(f"{source}: [{name}] {', '.join(given)} do(es) not apply to {what} {value!r}; "
                                  "remove them")
-            if what == "task":   # a task's section holds only the keys it uses
-                for key in keys:
-                    values[name].pop(key, None)
+            for key in keys:     # a section holds only the keys its task and PDE use
+                values[name].pop(key, None)
     pde = values["pde"]
     if pde["type"] not in _TASK_PDES[task]:
         raise SceneError(f"{source}: [pde] type {pde['type']!r} does not apply to task {task!r}; "

@@ -52,9 +52,10 @@ def test_available_lists_the_bundled_files():
     assert set(names) == files
 
 
-def _keys_for(task: str, section: str) -> set:
-    """The schema's keys of a section, less those the task does not use."""
-    return set(SCHEMA[section]) - scene._NOT_FOR.get(("task", task), {}).get(section, set())
+def _keys_for(sc, section: str) -> set:
+    """The schema's keys of a section, less those the scene's task and PDE do not use."""
+    unused = [scene._NOT_FOR.get(("task", sc.task), {}), scene._NOT_FOR.get(("pde", sc.pde["type"]), {})]
+    return set(SCHEMA[section]).difference(*(by_section.get(section, set()) for by_section in unused))
 
 
 @pytest.mark.parametrize("name", scene.available())
@@ -68,7 +69,7 @@ def test_bundled_scene_loads_with_its_tasks_sections(name):
     sections = ("mesh", "pde", "data", "optimizer") + (("network", "baseline") if sc.task in scene.METHOD_TASKS
                                                        else ("solver", "prdp"))
     for section in sections:
-        assert set(getattr(sc, section)) == _keys_for(sc.task, section), section
+        assert set(getattr(sc, section)) == _keys_for(sc, section), section
     if sc.task in scene.METHOD_TASKS:
         assert sc.solver is None and sc.prdp is None and sc.inverse is None
         assert (sc.sip is not None, sc.hig is not None) == (sc.task == "sip", sc.task == "hig")
@@ -128,8 +129,7 @@ def test_parse_fills_the_schema_defaults():
     sc = scene.parse(toml())
     assert (sc.name, sc.task, sc.description, sc.source) == ("t", "emulator", "", "<string>")
     assert sc.mesh == {"name": "lshape", "h": None}
-    assert sc.pde == {"type": "heat", "dt": 0.01, "theta": 1.0, "kappa": 1.0, "degree": 1, "nu": 0.01,
-                      "inflow": 1.0}
+    assert sc.pde == {"type": "heat", "dt": 0.01, "theta": 1.0, "kappa": 1.0, "degree": 1}   # nu, inflow: not heat
     assert sc.data == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "k_eps_rtol": 1e-5, "rollout": 1}
     assert sc.network == {"type": "mlp", "hidden": 128, "layers": 2}
     assert sc.optimizer == {"type": "adam", "lr": 1e-3, "decay": 1.0, "epochs": 30, "batch": 16, "stop_at": None}
@@ -143,7 +143,7 @@ def test_parse_fills_the_schema_defaults():
             else getattr(sc, section)
         if values is None:
             continue
-        assert set(values) == _keys_for(sc.task, section), section
+        assert set(values) == _keys_for(sc, section), section
         for key, spec in keys.items():
             if key in values and spec.default is not scene._REQUIRED and (section, key) != ("pde", "degree"):
                 assert values[key] == spec.default, (section, key)
