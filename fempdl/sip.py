@@ -40,13 +40,13 @@ any torch optimizer (:func:`sip_step`). The inverse updates here:
   a knob like a layer's, for PRDP to drive.
 * :class:`TikhonovInverse`: the same damped normal equations solved exactly,
   through the singular value decomposition of the discrete map's Jacobian
-  (J = U S V^T, built once by n_x tangent solves):
+  (J = U S V^T, built once by one tangent solve per free control DOF):
 
       dx = V diag(s_k / (s_k^2 + alpha)) U^T (y* - P(x0)).
 
   It is what GaussNewtonInverse converges to as its cap grows. Each call then
   costs one forward solve and two dense products instead of two solves per CG
-  iteration; the price is 8 (n_y + n_x) n_x bytes for U and V, refused above
+  iteration; the price is 8 (2 n_y + n_x) n_x bytes for J, U and V, refused above
   ``max_matrix_bytes``. ``singular_values`` exposes the spectrum the damping
   acts on, so alpha can be chosen against the noise level.
 
@@ -238,6 +238,10 @@ class TikhonovInverse(_LayerInverse):
                              f"{control!r} is not (affine: {sorted(problem.affine_rhs_controls)})")
         if not damping >= 0.0:
             raise ValueError(f"damping must be >= 0, got {damping}")
+        batched = sorted(name for name, value in self.fixed.items() if torch.as_tensor(value).ndim > 1)
+        if batched:
+            raise ValueError(f"TikhonovInverse builds one Jacobian for all samples; the fixed inputs {batched} "
+                             "have a batch dimension: pass one (n,) tensor each, or use GaussNewtonInverse")
         n_free, n_y = len(self.free), problem.output_size
         needed = 8 * (2 * n_y + n_free) * n_free        # J, then U and V
         if needed > max_matrix_bytes:

@@ -96,6 +96,8 @@ def test_the_exact_inverse_refuses_controls_it_cannot_invert(lshape):
         TikhonovInverse(layer, "kappa", damping=1e-2)
     with pytest.raises(ValueError, match="damping must be >= 0"):
         TikhonovInverse(layer, "f", damping=float("nan"))
+    with pytest.raises(ValueError, match=r"the fixed inputs \['kappa'\] have a batch dimension"):
+        TikhonovInverse(layer, "f", damping=1e-2, fixed={"kappa": torch.ones(2, problem.control_size("kappa"))})
     n_free = len(_free(problem))
     expected_mib = 8 * (2 * problem.output_size + n_free) * n_free / 2**20
     with pytest.raises(MemoryError, match=rf"\({problem.output_size} x {n_free}\) Jacobian and its SVD: "
