@@ -5,7 +5,8 @@
 * :mod:`fempdl.forms.stokes` — steady Stokes flow (Taylor-Hood), control f.
 * :mod:`fempdl.forms.oseen` — one Oseen (linearised Navier-Stokes) step, controls w, u_prev, f.
 * :mod:`fempdl.forms.burgers` — one linearised vector Burgers step, controls w, u_prev, f.
+* :mod:`fempdl.forms.transport` — one implicit advection-diffusion step of a scalar marker, controls w, m_prev, f.
 """
-from fempdl.forms import burgers, heat, oseen, poisson, stokes
+from fempdl.forms import burgers, heat, oseen, poisson, stokes, transport
 
-__all__ = ["burgers", "heat", "oseen", "poisson", "stokes"]
+__all__ = ["burgers", "heat", "oseen", "poisson", "stokes", "transport"]
