@@ -49,6 +49,11 @@ any torch optimizer (:func:`sip_step`). The inverse updates here:
   iteration; the price is 8 (2 n_y + n_x) n_x bytes for J, U and V, refused above
   ``max_matrix_bytes``. ``singular_values`` exposes the spectrum the damping
   acts on, so alpha can be chosen against the noise level.
+* :class:`LinearisedGaussNewton`: for a nonlinear physics (a rollout of
+  layers, e.g. :class:`fempdl.marker_flow.MarkerFlow`), one damped
+  Gauss-Newton step with a Tikhonov prior, capped CG on the normal equations
+  of the linearisation at x0 (J^T w by backpropagation, J v by a forward
+  difference).
 
 Shapes: x0 is (B, n_x) (the control's DOFs), y* is (B, n_y) (the layer's
 output DOFs); every update returns (B, n_x) without a graph.
@@ -62,7 +67,8 @@ import torch
 from fempdl.bridge_torch import SolveLayer
 from fempdl.system import assemble_scipy
 
-__all__ = ["ExactLinearInverse", "GaussNewtonInverse", "GradientStep", "TikhonovInverse", "proxy_loss", "sip_step"]
+__all__ = ["ExactLinearInverse", "GaussNewtonInverse", "GradientStep", "LinearisedGaussNewton", "TikhonovInverse",
+           "batched_cg", "proxy_loss", "sip_step"]
 
 
 def proxy_loss(x0: torch.Tensor, x_star: torch.Tensor) -> torch.Tensor:
@@ -194,26 +200,99 @@ class GaussNewtonInverse(_LayerInverse):
                 return adjoint(self.physics(v) - offset) + self.damping * v
 
             rhs = adjoint(y_target.double() - self.physics(x0d))
-            dx = torch.zeros_like(x0d)
-            r, p = rhs.clone(), rhs.clone()
-            rr = (r * r).sum(-1)
-            stop = (self.rtol * rhs.norm(dim=-1)) ** 2
-            self.last_iterations = 0
-            for _ in range(self.max_it):
-                active = rr > stop
-                if not bool(active.any()) or not bool((rr > 0).any()):
-                    break
-                q = normal(p)
-                pq = (p * q).sum(-1)
-                alpha = torch.where(active & (pq > 0), rr / torch.where(pq > 0, pq, 1.0), 0.0)
-                dx += alpha[:, None] * p
-                r -= alpha[:, None] * q
-                rr_new = (r * r).sum(-1)
-                beta = torch.where(rr > 0, rr_new / torch.where(rr > 0, rr, 1.0), 0.0)
-                p = r + beta[:, None] * p
-                rr = rr_new
-                self.last_iterations += 1
+            dx, self.last_iterations = batched_cg(normal, rhs, self.max_it, self.rtol)
         return (x0d + self.eta * dx).to(x0.dtype)
+
+
+def batched_cg(normal, rhs: torch.Tensor, max_it: int, rtol: float = 0.0) -> tuple[torch.Tensor, int]:
+    """CG on independent symmetric positive systems N_b dx_b = rhs_b, one per row of ``rhs`` (B, n).
+
+    ``normal`` maps (B, n) -> (B, n) row by row; a row stops once its residual is
+    below ``rtol`` times its right-hand side. Returns dx (B, n) and the number of
+    iterations run (calls of ``normal``), at most ``max_it``."""
+    dx = torch.zeros_like(rhs)
+    r, p = rhs.clone(), rhs.clone()
+    rr = (r * r).sum(-1)
+    stop = (rtol * rhs.norm(dim=-1)) ** 2
+    iterations = 0
+    for _ in range(max_it):
+        active = rr > stop
+        if not bool(active.any()) or not bool((rr > 0).any()):
+            break
+        q = normal(p)
+        pq = (p * q).sum(-1)
+        alpha = torch.where(active & (pq > 0), rr / torch.where(pq > 0, pq, 1.0), 0.0)
+        dx += alpha[:, None] * p
+        r -= alpha[:, None] * q
+        rr_new = (r * r).sum(-1)
+        beta = torch.where(rr > 0, rr_new / torch.where(rr > 0, rr, 1.0), 0.0)
+        p = r + beta[:, None] * p
+        rr = rr_new
+        iterations += 1
+    return dx, iterations
+
+
+class LinearisedGaussNewton:
+    """Damped Gauss-Newton steps for a nonlinear differentiable physics P (a rollout of layers).
+
+    One call is one Gauss-Newton step on 1/2 ||P(x) - y*||^2 + beta/2 ||x||^2
+    (``prior`` = beta, a Tikhonov prior on x) around x0, damped by alpha
+    (``damping``, Levenberg-Marquardt):
+
+        (J^T J + (alpha + beta) I) dx = J^T (y* - P(x0)) - beta x0,    x* = x0 + eta dx,
+
+    J = dP/dx at x0, solved by ``max_it`` CG iterations (:func:`batched_cg`,
+    every sample on its own). J^T w is one backward pass through the kept graph
+    of P(x0) (the layers' adjoint solves); J v is the forward difference
+    (P(x0 + eps v) - P(x0)) / eps with eps = ``fd_step`` (1 + ||x0||) / ||v||
+    per sample (one forward rollout; float64, relative error about fd_step).
+    A step therefore costs 1 + k forward and 1 + k backward passes for k CG
+    iterations. ``max_it`` is a cap PRDP may move; ``last_iterations`` holds the
+    CG iterations of the last call.
+
+    Args:
+        physics: x (B, n_x) -> y (B, n_y), differentiable by autograd, samples
+            independent (row b of y depends on row b of x only).
+    """
+
+    def __init__(self, physics, *, damping: float = 0.0, prior: float = 0.0, max_it: int = 10, rtol: float = 0.0,
+                 eta: float = 1.0, fd_step: float = 1e-6):
+        if not callable(physics):
+            raise TypeError(f"physics must be a callable x -> y, got {type(physics).__name__}")
+        for name, value in (("damping", damping), ("prior", prior)):
+            if not value >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {value}")
+        if int(max_it) < 1:
+            raise ValueError(f"max_it must be >= 1, got {max_it}")
+        if not 0.0 < fd_step < 1e-2:
+            raise ValueError(f"fd_step must be in (0, 1e-2), got {fd_step}; 1e-6 suits float64")
+        self.physics = physics
+        self.damping, self.prior, self.max_it, self.rtol = float(damping), float(prior), int(max_it), float(rtol)
+        self.eta, self.fd_step = float(eta), float(fd_step)
+        self.last_iterations = 0
+
+    def __call__(self, x0: torch.Tensor, y_target: torch.Tensor) -> torch.Tensor:
+        x0d = x0.detach().double().clone().requires_grad_(True)
+        with torch.enable_grad():
+            y0 = self.physics(x0d)
+        scale = 1.0 + x0d.detach().norm(dim=-1, keepdim=True)
+
+        def adjoint(w):                                               # J^T w
+            (grad,) = torch.autograd.grad(y0, x0d, grad_outputs=w, retain_graph=True)
+            return grad
+
+        def tangent(v):                                               # J v by a forward difference
+            eps = self.fd_step * scale / v.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+            return (self.physics(x0d.detach() + eps * v) - y0.detach()) / eps
+
+        x = x0d.detach()
+        with torch.no_grad():
+            def normal(v):
+                return adjoint(tangent(v)) + (self.damping + self.prior) * v
+
+            rhs = adjoint(y_target.double() - y0.detach()) - self.prior * x
+            dx, self.last_iterations = batched_cg(normal, rhs, self.max_it, self.rtol)
+        return (x + self.eta * dx).to(x0.dtype)
 
 
 class TikhonovInverse(_LayerInverse):
