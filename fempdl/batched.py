@@ -74,23 +74,31 @@ class BatchedEngine:
         safe = np.where(d != 0.0, d, 1.0)  # PCJACOBI's treatment of a zero diagonal
         self._dinv = torch.from_numpy(1.0 / safe)[:, None]
 
-    def solve(self, R: np.ndarray, options: KSPOptions, *, transpose: bool = False) -> tuple[np.ndarray, float]:
-        """``options.max_it`` iterations for the rows of R (B, n); returns (X (B, n), seconds)."""
+    def solve(self, R: np.ndarray, options: KSPOptions, *, transpose: bool = False,
+              X0: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        """``options.max_it`` iterations for the rows of R (B, n), from zero or from
+        the rows of ``X0`` (B, n); returns (X (B, n), seconds)."""
         if self._A is None:
             raise RuntimeError("BatchedEngine.load(A) must be called before solve")
         t0 = time.perf_counter()
         op = self._At if transpose else self._A
         rhs = torch.from_numpy(np.ascontiguousarray(R.T))
+        start = None if X0 is None else torch.from_numpy(np.array(X0.T))
         scale = float(options.petsc_options.get("ksp_richardson_scale", 1.0))
         precondition = options.pc_type == "jacobi"
         with torch.no_grad():
             if options.ksp_type in ("cg", "gmres"):
                 X = unrolled.solve(options.ksp_type, op, self._dinv if precondition else None, rhs,
-                                   options.max_it, restart=options.gmres_restart or 30)
+                                   options.max_it, restart=options.gmres_restart or 30, X0=start)
             else:
                 # In place: nothing is differentiated here, so no iterate needs keeping.
                 step = (self._dinv if precondition else torch.ones_like(self._dinv)) * scale
-                X = torch.zeros_like(rhs)
+                X = torch.zeros_like(rhs) if start is None else start
                 for _ in range(options.max_it):
                     X.addcmul_(step, rhs - op @ X)
         return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0
+
+    def matmul(self, X: np.ndarray, *, transpose: bool = False) -> np.ndarray:
+        """A X^T (or A^T X^T) for the rows of X (B, n), as rows (B, n)."""
+        op = self._At if transpose else self._A
+        return np.ascontiguousarray((op @ torch.from_numpy(np.ascontiguousarray(X.T))).T.numpy())

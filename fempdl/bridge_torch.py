@@ -19,6 +19,12 @@ capped CG/GMRES, and for matrix controls such as kappa, it is the PRDP paper's
 map that converges to the exact gradient as K grows. For converged solves
 (rtol reached, or LU) it is the exact gradient of the discrete solution.
 
+A warm start ``layer(..., initial_guess=x0)`` runs the K iterations from x0
+instead of zero. Its implicit gradient is the adjoint residual
+dJ/du - A^T lam: exactly the derivative of the K-step Richardson + Jacobi map
+with respect to x0 ((I - D^-1 A)^K, transposed), an approximation for capped
+CG/GMRES that vanishes as they converge, and 0 for a direct solve.
+
 Shapes: each control tensor is (B, n_m) or (n_m,) with n_m =
 ``problem.control_size(name)``; a (n_m,) tensor is shared by all samples. The
 output is (B, n) if any input is batched, else (n,), n = ``problem.output_size``.
@@ -39,7 +45,7 @@ from fempdl.batched import BatchedEngine
 from fempdl.ksp_adjoint import CumulativeStats, KSPOptions, capped_solve_stats, warn_at_caller
 from fempdl.problem import Problem
 from fempdl.sparse import SparseOperator
-from fempdl.system import LinearSystem
+from fempdl.system import INITIAL_GUESS, LinearSystem
 
 __all__ = ["SolveLayer", "DIFF_MODES"]
 
@@ -131,8 +137,17 @@ class SolveLayer(torch.nn.Module):
     def stats(self) -> CumulativeStats:
         return self.system.stats
 
-    def forward(self, **controls: torch.Tensor) -> torch.Tensor:
-        """Solve for the given controls (keyword per control name); see the module docstring."""
+    def forward(self, *, initial_guess: torch.Tensor | None = None, **controls: torch.Tensor) -> torch.Tensor:
+        """Solve for the given controls (keyword per control name); see the module docstring.
+
+        ``initial_guess`` ((B, n) or (n,), like the output) warm-starts the
+        iterations: a capped solve then runs K iterations from it instead of from
+        zero (time steppers start from the state being advanced). It is
+        differentiable: exactly for Richardson + Jacobi in both modes and for
+        every method in unrolled mode; in implicit mode the adjoint residual is
+        the gradient (module docstring)."""
+        if initial_guess is not None:
+            controls = {**controls, INITIAL_GUESS: initial_guess}
         names, tensors, batch, batched = self._validate(controls)
         dtype = tensors[0].dtype if tensors else torch.float64
         if any(t.dtype != dtype for t in tensors):
@@ -154,6 +169,8 @@ class SolveLayer(torch.nn.Module):
         if not options.capped:
             raise ValueError("diff='unrolled' differentiates a capped iteration: set max_it")
         given = dict(zip(names, (t.to(device="cpu", dtype=torch.float64) for t in tensors)))
+        guess = given.pop(INITIAL_GUESS, None)
+        names = tuple(n for n in names if n != INITIAL_GUESS)
         matrix_names = [n for n in names if n in self.problem.matrix_controls]
         rhs_names = frozenset(names) - set(matrix_names)
         A, P, b_base, mats = self._unrolled_operators(rhs_names)
@@ -166,8 +183,10 @@ class SolveLayer(torch.nn.Module):
         method = _unrolled_method(options)
         omega = float(options.petsc_options.get("ksp_richardson_scale", 1.0))
         t_solve = time.perf_counter()
+        X0 = None if guess is None else (guess.unsqueeze(1) if guess.dim() == 1 else guess.T).expand(-1, batch)
         X = unrolled.solve(method, A, P if options.pc_type == "jacobi" else None, R, options.max_it,
-                           omega=omega, restart=options.gmres_restart or 30, max_values=self.max_unrolled_values)
+                           omega=omega, restart=options.gmres_restart or 30, max_values=self.max_unrolled_values,
+                           X0=X0)
         seconds = time.perf_counter() - t_solve
         finite = torch.isfinite(X).all(0)
         stats = self.system.stats
@@ -255,10 +274,10 @@ class SolveLayer(torch.nn.Module):
 
     def _validate(self, controls: dict):
         p = self.problem
-        unknown = [n for n in controls if n not in p.control_names]
+        unknown = [n for n in controls if n not in p.control_names and n != INITIAL_GUESS]
         if unknown:
             raise ValueError(f"unknown control(s) {unknown}; this layer's controls are {list(p.control_names)}")
-        names = tuple(n for n in p.control_names if n in controls)
+        names = tuple(n for n in (*p.control_names, INITIAL_GUESS) if n in controls)
         tensors = [controls[n] for n in names]
         batch_sizes = {}
         for name, t in zip(names, tensors):
@@ -268,7 +287,7 @@ class SolveLayer(torch.nn.Module):
             if t.dtype not in _FLOAT_DTYPES:
                 raise TypeError(f"control {name!r} has dtype {t.dtype}; use float32 or float64 "
                                 "(e.g. tensor.double())")
-            n = p.control_size(name)
+            n = p.output_size if name == INITIAL_GUESS else p.control_size(name)
             if t.dim() not in (1, 2) or t.shape[-1] != n:
                 raise ValueError(
                     f"control {name!r} has shape {tuple(t.shape)}, expected (B, {n}) or ({n},): one value per "
@@ -299,7 +318,9 @@ class _SolveFunction(torch.autograd.Function):
     def forward(ctx, layer: SolveLayer, names: tuple, batch: int, *tensors):
         t0 = time.perf_counter()
         shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
-        U = layer.system.solve(_batched_arrays(names, tensors, batch), batch, shared)
+        arrays = _batched_arrays(names, tensors, batch)
+        guess = arrays.pop(INITIAL_GUESS, None)
+        U = layer.system.solve(arrays, batch, shared, initial_guess=guess)
         out = torch.from_numpy(U)
         # Saved through autograd so that an in-place change of an input or of the
         # output before backward raises autograd's error instead of corrupting
@@ -325,7 +346,9 @@ class _SolveFunction(torch.autograd.Function):
                                  "value(s); the loss or the layers after this one produced them")
             *tensors, out = ctx.saved_tensors
             arrays = _batched_arrays(names, tensors, ctx.batch)
-            grads = layer.system.adjoint(arrays, out.numpy(), G, wanted, ctx.shared)
+            arrays.pop(INITIAL_GUESS, None)
+            grads = layer.system.adjoint(arrays, out.numpy(), G, [n for n in wanted if n != INITIAL_GUESS],
+                                         ctx.shared, initial_guess=INITIAL_GUESS in wanted)
         out = []
         for name, (shape, dtype, device) in zip(names, ctx.inputs):
             g = grads.get(name)

@@ -17,6 +17,16 @@ The controller of the PRDP paper (Algorithm 4). After every validation, call
      Holding is not permanent: if the metric later improves by more than
      1 - tau_stop against c, or worsens, and plateaus again, refinement resumes.
 
+Two optional departures from Algorithm 4, off by default:
+
+* ``guard``: refine at once, without waiting for a plateau, when the metric
+  rises above ``guard`` times the best metric so far and above the previous
+  one. Training at a cap too low for the task teaches a network to lean on the
+  unconverged solve, which a converged validation metric shows as a rise; the
+  plain algorithm waits ``delta`` steps and an EMA before it reacts.
+* ``growth``: a refinement raises K to max(K + dk, ceil(growth * K)), so a
+  wide range of caps is crossed in few refinements.
+
 The checkpoint c starts at the first metric (the paper's reference code uses a
 large constant or the initial validation error; with the first metric, a run
 that plateaus at once within tau_stop of where it started holds its K rather
@@ -50,6 +60,7 @@ class PRDPRecord:
     r: float | None
     rc: float | None
     refined: bool
+    cause: str | None = None      # "plateau" or "rise" (the guard) when refined
 
 
 class PRDP:
@@ -66,10 +77,14 @@ class PRDP:
         delta: grace interval (>= 2): r compares with delta - 1 steps earlier.
         ema_window: EMA window (alpha = 2 / (ema_window + 1)); >= 1.
         k_cap: upper bound for K (``None``: unbounded).
+        guard: refine at once when the metric exceeds ``guard`` (> 1) times the
+            best metric so far and the previous one (``None``: off).
+        growth: a refinement sets K = max(K + dk, ceil(growth * K)) (>= 1; 1: K + dk).
     """
 
     def __init__(self, target=None, *, k0: int = 1, dk: int = 1, tau_step: float = 0.95,
-                 tau_stop: float = 0.9, delta: int = 3, ema_window: int = 6, k_cap: int | None = None):
+                 tau_stop: float = 0.9, delta: int = 3, ema_window: int = 6, k_cap: int | None = None,
+                 guard: float | None = None, growth: float = 1.0):
         _check_int("k0", k0, 1)
         _check_int("dk", dk, 1)
         _check_int("delta", delta, 2)
@@ -79,8 +94,14 @@ class PRDP:
         for name, value in (("tau_step", tau_step), ("tau_stop", tau_stop)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value <= 1.0:
                 raise ValueError(f"{name} must be a number in (0, 1], got {value!r}")
+        if guard is not None and not (_is_number(guard) and 1.0 < guard < math.inf):
+            raise ValueError(f"guard must be a finite number > 1 (or None: off), got {guard!r}")
+        if not (_is_number(growth) and 1.0 <= growth < math.inf):
+            raise ValueError(f"growth must be a finite number >= 1, got {growth!r}")
         self._apply = _setter(target)
         self.k0, self.dk, self.k_cap = k0, dk, k_cap
+        self.guard = None if guard is None else float(guard)
+        self.growth = float(growth)
         self.tau_step, self.tau_stop = float(tau_step), float(tau_stop)
         self.delta, self.ema_window = delta, ema_window
         self.alpha = 2.0 / (ema_window + 1.0)
@@ -105,19 +126,25 @@ class PRDP:
             self.checkpoint = metric
         k_used = self.k
         r = rc = None
-        refine = False
-        if len(self.history) + 1 > self.delta:
+        cause = None
+        if self.guard is not None and self.history and metric > self.history[-1].metric \
+                and metric > self.guard * min(rec.metric for rec in self.history):
+            cause = "rise"
+            self.checkpoint = ema
+        elif len(self.history) + 1 > self.delta:
             emas = self.ema + [ema]
             r = emas[-1] / emas[-self.delta]
             if r > self.tau_step:
                 rc = emas[-1] / self.checkpoint
                 if rc < self.tau_stop or rc > 1.0:
                     self.checkpoint = emas[-1]
-                    refine = self.k_cap is None or self.k < self.k_cap
+                    cause = "plateau"
+        refine = cause is not None and (self.k_cap is None or self.k < self.k_cap)
         self.history.append(PRDPRecord(step=len(self.history), k=k_used, metric=metric, ema=ema,
-                                       r=r, rc=rc, refined=refine))
+                                       r=r, rc=rc, refined=refine, cause=cause if refine else None))
         if refine:
-            self.k = self.k + self.dk if self.k_cap is None else min(self.k + self.dk, self.k_cap)
+            k = max(self.k + self.dk, math.ceil(self.growth * self.k - 1e-9))
+            self.k = k if self.k_cap is None else min(k, self.k_cap)
             self._apply(self.k)
         return refine
 
@@ -127,12 +154,14 @@ class PRDP:
             "k": self.k, "checkpoint": self.checkpoint,
             "history": [dataclasses.asdict(rec) for rec in self.history],
             "settings": {"k0": self.k0, "dk": self.dk, "tau_step": self.tau_step, "tau_stop": self.tau_stop,
-                         "delta": self.delta, "ema_window": self.ema_window, "k_cap": self.k_cap},
+                         "delta": self.delta, "ema_window": self.ema_window, "k_cap": self.k_cap,
+                         "guard": self.guard, "growth": self.growth},
         }
 
     def load_state_dict(self, state: dict) -> None:
         """Restore from :meth:`state_dict` (and set the target's cap to the saved K)."""
-        settings = state["settings"]
+        # States saved before guard and growth existed ran plain Algorithm 4.
+        settings = {"guard": None, "growth": 1.0, **state["settings"]}
         mine = self.state_dict()["settings"]
         if settings != mine:
             changed = {k: (settings.get(k), v) for k, v in mine.items() if settings.get(k) != v}
@@ -145,7 +174,7 @@ class PRDP:
     def __repr__(self) -> str:
         return (f"PRDP(k={self.k}, k0={self.k0}, dk={self.dk}, tau_step={self.tau_step}, "
                 f"tau_stop={self.tau_stop}, delta={self.delta}, ema_window={self.ema_window}, "
-                f"k_cap={self.k_cap}, steps={len(self.history)})")
+                f"k_cap={self.k_cap}, guard={self.guard}, growth={self.growth}, steps={len(self.history)})")
 
 
 def _setter(target) -> Callable[[int], None]:
@@ -163,6 +192,10 @@ def _setter(target) -> Callable[[int], None]:
         for t in targets:
             t.max_it = k
     return apply
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _check_int(name: str, value, minimum: int) -> None:

@@ -21,6 +21,7 @@ incoming gradients and adjoints are (B, n) with n = ``problem.output_size``.
 """
 from __future__ import annotations
 
+import time
 from typing import Mapping
 
 import numpy as np
@@ -32,7 +33,9 @@ from fempdl import _dolfinx
 from fempdl.ksp_adjoint import CappedSolver, CumulativeStats, KSPOptions, capped_solve_stats, petsc_to_scipy
 from fempdl.problem import Problem
 
-__all__ = ["LinearSystem", "assemble_scipy"]
+__all__ = ["LinearSystem", "assemble_scipy", "INITIAL_GUESS"]
+
+INITIAL_GUESS = "initial_guess"   # the key of the starting point's gradient in LinearSystem.adjoint
 
 
 class LinearSystem:
@@ -89,11 +92,13 @@ class LinearSystem:
         return self._solver.stats
 
     # ----------------------------------------------------------------- solve
-    def solve(self, controls: Mapping[str, np.ndarray], batch: int, shared=frozenset()) -> np.ndarray:
+    def solve(self, controls: Mapping[str, np.ndarray], batch: int, shared=frozenset(),
+              initial_guess: np.ndarray | None = None) -> np.ndarray:
         """Forward solves for ``batch`` samples; returns U of shape (batch, n).
 
         ``shared`` names controls whose rows are all equal (one tensor for the
         whole batch): a matrix that depends only on those is assembled once.
+        ``initial_guess`` (batch, n) warm-starts the iterations (a broadcast view is fine).
         """
         p = self.problem
         names = frozenset(controls)
@@ -113,20 +118,29 @@ class LinearSystem:
                     ctl.set_sample(i)
                     if per_sample_matrix:
                         self._assemble_matrix()
-                    _dolfinx.assemble_vector_into(self._b, p.L_form, p.a_form, p.bcs)
+                    with self._assembling():
+                        _dolfinx.assemble_vector_into(self._b, p.L_form, p.a_form, p.bcs)
                 if use_batched:
                     U[i] = self._b.getArray(readonly=True)     # the RHS; solved below
                 else:
-                    self._solver.solve(self._b, self._x)
+                    if initial_guess is not None:
+                        self._x.setArray(initial_guess[i])
+                    self._solver.solve(self._b, self._x, warm=initial_guess is not None)
                     U[i] = self._x.getArray(readonly=True)
         if use_batched:
-            U = self._batched_solve(U, "forward")
+            U = self._batched_solve(U, "forward", initial_guess)
         return U
 
     def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
-                wanted, shared=frozenset()) -> dict[str, np.ndarray]:
+                wanted, shared=frozenset(), initial_guess: bool = False) -> dict[str, np.ndarray]:
         """Control gradients dJ/dm (batch, n_m) for m in ``wanted``, given the
-        forward solutions U and incoming gradients G = dJ/du, both (batch, n)."""
+        forward solutions U and incoming gradients G = dJ/du, both (batch, n).
+
+        With ``initial_guess`` the result also holds ``"initial_guess"`` (batch, n):
+        the adjoint residual G - A^T lam, which is the exact derivative of the
+        K-step Richardson map with respect to its starting point ((I - D^-1 A)^K
+        transposed, applied to G), tends to 0 as the solve converges, and is 0
+        for a direct solve (whose result does not depend on a guess)."""
         p = self.problem
         batch = G.shape[0]
         wanted = [n for n in p.control_names if n in set(wanted)]
@@ -136,6 +150,9 @@ class LinearSystem:
         by_matrix = [n for n in wanted if n in p.affine_rhs_controls]
         by_form = [n for n in wanted if n not in p.affine_rhs_controls]
         grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
+        residual = initial_guess and not self.options.adjoint_options.direct
+        if initial_guess:
+            grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
         G = np.array(G, dtype=np.float64)  # private copy: BC entries are zeroed in place
         if len(p.bc_dofs):
             # u = g on the boundary does not depend on the controls.
@@ -145,6 +162,8 @@ class LinearSystem:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             rhs_mats = {name: self._rhs_matrix(name) for name in by_matrix}
             Lam = self._batched_solve(G, "backward") if use_batched else None
+            if use_batched and residual:
+                grads[INITIAL_GUESS] = G - self._batched.matmul(Lam, transpose=True)
             for i in range(batch):
                 if per_sample_matrix or by_form:
                     ctl.set_sample(i)
@@ -155,6 +174,9 @@ class LinearSystem:
                         self._assemble_matrix()
                     self._rhs.setArray(G[i])
                     self._solver.solve_transpose(self._rhs, self._x)
+                    if residual:
+                        self._A.multTranspose(self._x, self._rhs)
+                        grads[INITIAL_GUESS][i] = G[i] - self._rhs.getArray(readonly=True)
                 for name, (C, on_control, _, _) in rhs_mats.items():
                     C.multTranspose(self._x, on_control)       # C_m^T lam lives on m's space
                     grads[name][i] = on_control.getArray(readonly=True)
@@ -270,13 +292,14 @@ class LinearSystem:
         return self.options.ksp_type == "richardson" and self._batched.faster_than_petsc(
             batch, self.problem.output_size)
 
-    def _batched_solve(self, R: np.ndarray, direction: str) -> np.ndarray:
-        """All rows of R at once on the batched engine; stats recorded per sample."""
+    def _batched_solve(self, R: np.ndarray, direction: str, initial_guess: np.ndarray | None = None) -> np.ndarray:
+        """All rows of R at once on the batched engine (from ``initial_guess``'s rows
+        if given); stats recorded per sample."""
         if self._batched_version != self._A_version:
             self._batched.load(self._A)
             self._batched_version = self._A_version
         opts = self.options if direction == "forward" else self.options.adjoint_options
-        X, seconds = self._batched.solve(R, opts, transpose=direction == "backward")
+        X, seconds = self._batched.solve(R, opts, transpose=direction == "backward", X0=initial_guess)
         finite = np.isfinite(X).all(axis=1)
         per_sample = [capped_solve_stats(opts, seconds / len(X), bool(ok), "batched") for ok in finite]
         for stats in per_sample:
@@ -313,8 +336,13 @@ class LinearSystem:
             ctl.set_sample(0)
             self._assemble_matrix()
 
+    def _assembling(self) -> "_Timer":
+        """Counts the enclosed seconds as assembly in the layer's stats."""
+        return _Timer(self.stats, "assembly_time")
+
     def _assemble_matrix(self) -> None:
-        _dolfinx.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
+        with self._assembling():
+            _dolfinx.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
         self._A_version += 1
 
     def _ensure_constant_matrix(self) -> None:
@@ -331,12 +359,17 @@ class LinearSystem:
             if cached is not None and _fingerprint_matches(cached[1], p.rhs_inputs(), self._comm):
                 return cached[0]
             vec = cached[0] if cached is not None else self._b.duplicate()
-            _dolfinx.assemble_vector_into(vec, p.L_form, p.a_form, p.bcs)
+            with self._assembling():
+                _dolfinx.assemble_vector_into(vec, p.L_form, p.a_form, p.bcs)
             self._b_base[names] = (vec, _fingerprint(p.rhs_inputs()))
         return vec
 
     def _affine_rhs(self, b_base: PETSc.Vec, rhs_mats: dict, controls, i: int) -> None:
         """self._b = b_base + sum_m C_m m_i, with BC rows of the control part zeroed."""
+        with self._assembling():
+            self._affine_rhs_values(b_base, rhs_mats, controls, i)
+
+    def _affine_rhs_values(self, b_base: PETSc.Vec, rhs_mats: dict, controls, i: int) -> None:
         b_base.copy(self._b)
         bc = self.problem.bc_dofs
         for name, (C, vin, out, _) in rhs_mats.items():
@@ -359,7 +392,8 @@ class LinearSystem:
             vin, out = C.createVecs()
         else:
             C, vin, out, _ = cached
-        _dolfinx.assemble_matrix_into(C, form)
+        with self._assembling():
+            _dolfinx.assemble_matrix_into(C, form)
         entry = (C, vin, out, _fingerprint(inputs))
         self._rhs_mats[name] = entry
         return entry
@@ -373,8 +407,22 @@ class LinearSystem:
         vec = self._grad_vecs.get(name)
         if vec is None:
             vec = self._grad_vecs[name] = _dolfinx.create_vector(form)
-        _dolfinx.assemble_vector_into(vec, form)
+        with self._assembling():
+            _dolfinx.assemble_vector_into(vec, form)
         return vec.getArray(readonly=True)[:n].copy()
+
+
+class _Timer:
+    """Adds the seconds spent inside a ``with`` block to a counter of ``stats``."""
+
+    def __init__(self, stats, field: str):
+        self._stats, self._field = stats, field
+
+    def __enter__(self):
+        self._t0 = time.perf_counter()
+
+    def __exit__(self, *exc):
+        setattr(self._stats, self._field, getattr(self._stats, self._field) + time.perf_counter() - self._t0)
 
 
 class _ControlValues:

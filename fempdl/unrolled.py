@@ -165,11 +165,17 @@ def stored_values(method: str, K: int, n: int, batch: int, *, matrix_grad: bool 
 
 
 def solve(method: str, A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int, *,
-          omega: float = 1.0, restart: int = 30, max_values: int | None = None) -> torch.Tensor:
-    """K iterations of ``method`` on A X = R (R: (n, B)) from X = 0; returns X (n, B).
+          omega: float = 1.0, restart: int = 30, max_values: int | None = None,
+          X0: torch.Tensor | None = None) -> torch.Tensor:
+    """K iterations of ``method`` on A X = R (R: (n, B)) from X = 0 or from ``X0``; returns X (n, B).
 
-    GMRES is not checkpointed (its state is a whole Krylov basis).
+    A warm start is the K-step solve of the residual equation, X0 + S_K(R - A X0),
+    which is what PETSc's Krylov methods do with a nonzero initial guess; autograd
+    differentiates the dependence on X0 exactly. GMRES is not checkpointed (its
+    state is a whole Krylov basis).
     """
+    if X0 is not None:
+        return X0 + solve(method, A, P, R - A @ X0, K, omega=omega, restart=restart, max_values=max_values)
     if method == "gmres":
         return gmres(A, P, R, K, restart)
     if method not in METHODS:

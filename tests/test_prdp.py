@@ -119,3 +119,45 @@ def test_bad_settings(kwargs, error, match):
 def test_bad_metric(metric):
     with pytest.raises(ValueError, match="metric must be finite and > 0"):
         PRDP().step(metric)
+
+
+def test_guard_refines_at_once_on_a_rise_above_the_best():
+    """A metric that jumps above guard x its best (and its previous value) refines before the
+    grace interval is over; the plain algorithm waits for delta entries and the EMA."""
+    metrics = [1.0, 0.5, 2.0, 3.0]
+    plain, plain_decisions = run(metrics, ema_window=4, delta=3)
+    guarded, decisions = run(metrics, ema_window=4, delta=3, guard=1.5)
+    assert plain_decisions == [False, False, False, True]
+    assert decisions == [False, False, True, True] and guarded.k == 3
+    assert [rec.cause for rec in guarded.history] == [None, None, "rise", "rise"]
+    # A small rise (below guard x best) or a fall does not trigger it.
+    _, decisions = run([1.0, 0.5, 0.6, 0.55], ema_window=4, delta=3, guard=1.5)
+    assert not any(decisions)
+
+
+def test_growth_multiplies_the_cap_and_respects_k_cap():
+    plateau = [1.0, 0.5, 0.25] + [0.25] * 2 + [0.1] * 3 + [0.1] * 2
+    ctrl, decisions = run(plateau, ema_window=1, k0=4, dk=1, growth=2.0, k_cap=10)
+    ks = [rec.k for rec in ctrl.history]
+    assert decisions.count(True) == 2 and sorted(set(ks)) == [4, 8, 10] and ctrl.k == 10
+
+
+@pytest.mark.parametrize("kw", [{"guard": 1.0}, {"guard": float("nan")}, {"guard": True},
+                                {"growth": 0.5}, {"growth": float("inf")}])
+def test_guard_and_growth_are_validated(kw):
+    with pytest.raises(ValueError, match=next(iter(kw))):
+        PRDP(**kw)
+
+
+def test_state_without_guard_and_growth_loads_as_plain_algorithm():
+    ctrl, _ = run([1.0, 0.5, 0.5, 0.5], ema_window=1)
+    state = ctrl.state_dict()
+    for key in ("guard", "growth"):
+        del state["settings"][key]
+    for rec in state["history"]:
+        del rec["cause"]
+    fresh = PRDP(ema_window=1)
+    fresh.load_state_dict(state)
+    assert fresh.k == ctrl.k and [r.refined for r in fresh.history] == [r.refined for r in ctrl.history]
+    with pytest.raises(ValueError, match="guard"):
+        PRDP(ema_window=1, guard=2.0).load_state_dict(state)
