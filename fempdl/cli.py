@@ -16,10 +16,11 @@ lists the bundled scenes.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 
-from fempdl import __version__
+from fempdl import __version__, rundir
 
 DEFAULT_SCENE = "heat-emulator-2d"
 
@@ -54,6 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     mode.add_argument("--converged", action="store_true", help="train with the converged cap K_eps only")
     run.add_argument("--out", type=Path, help="output directory (default runs/SCENE)")
     run.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
+    run.add_argument("--overwrite", action="store_true", help="replace the runs already in --out")
     run.add_argument("--epochs", type=_positive_int, help="override the scene's number of epochs")
     run.add_argument("--no-baseline", action="store_true", help="skip the converged baseline run")
     run.add_argument("--no-progress", action="store_true", help="hide progress bars")
@@ -65,6 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     trade.add_argument("--ks", type=_k_list, help="fixed caps to sweep (default 1, 2, 4, ... below K_eps)")
     trade.add_argument("--out", type=Path, help="output directory (default runs/SCENE/tradeoff)")
     trade.add_argument("--epochs", type=_positive_int, help="override the scene's number of epochs")
+    trade.add_argument("--overwrite", action="store_true", help="replace the runs already in --out")
     trade.add_argument("--no-progress", action="store_true")
 
     comp = sub.add_parser("compare", help="a sip or hig scene's method against Adam + backprop; ratios and plots")
@@ -74,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     comp.add_argument("--equal-iterations-only", action="store_true",
                       help="do not extend the baseline to the method's training time")
     comp.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
+    comp.add_argument("--overwrite", action="store_true", help="replace the runs already in --out")
     comp.add_argument("--no-progress", action="store_true")
 
     sub.add_parser("scenes", help="list the bundled scenes")
@@ -82,8 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from fempdl import experiments, parallel, scene, tradeoff
-    from fempdl.scene import METHOD_TASKS
+    from fempdl import parallel, scene
+    from fempdl.checkpoints import CheckpointError
 
     from mpi4py import MPI
 
@@ -105,6 +109,40 @@ def main(argv=None) -> int:
         return 2
     if args.epochs is not None:
         sc.optimizer["epochs"] = args.epochs
+    try:
+        out = _output_directory(args, sc)
+        # The whole command holds the lock: a second command on the same --out is refused,
+        # not only a second run in one of its subdirectories.
+        with rundir.RunLock(out) if MPI.COMM_WORLD.rank == 0 else contextlib.nullcontext():
+            return _command(args, sc, out)
+    except (rundir.RunDirectoryError, rundir.ResumeError, CheckpointError) as err:
+        if MPI.COMM_WORLD.size > 1:
+            raise      # the other ranks are in a collective call: abort_on_error ends them all
+        print(f"fempdl: {err}", file=sys.stderr)
+        return 2
+
+
+def _output_directory(args, sc) -> Path:
+    """--out, or runs/<scene name>[/tradeoff|/compare]; refused (RunDirectoryError) when it holds a run
+    that neither --resume nor --overwrite says what to do with."""
+    default = rundir.child(Path("runs"), sc.name, "scene name")
+    out = args.out or {"run": default, "tradeoff": default / "tradeoff", "compare": default / "compare"}[args.command]
+    resume = getattr(args, "resume", False)
+    if resume and args.overwrite:
+        raise rundir.RunDirectoryError("--resume and --overwrite contradict each other: give one")
+    if not (resume or args.overwrite) and rundir.holds_run(out):
+        raise rundir.RunDirectoryError(f"{str(out)!r} holds the files of an earlier run; pass --resume to continue "
+                                       "it, --overwrite to replace it, or choose another --out")
+    return out
+
+
+def _command(args, sc, out: Path) -> int:
+    """The run, tradeoff or compare command of a loaded scene, into ``out``."""
+    from fempdl import experiments, tradeoff
+    from fempdl.scene import METHOD_TASKS
+
+    from mpi4py import MPI
+
     progress = not args.no_progress and sys.stderr.isatty()
     if (args.command == "compare") != (sc.task in METHOD_TASKS) and args.command != "run":
         use = "fempdl compare" if sc.task in METHOD_TASKS else "fempdl tradeoff"
@@ -112,9 +150,8 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
     if sc.task in METHOD_TASKS:
-        return _methods(args, sc, progress)
+        return _methods(args, sc, progress, out)
     if args.command == "tradeoff":
-        out = args.out or Path("runs") / sc.name / "tradeoff"
         runs = tradeoff.sweep(sc, ks=args.ks, out_dir=out, progress=progress)
         split = tradeoff.savings(runs, stop_at=sc.optimizer["stop_at"])
         paths = tradeoff.write_report(sc, runs, split, out)
@@ -128,7 +165,6 @@ def main(argv=None) -> int:
     except ValueError as err:
         print(f"fempdl: {err}", file=sys.stderr)
         return 2
-    out = args.out or Path("runs") / sc.name
     runs = {}
     baseline = None
     common = {"progress": progress, "parallel": args.parallel}
@@ -150,7 +186,7 @@ def main(argv=None) -> int:
     return 0
 
 
-def _methods(args, sc, progress: bool) -> int:
+def _methods(args, sc, progress: bool, out: Path) -> int:
     """`fempdl run` and `fempdl compare` on a sip or hig scene: its method and Adam with backpropagation."""
     from fempdl import compare, inversion
 
@@ -159,7 +195,6 @@ def _methods(args, sc, progress: bool) -> int:
             print(f"fempdl: --k, --prdp, --converged and --parallel choose solver caps and ranks for PRDP scenes; "
                   f"the {sc.task} scene {sc.name!r} solves with LU on one process", file=sys.stderr)
             return 2
-        out = args.out or Path("runs") / sc.name
         names = [sc.task] + ([] if args.no_baseline else [compare.BASELINE])
         runs = {name: inversion.run(sc, name, out_dir=out / name, progress=progress,
                                     resume=_can_resume(args, out / name)) for name in names}
@@ -167,7 +202,6 @@ def _methods(args, sc, progress: bool) -> int:
         print(compare.table(sc, runs))
         print(f"metrics and checkpoints in {out}")
         return 0
-    out = args.out or Path("runs") / sc.name / "compare"
     runs, split, paths = compare.compare_and_report(sc, out, equal_time=not args.equal_iterations_only,
                                                     resume=args.resume, progress=progress)
     print(f"scene {sc.name}: {sc.description}")

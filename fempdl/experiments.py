@@ -45,7 +45,7 @@ from fempdl.scene import Scene
 from fempdl.system import assemble_scipy
 from fempdl.training import Trainer, nmse, sample_nmse
 
-__all__ = ["build_task", "k_eps", "run", "RunResult", "MODES"]
+__all__ = ["build_task", "k_eps", "run", "run_settings", "RunResult", "MODES"]
 
 MODES = ("fixed", "converged", "prdp")
 
@@ -163,12 +163,12 @@ class EmulatorTask(Task):
     nMSE against the converged trajectory at every pair.
     """
 
-    def __init__(self, scene: Scene, options: KSPOptions):
-        torch.manual_seed(scene.data["seed"])
+    def __init__(self, scene: Scene, options: KSPOptions, seed: int | None = None):
         rng = np.random.default_rng(scene.data["seed"])
         msh = mesh.load(scene.mesh["name"], MPI.COMM_SELF, h=scene.mesh["h"])
         pde = scene.pde
         self.pde = pde["type"]
+        self.warm_start = scene.solver["warm_start"]
         if self.pde == "heat":
             self.problem = forms.heat.problem(msh, controls=("u0",), dt=pde["dt"], theta=pde["theta"],
                                               kappa=pde["kappa"], degree=pde["degree"])
@@ -191,12 +191,20 @@ class EmulatorTask(Task):
         self.train_size, self.val_size = n_train, n_val
         self.layer = SolveLayer(self.problem, options, diff=scene.solver["diff"])
         self.layers = [self.layer]
+        torch.manual_seed(scene.data["seed"] if seed is None else seed)
         self.model = self._network(scene.network)
         self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
 
     def physics(self, layer: SolveLayer, u: torch.Tensor) -> torch.Tensor:
-        """One step of the scene's PDE from state ``u`` through ``layer``."""
-        return layer(u0=u) if self.pde == "heat" else layer(w=u, u_prev=u)
+        """One step of the scene's PDE from state ``u`` through ``layer`` (the capped
+        layer starts from ``u`` with ``[solver] warm_start``)."""
+        inputs = self._step_inputs(u)
+        if self.warm_start and layer is getattr(self, "layer", None):
+            inputs["initial_guess"] = u
+        return layer(**inputs)
+
+    def _step_inputs(self, u: torch.Tensor) -> dict:
+        return {"u0": u} if self.pde == "heat" else {"w": u, "u_prev": u}
 
     def _initial_states(self, count: int, modes: int, rng: np.random.Generator) -> np.ndarray:
         # Vector fields (Burgers) have blocked DOFs: one coordinate per node, gdim values each.
@@ -230,7 +238,10 @@ class EmulatorTask(Task):
     def k_eps_rhs(self) -> dict:
         """Inputs on which K_eps is measured: the validation states (u1 -> u2 solves)."""
         states = self.reference_states[self.train_size:]
-        return {"u0": states} if self.pde == "heat" else {"w": states, "u_prev": states}
+        inputs = self._step_inputs(states)
+        if self.warm_start:
+            inputs["initial_guess"] = states
+        return inputs
 
 
 class _Theta(torch.nn.Module):
@@ -297,20 +308,21 @@ def make_optimizer(spec: dict, params):
 
 
 def build_task(scene: Scene, options: KSPOptions, parallel: str | None = None,
-               comm: MPI.Comm = MPI.COMM_WORLD):
+               comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None):
     """The training task of a scene, with its layer solving under ``options``.
 
     ``parallel="mesh"`` distributes the mesh over ``comm``; every other mode
-    builds the whole problem on each rank (``COMM_SELF``)."""
+    builds the whole problem on each rank (``COMM_SELF``). ``seed`` initialises
+    the network (default: the scene's data seed; the data stay the scene's)."""
     check_parallel(scene, parallel)
     if scene.task in ("sip", "hig"):
         raise ValueError(f"scene {scene.name!r} compares training methods, not solver caps: train it with "
                          "fempdl.inversion.run (the commands `fempdl run` and `fempdl compare` do)")
     if scene.task == "hybrid":
         from fempdl.hybrid import HybridTask
-        return HybridTask(scene, options)
+        return HybridTask(scene, options, seed)
     if scene.task == "emulator":
-        return EmulatorTask(scene, options)
+        return EmulatorTask(scene, options, seed)
     return InverseTask(scene, options, comm if parallel == "mesh" else MPI.COMM_SELF)
 
 
@@ -352,19 +364,28 @@ def k_eps(task, options: KSPOptions, shard_over: MPI.Comm = MPI.COMM_SELF) -> in
     return shard_over.allreduce(most, op=MPI.MAX)
 
 
+def run_settings(scene: Scene, **settings) -> dict:
+    """What defines a run of ``scene``, for the checkpoint's fingerprint: the parsed
+    scene (not its file's location or description) and ``settings`` (mode, K, ...)."""
+    parsed = {key: value for key, value in scene.as_dict().items() if key not in ("source", "description")}
+    return {"scene": parsed, **settings}
+
+
 def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None = None, resume: bool = False,
         epochs: int | None = None, progress: bool = False, k_eps_value: int | None = None,
         stop_after: int | None = None, parallel: str | None = None,
-        comm: MPI.Comm = MPI.COMM_WORLD) -> RunResult:
+        comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None) -> RunResult:
     """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp").
 
     ``parallel`` ("data" or "mesh") trains on the ranks of ``comm`` together
-    (:mod:`fempdl.parallel`); every rank returns the same result."""
+    (:mod:`fempdl.parallel`); every rank returns the same result. ``seed``
+    sets the network initialisation and the minibatch order (default: the
+    scene's data seed); the data are the scene's either way."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
     if (mode == "fixed") != (k is not None):
         raise ValueError("give k exactly when mode='fixed'")
-    task = build_task(scene, solver_options(scene, k or 1), parallel, comm)
+    task = build_task(scene, solver_options(scene, k or 1), parallel, comm, seed)
     keps = k_eps_value if k_eps_value is not None else k_eps(
         task, solver_options(scene, None, scene.data["k_eps_rtol"]),
         shard_over=comm if parallel == "data" else MPI.COMM_SELF)
@@ -374,10 +395,13 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
     elif mode == "prdp":
         p = scene.prdp
         prdp = PRDP(task.layers, k0=p["k0"], dk=p["dk"], tau_step=p["tau_step"], tau_stop=p["tau_stop"],
-                    delta=p["delta"], ema_window=p["ema_window"], k_cap=p["k_cap"] or keps)
+                    delta=p["delta"], ema_window=p["ema_window"], k_cap=p["k_cap"] or keps,
+                    guard=p["guard"], growth=p["growth"])
     trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer.get("batch", 1),
-                      out_dir=out_dir, prdp=prdp, seed=scene.data["seed"], progress=progress,
-                      stop_after=stop_after, stop_at=scene.optimizer["stop_at"], parallel=parallel, comm=comm)
+                      out_dir=out_dir, prdp=prdp, seed=scene.data["seed"] if seed is None else seed,
+                      progress=progress,
+                      stop_after=stop_after, stop_at=scene.optimizer["stop_at"], parallel=parallel, comm=comm,
+                      settings=run_settings(scene, mode=mode, k=k))
     try:
         rows = trainer.run(resume=resume)
     finally:

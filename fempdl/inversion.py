@@ -39,7 +39,7 @@ from mpi4py import MPI
 
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
-from fempdl.experiments import RunResult, Task, make_optimizer, smooth_fields
+from fempdl.experiments import RunResult, Task, make_optimizer, run_settings, smooth_fields
 from fempdl.hig import HIG
 from fempdl.ksp_adjoint import KSPOptions
 from fempdl.networks import mlp
@@ -190,7 +190,8 @@ def run(scene: Scene, method: str, *, out_dir: Path | None = None, resume: bool 
     task = InversionTask(scene, method)
     trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer["batch"],
                       out_dir=out_dir, seed=scene.data["seed"], progress=progress, stop_after=stop_after,
-                      stop_at=scene.optimizer["stop_at"], stop_at_time=stop_at_time)
+                      stop_at=scene.optimizer["stop_at"], stop_at_time=stop_at_time,
+                      settings=run_settings(scene, method=method))
     try:
         rows = trainer.run(resume=resume)
     finally:

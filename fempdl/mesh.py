@@ -43,6 +43,7 @@ import numpy as np
 from mpi4py import MPI
 
 from fempdl import _dolfinx
+from fempdl.resources import DEFAULT_MAX_CELLS, GEOMETRIES, estimated_cells
 
 __all__ = ["TaggedMesh", "as_tagged", "available", "load"]
 
@@ -138,7 +139,7 @@ def as_tagged(obj) -> TaggedMesh:
 
 
 def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = None,
-         rank: int = 0, gdim: int | None = None) -> TaggedMesh:
+         rank: int = 0, gdim: int | None = None, max_cells: int = DEFAULT_MAX_CELLS) -> TaggedMesh:
     """Load a bundled mesh by name, or a gmsh ``.msh`` file by path.
 
     Collective on ``comm``: gmsh runs on ``rank``, DOLFINx distributes the mesh.
@@ -151,6 +152,9 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
         rank: The rank that reads or meshes with gmsh.
         gdim: For a path only: geometric dimension; ``None`` takes the
             smallest that holds the node coordinates (all ``z = 0`` -> 2).
+        max_cells: For ``h``: refuse sizes whose estimated cell count
+            (:func:`fempdl.resources.estimated_cells`) exceeds this, before
+            gmsh runs (h = 1e-8 would take many GB and minutes).
 
     Returns:
         The mesh with its tags; bundled meshes have named facet tags, a file
@@ -159,13 +163,15 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
     Raises:
         TypeError: an argument has the wrong type.
         ValueError: unknown name, ``h`` with a path or ``h`` not finite and > 0,
-            ``gdim`` with a bundled name or invalid, or an unreadable file.
+            ``h`` larger than the geometry's shortest feature or giving more
+            than ``max_cells`` cells, ``gdim`` with a bundled name or invalid,
+            or an unreadable file.
         FileNotFoundError: the path does not exist.
     """
     _check_int_choice("rank", rank, range(comm.size))
     h = _meshgen().check_h(h)
     if isinstance(name_or_path, str) and name_or_path in available():
-        return _load_bundled(name_or_path, comm, h, rank, gdim)
+        return _load_bundled(name_or_path, comm, h, rank, gdim, max_cells)
     path = _as_msh_path(name_or_path)
     if h is not None:
         raise ValueError(f"h applies to bundled meshes only, got h={h!r} with the file {str(path)!r}; "
@@ -175,13 +181,14 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
     return _read_msh(path, comm, rank, gdim)
 
 
-def _load_bundled(name: str, comm, h, rank, gdim) -> TaggedMesh:
+def _load_bundled(name: str, comm, h, rank, gdim, max_cells: int = DEFAULT_MAX_CELLS) -> TaggedMesh:
     meshgen = _meshgen()
     bundled_gdim = meshgen.GEOMETRIC_DIM[name]
     if gdim is not None and gdim != bundled_gdim:
         raise ValueError(f"gdim applies to .msh files only; bundled mesh {name!r} has gdim "
                          f"{bundled_gdim}, got gdim={gdim!r}; leave gdim=None")
     if h is not None:
+        check_size(name, h, max_cells)
         mesh, cell_tags, facet_tags = meshgen.generate(name, h, comm, rank)
     else:
         resource = importlib.resources.files("fempdl") / "meshes" / f"{name}.msh"
@@ -192,6 +199,24 @@ def _load_bundled(name: str, comm, h, rank, gdim) -> TaggedMesh:
                                         "with `python -m fempdl.meshgen` or reinstall fempdl")
             mesh, cell_tags, facet_tags = _read_msh(path, comm, rank, bundled_gdim)
     return TaggedMesh(mesh, cell_tags, facet_tags, name, meshgen.FACET_TAGS[name])
+
+
+def check_size(name: str, h: float, max_cells: int = DEFAULT_MAX_CELLS) -> float:
+    """The estimated cell count of bundled mesh ``name`` at size ``h``; ValueError when ``h`` exceeds the
+    geometry's shortest feature or the estimate exceeds ``max_cells``."""
+    if isinstance(max_cells, bool) or not isinstance(max_cells, int) or max_cells < 1:
+        raise ValueError(f"max_cells must be an int >= 1, got {max_cells!r}")
+    geometry = GEOMETRIES[name]
+    if h > geometry.max_h:
+        raise ValueError(f"h={h!r} is larger than the shortest feature of {name!r} ({geometry.max_h}), which it "
+                         f"would no longer resolve; pass h <= {geometry.max_h}")
+    cells = estimated_cells(name, h)
+    if cells > max_cells:
+        smallest = (geometry.cell_density / max_cells) ** (1.0 / geometry.dim)
+        raise ValueError(f"h={h!r} would mesh {name!r} into about {cells:.3g} cells, more than max_cells="
+                         f"{max_cells:,}; pass h >= {smallest:.3g}, or a larger max_cells if the machine "
+                         "has the memory and time for it")
+    return cells
 
 
 def _as_msh_path(name_or_path) -> Path:

@@ -36,9 +36,13 @@ brackets; ``required`` has none)::
                  once the validation metric is <= it
     [solver]     preset ["jacobi"] ("jacobi" | "cg" | "gmres" | "gmres-ilu" | "schur": the
                  capped solver; "schur" is for oseen and only it),
-                 diff ["implicit"] ("implicit" | "unrolled")                 (not sip, hig)
+                 diff ["implicit"] ("implicit" | "unrolled"), warm_start [false] (start the
+                 capped solve from the state being advanced, or the previous solution of
+                 an inverse problem, instead of zero)                        (not sip, hig)
     [prdp]       k0 [1], dk [1], tau_step [0.95], tau_stop [0.9], delta [3], ema_window [6],
-                 k_cap [none]                                              (not sip, hig)
+                 k_cap [none], guard [none] (refine at once when the metric rises above
+                 guard x its best), growth [1.0] (a refinement sets K to
+                 max(K + dk, ceil(growth K)))                              (not sip, hig)
 
 sip and hig scenes solve their physics with LU (exact solutions and
 gradients): they compare training methods, not solver caps.
@@ -60,6 +64,9 @@ import tomllib
 from importlib import resources
 from pathlib import Path
 from typing import Any
+
+from fempdl.resources import GEOMETRIES, estimated_dofs, format_bytes, memory_budget
+from fempdl.rundir import check_slug
 
 __all__ = ["Scene", "SceneError", "load", "available", "parse"]
 
@@ -106,12 +113,14 @@ SCHEMA: dict[str, dict[str, _Key]] = {
                   "decay": _Key(float, 1.0, minimum=_POSITIVE), "epochs": _Key(int, 30, minimum=1),
                   "batch": _Key(int, 16, minimum=1), "stop_at": _Key(float, None, minimum=_POSITIVE)},
     "solver": {"preset": _Key(str, "jacobi", choices=("jacobi", "cg", "gmres", "gmres-ilu", "schur")),
-               "diff": _Key(str, "implicit", choices=("implicit", "unrolled"))},
+               "diff": _Key(str, "implicit", choices=("implicit", "unrolled")),
+               "warm_start": _Key(bool, False)},
     "prdp": {"k0": _Key(int, 1, minimum=1), "dk": _Key(int, 1, minimum=1),
              "tau_step": _Key(float, 0.95, minimum=_POSITIVE, maximum=1.0),
              "tau_stop": _Key(float, 0.9, minimum=_POSITIVE, maximum=1.0),
              "delta": _Key(int, 3, minimum=2), "ema_window": _Key(int, 6, minimum=1),
-             "k_cap": _Key(int, None, minimum=1)},
+             "k_cap": _Key(int, None, minimum=1), "guard": _Key(float, None, minimum=1.0 + 1e-12),
+             "growth": _Key(float, 1.0, minimum=1.0)},
 }
 # Sections each task needs (others must be absent) and may omit (then all defaults).
 _TASK_SECTIONS = {
@@ -192,7 +201,12 @@ def load(name_or_path) -> Scene:
         return parse(text, source=f"bundled:{name_or_path}")
     if not path.is_file():
         raise FileNotFoundError(f"scene file {str(path)!r} does not exist")
-    return parse(path.read_text(), source=str(path))
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise SceneError(f"{path}: not a UTF-8 text file (byte {err.start}: {err.reason}); "
+                         "TOML scene files are UTF-8: save it as UTF-8") from None
+    return parse(text, source=str(path))
 
 
 def parse(text: str, source: str = "<string>") -> Scene:
@@ -207,6 +221,10 @@ def parse(text: str, source: str = "<string>") -> Scene:
     if "scene" not in raw:
         raise SceneError(f"{source}: missing section [scene] (with name and task)")
     header = _section(raw, "scene", source)
+    try:
+        check_slug(header["name"], "[scene] name")
+    except ValueError as err:
+        raise SceneError(f"{source}: {err}") from None
     task = header["task"]
     sections = _TASK_SECTIONS[task]
     missing = sorted(sections["required"] - set(raw))
@@ -244,6 +262,7 @@ def parse(text: str, source: str = "<string>") -> Scene:
             raise SceneError(f"{source}: [prdp] k_cap must be >= k0 ({prdp['k0']}), got {prdp['k_cap']}")
     if task == "inverse":
         _check_inverse(values["inverse"], source)
+    _check_size(task, values, source)
     return Scene(name=header["name"], task=task, description=header["description"], source=source,
                  **{name: values.get(name) for name in SCHEMA if name != "scene"})
 
@@ -326,6 +345,55 @@ def _checked(value, spec: _Key, where: str):
     if spec.maximum is not None and value > spec.maximum:
         raise SceneError(f"{where} must be <= {spec.maximum:g}, got {value!r}")
     return value
+
+
+def estimated_memory(task: str, values: dict) -> tuple[float, float, dict] | None:
+    """(bytes, DOFs, parts) a scene's data and network take, estimated before anything is built; None
+    for a mesh file (its size is unknown until read). Parts: ``data`` (float64 states and their float32
+    copies), ``network`` (parameters, gradients and two Adam moments), by the bundled mesh's size at h."""
+    name, h = values["mesh"]["name"], values["mesh"]["h"]
+    if name not in GEOMETRIES:
+        return None
+    from_h = h if h is not None else _BUNDLED_H[name]
+    pde = values["pde"]
+    components = GEOMETRIES[name].dim if pde["type"] in ("burgers", "oseen") else 1
+    dofs = estimated_dofs(name, from_h, pde["degree"] or 1, components)
+    data, network = values["data"], values.get("network")
+    parts = {}
+    if task != "inverse":
+        samples = data["train"] + data["validation"]
+        states = 2 * data.get("rollout", 1) + 1 if task in ("emulator", "hybrid") else 2
+        parts["data"] = samples * dofs * states * 12.0
+    if network is not None:
+        width, depth = network["hidden"], network["layers"]
+        weights = 2 * dofs * width + depth * width ** 2 if network["type"] == "mlp" else depth * width ** 2
+        parts["network"] = weights * 8.0 * 4
+    return sum(parts.values()), dofs, parts
+
+
+# The committed meshes' sizes (fempdl.meshgen.DEFAULT_H), for the estimate of a scene without h.
+_BUNDLED_H = {"lshape": 0.05, "obstacle": 0.035, "box": 0.1}
+
+
+def _check_size(task: str, values: dict, source: str) -> None:
+    """Refuse a scene whose data and network would not fit in the memory budget, or whose number of
+    smooth modes exceeds what the mesh resolves, with the estimate."""
+    estimate = estimated_memory(task, values)
+    if estimate is None:
+        return
+    total, dofs, parts = estimate
+    budget = memory_budget()
+    if total > budget:
+        split = ", ".join(f"{part} {format_bytes(size)}" for part, size in parts.items())
+        raise SceneError(f"{source}: the scene needs about {format_bytes(total)} ({split}; about {dofs:.3g} DOFs), "
+                         f"more than the memory budget of {format_bytes(budget)} (half the available memory); "
+                         "reduce [data] train and validation, [network] hidden and layers, or refine the mesh less")
+    modes = values["data"].get("modes")
+    dim = GEOMETRIES[values["mesh"]["name"]].dim
+    most = max(4 * dofs, 1000)      # generous: the DOF estimate of a coarse mesh is rough
+    if modes is not None and values["data"].get("truths", "smooth") == "smooth" and modes ** dim > most:
+        raise SceneError(f"{source}: [data] modes = {modes} gives {modes}^{dim} sine modes, far more than the "
+                         f"mesh's about {dofs:.3g} DOFs resolve; use at most {int(most ** (1.0 / dim))}")
 
 
 def _check_inverse(section: dict, source: str) -> None:

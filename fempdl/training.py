@@ -9,16 +9,25 @@ validation metric and writes, after every epoch:
   (mean over the epoch's batches), the validation metric, the K used, the
   cumulative forward and backward inner iterations of the task's layers, the
   cumulative solve time, the cumulative time in training steps (without
-  validation) and the total training time;
+  validation), the total training time, and where that time went
+  (``time_<part>`` for each of :data:`TIME_PARTS`: solver iterations,
+  preconditioner set-up and factorisations, assembly, forming A^T, network
+  forward/backward with the optimizer, validation, and the rest; this rank's
+  seconds, adding up to ``wall_time``);
 * ``checkpoint.pt``: model, optimizer, LR scheduler, PRDP state, the layers'
   cumulative counters, the RNG states (torch, numpy, Python, the shuffling
   generator) and the metrics so far.
 
 Every file is written to a temporary file in the same directory and moved into
-place with ``os.replace``, so an interrupted run (Ctrl-C, a killed job) leaves
-the last completed epoch intact. ``run(resume=True)`` restores all of it and
-continues; with the same settings the resumed run produces the same metrics as
-an uninterrupted one.
+place with ``os.replace`` (:mod:`fempdl.checkpoints`), so an interrupted run
+(Ctrl-C, a killed job) leaves the last completed epoch intact; the checkpoint
+before it is kept as ``checkpoint.prev.pt``. ``run(resume=True)`` restores all
+of it and continues; with the same settings the resumed run produces the same
+metrics as an uninterrupted one. The checkpoint is loaded with
+``weights_only=True`` (nothing in it is executed) and carries the run's
+fingerprint (:meth:`Trainer.fingerprint`): a resume with other settings is
+refused, naming what changed. The output directory is locked while a run
+trains in it (:mod:`fempdl.rundir`).
 
 A task (:class:`fempdl.experiments.Task`) provides: ``model`` (nn.Module),
 ``optimizer``, ``scheduler`` (or None), ``layers`` (the SolveLayers whose
@@ -44,9 +53,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import os
-import random
-import tempfile
 import time
 from pathlib import Path
 
@@ -56,15 +62,25 @@ from tqdm import tqdm
 
 from mpi4py import MPI
 
-from fempdl import parallel
+from fempdl import __version__, parallel
+from fempdl.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
+from fempdl import checkpoints, rundir
 from fempdl.prdp import PRDP
 
-__all__ = ["Trainer", "nmse", "sample_nmse", "write_atomically"]
+__all__ = ["Trainer", "nmse", "sample_nmse", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES"]
+# Fingerprint keys a resumed run may change: the run's length, which --epochs and an
+# equal-training-time extension (fempdl.compare) move.
+RESUMABLE_CHANGES = ("run.scene.optimizer.epochs", "run.epochs")
 PARALLEL_MODES = ("data", "mesh")
 
-CHECKPOINT = "checkpoint.pt"
+# Where the wall time went, cumulative seconds per part (they add up to wall_time).
+TIME_PARTS = ("iterations", "setup", "assembly", "adjoint_operator", "network", "validation", "other")
+TIME_FIELDS = tuple(f"time_{part}" for part in TIME_PARTS)
 METRIC_FIELDS = ("epoch", "train_loss", "val_metric", "k", "forward_iterations", "backward_iterations",
-                 "total_iterations", "solve_time", "train_time", "wall_time")
+                 "total_iterations", "solve_time", "train_time", "wall_time") + TIME_FIELDS
+# The layers' own counters behind the solver parts of the split.
+_LAYER_PARTS = {"iterations": "solve_time", "setup": "setup_time", "assembly": "assembly_time",
+                "adjoint_operator": "adjoint_operator_time"}
 
 
 def sample_nmse(u: torch.Tensor, ref: torch.Tensor, comm: MPI.Comm = MPI.COMM_SELF) -> torch.Tensor:
@@ -80,19 +96,6 @@ def sample_nmse(u: torch.Tensor, ref: torch.Tensor, comm: MPI.Comm = MPI.COMM_SE
 def nmse(u: torch.Tensor, ref: torch.Tensor, comm: MPI.Comm = MPI.COMM_SELF) -> torch.Tensor:
     """Normalised MSE, PRDP paper eq. 56: mean_i ||u_i - ref_i||^2 / ||ref_i||^2."""
     return sample_nmse(u, ref, comm).mean()
-
-
-def write_atomically(path: Path, write) -> None:
-    """Call ``write(file_path)`` on a temporary file next to ``path``, then move it into place."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 @dataclasses.dataclass
@@ -113,6 +116,12 @@ class Trainer:
             this many seconds (a comparison at equal training time).
         parallel: ``None`` (serial), ``"data"`` or ``"mesh"`` (module docstring).
         comm: the ranks that train together in a parallel mode.
+        settings: what defines the run beyond the Trainer's own arguments (the
+            parsed scene, mode, K, ...; plain values). With the batch size,
+            seed, parallel mode, number of ranks and the fempdl version it
+            forms the run's fingerprint, stored in the checkpoint: a resume
+            whose fingerprint differs is refused (:data:`RESUMABLE_CHANGES`
+            may differ).
     """
 
     task: object
@@ -127,6 +136,7 @@ class Trainer:
     stop_at_time: float | None = None
     parallel: str | None = None
     comm: MPI.Comm = dataclasses.field(default_factory=lambda: MPI.COMM_WORLD)
+    settings: dict | None = None
     rows: list = dataclasses.field(default_factory=list)
 
     def __post_init__(self):
@@ -137,6 +147,7 @@ class Trainer:
         self._writer = self.comm.rank == 0
         self._shuffle = torch.Generator().manual_seed(self.seed)
         self._elapsed = self._train_time = 0.0
+        self._times = dict.fromkeys(TIME_PARTS, 0.0)
         if self.out_dir is not None and self._writer:
             self.out_dir = Path(self.out_dir)
             self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -146,7 +157,27 @@ class Trainer:
         return self.task.layers[0].max_it if self.task.layers else None
 
     def run(self, resume: bool = False) -> list[dict]:
-        """Train; returns the metric rows (one per epoch, including resumed ones)."""
+        """Train; returns the metric rows (one per epoch, including resumed ones).
+
+        The output directory is locked for the run (:class:`fempdl.rundir.RunLock`:
+        a second run on it is refused); temporary files an interrupted write
+        left there are removed; a fresh run (``resume=False``) first removes
+        the checkpoints of a run it replaces."""
+        lock = rundir.RunLock(self.out_dir) if self.out_dir is not None and self._writer else None
+        if lock is not None:
+            lock.acquire()
+        try:
+            if lock is not None:
+                checkpoints.remove_stale_temporaries(self.out_dir)
+                if not resume:
+                    for name in (CHECKPOINT, PREVIOUS):
+                        (self.out_dir / name).unlink(missing_ok=True)
+            return self._train(resume)
+        finally:
+            if lock is not None:
+                lock.release()
+
+    def _train(self, resume: bool) -> list[dict]:
         start_epoch = self._restore() if resume else 0
         if self._reached_target():
             return self.rows
@@ -159,15 +190,20 @@ class Trainer:
                 self.task.start_epoch(epoch)
             t0 = time.perf_counter()
             k_used = self.k
+            before = self._layer_seconds()
             losses = [self._train_step(idx) for idx in self._batches()]
-            self._train_time += time.perf_counter() - t0
+            train_seconds = time.perf_counter() - t0
+            self._train_time += train_seconds
             metric = self._validate()
+            validation_seconds = time.perf_counter() - t0 - train_seconds
             if self.prdp is not None:
                 self.prdp.step(metric)
             if self.task.scheduler is not None:
                 self.task.scheduler.step()
             parallel.check_identical(self.comm, k=self.k, val_metric=metric, parameters=self._fingerprint())
-            self._elapsed += time.perf_counter() - t0
+            epoch_seconds = time.perf_counter() - t0
+            self._elapsed += epoch_seconds
+            self._split_time(epoch_seconds, train_seconds, validation_seconds, before, self._layer_seconds())
             self.rows.append(self._row(epoch, float(np.mean(losses)), metric, k_used))
             bar.set_postfix(loss=f"{self.rows[-1]['train_loss']:.2e}", val=f"{metric:.2e}", K=k_used)
             self._save(epoch)
@@ -175,6 +211,22 @@ class Trainer:
             if self._reached_target() or (self.stop_after is not None and done >= self.stop_after):
                 break
         return self.rows
+
+    def _layer_seconds(self) -> dict:
+        """The task's layers' time counters, summed over the layers."""
+        keys = ("layer_time", *_LAYER_PARTS.values())
+        return {key: sum(getattr(layer.stats, key) for layer in self.task.layers) for key in keys}
+
+    def _split_time(self, epoch: float, train: float, validation: float, before: dict, after: dict) -> None:
+        """Add one epoch to the time split: the layers' own parts, the rest of the
+        training steps (network forward/backward, optimizer), validation, and what
+        remains (the layers' conversions, PRDP, scheduler, agreement checks)."""
+        spent = {part: after[key] - before[key] for part, key in _LAYER_PARTS.items()}
+        spent["network"] = max(train - (after["layer_time"] - before["layer_time"]), 0.0)
+        spent["validation"] = validation
+        spent["other"] = max(epoch - sum(spent.values()), 0.0)
+        for part, seconds in spent.items():
+            self._times[part] += seconds
 
     def _reached_target(self) -> bool:
         if not self.rows:
@@ -231,7 +283,8 @@ class Trainer:
         return {"epoch": epoch, "train_loss": loss, "val_metric": metric, "k": k,
                 "forward_iterations": fwd, "backward_iterations": bwd, "total_iterations": fwd + bwd,
                 "solve_time": solve_time, "train_time": self.comm.allreduce(self._train_time, op=MPI.MAX),
-                "wall_time": self.comm.allreduce(self._elapsed, op=MPI.MAX)}
+                "wall_time": self.comm.allreduce(self._elapsed, op=MPI.MAX),
+                **{f"time_{part}": seconds for part, seconds in self._times.items()}}
 
     # -------------------------------------------------------------- files
     def _save(self, epoch: int) -> None:
@@ -250,15 +303,22 @@ class Trainer:
         write_atomically(self.out_dir / "metrics.csv", write_csv)
         state = {
             "epoch": epoch, "rows": self.rows, "elapsed": self._elapsed, "train_time": self._train_time,
+            "times": dict(self._times),
             "model": self.task.model.state_dict(), "optimizer": self.task.optimizer.state_dict(),
             "scheduler": None if self.task.scheduler is None else self.task.scheduler.state_dict(),
             "prdp": None if self.prdp is None else self.prdp.state_dict(),
             "k": self.k,
             "layer_stats_by_rank": layer_stats,
-            "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate(),
-                    "shuffle": self._shuffle.get_state()},
+            "rng": checkpoints.rng_state(self._shuffle),
+            "fingerprint": self.fingerprint(),
         }
-        write_atomically(self.out_dir / CHECKPOINT, lambda p: torch.save(state, p))
+        checkpoints.save(self.out_dir, state)
+
+    def fingerprint(self) -> dict:
+        """What defines this run (``settings`` and the Trainer's own), flat; stored in the checkpoint."""
+        return rundir.fingerprint(run=self.settings or {}, fempdl=__version__,
+                                  trainer={"batch": self.batch, "seed": self.seed, "parallel": self.parallel,
+                                           "ranks": self.comm.size, "prdp": self.prdp is not None})
 
     def _restore(self) -> int:
         """Load the checkpoint; returns the first epoch still to run."""
@@ -266,7 +326,13 @@ class Trainer:
         if path is None or not path.exists():
             raise FileNotFoundError(f"resume: no checkpoint {CHECKPOINT} in {self.out_dir}; "
                                     "start the run without resume first")
-        state = torch.load(path, weights_only=False)
+        state = checkpoints.load(path)
+        changed = rundir.differences(state["fingerprint"], self.fingerprint(), RESUMABLE_CHANGES)
+        if changed:
+            raise rundir.ResumeError(f"resume: {path} was written by a different run; changed since: {'; '.join(changed)}. "
+                             "A resume continues the same run (only the number of epochs may change); to start "
+                             "afresh with these settings pass --overwrite (Python: resume=False), or choose "
+                             "another output directory")
         self.task.model.load_state_dict(state["model"])
         self.task.optimizer.load_state_dict(state["optimizer"])
         if self.task.scheduler is not None:
@@ -286,14 +352,12 @@ class Trainer:
             for key, value in saved.items():
                 if key != "last":
                     setattr(layer.stats, key, value)
-        torch.set_rng_state(state["rng"]["torch"])
-        np.random.set_state(state["rng"]["numpy"])
-        random.setstate(state["rng"]["python"])
-        self._shuffle.set_state(state["rng"]["shuffle"])
+        checkpoints.restore_rng(state["rng"], self._shuffle)
         self.rows = list(state["rows"])
         self._elapsed = state["elapsed"]
         if "train_time" not in state and self.stop_at_time is not None:
             raise ValueError(f"{path} was written before fempdl timed training steps (no train_time); it cannot "
                              "be extended to a training time: rerun it without resume")
         self._train_time = state.get("train_time", 0.0)
+        self._times.update(state.get("times", {}))
         return state["epoch"] + 1

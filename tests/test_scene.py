@@ -133,9 +133,9 @@ def test_parse_fills_the_schema_defaults():
     assert sc.data == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "k_eps_rtol": 1e-5, "rollout": 1}
     assert sc.network == {"type": "mlp", "hidden": 128, "layers": 2}
     assert sc.optimizer == {"type": "adam", "lr": 1e-3, "decay": 1.0, "epochs": 30, "batch": 16, "stop_at": None}
-    assert sc.solver == {"preset": "jacobi", "diff": "implicit"}
+    assert sc.solver == {"preset": "jacobi", "diff": "implicit", "warm_start": False}
     assert sc.prdp == {"k0": 1, "dk": 1, "tau_step": 0.95, "tau_stop": 0.9, "delta": 3, "ema_window": 6,
-                       "k_cap": None}
+                       "k_cap": None, "guard": None, "growth": 1.0}
     assert sc.inverse is None
     # ... and they are the schema's.
     for section, keys in SCHEMA.items():
@@ -409,12 +409,15 @@ def test_strings_are_never_evaluated(tmp_path):
     marker = tmp_path / "pwned"
     payload = PAYLOAD.format(marker=marker)
     quoted = payload.replace("\\", "\\\\").replace('"', '\\"')
-    text = toml(drop=("scene", "mesh")) + (f'[scene]\nname = "{quoted}"\ntask = "emulator"\n'
+    text = toml(drop=("scene", "mesh")) + (f'[scene]\nname = "evil"\ntask = "emulator"\n'
                                            f'description = "{quoted}"\n[mesh]\nname = "{quoted}"\n')
     path = tmp_path / "evil.toml"
     path.write_text(text)
     for sc in (scene.parse(text), scene.load(path)):
-        assert sc.name == payload and sc.description == payload and sc.mesh["name"] == payload
+        assert sc.description == payload and sc.mesh["name"] == payload
+    # The name becomes a directory: only a slug is accepted.
+    with pytest.raises(scene.SceneError, match=r"\[scene\] name must be 1-128 letters"):
+        scene.parse(text.replace('name = "evil"', f'name = "{quoted}"'))
     # A string where a number belongs is a type error, not an expression.
     assert_scene_error(toml({"optimizer": f'lr = "{quoted}"'}), "[optimizer] lr must be of type float")
     assert not marker.exists()

@@ -1,0 +1,87 @@
+"""Resource estimates and budgets: available memory, the memory budget, and mesh sizes by h.
+
+fempdl refuses work whose estimated size is far beyond the machine before
+starting it, with a message giving the estimate, instead of failing inside
+an allocator or gmsh after minutes:
+
+* :func:`memory_budget`: the bytes a single allocation plan may take, by
+  default half of the memory available now (``MemAvailable``);
+* :func:`estimated_cells`: the cell count of a bundled geometry meshed at size
+  h, cells ~ density * h^-dim, with the densities measured by
+  :mod:`fempdl.meshgen` (gmsh 4.8.4; its docstring lists the sizes);
+  :data:`DEFAULT_MAX_CELLS` is the default cell budget of ``mesh.load``.
+
+This module imports nothing heavy, so the scene parser can use it.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+
+__all__ = ["DEFAULT_MEMORY_FRACTION", "DEFAULT_MAX_CELLS", "GEOMETRIES", "available_memory", "memory_budget",
+           "format_bytes", "estimated_cells", "estimated_dofs", "Geometry"]
+
+DEFAULT_MEMORY_FRACTION = 0.5
+# About 1M P1 DOFs in 2D; gmsh takes about a minute and a few GB for it.
+DEFAULT_MAX_CELLS = 2_000_000
+
+
+@dataclasses.dataclass(frozen=True)
+class Geometry:
+    """Size facts of a bundled geometry: cells ~ ``cell_density`` * h^-``dim``;
+    ``max_h`` is its shortest feature (a larger h no longer resolves it);
+    ``vertices_per_cell`` the P1 DOFs per cell."""
+
+    dim: int
+    cell_density: float
+    max_h: float
+    vertices_per_cell: float
+
+
+# Measured (fempdl.meshgen's table): lshape 2800 cells at h=0.05 and 130018 at 0.0073; obstacle 2555 at
+# 0.035 and 30569 at 0.01; box 4923 at 0.1 and 37312 at 0.05. The densities are the largest of the two.
+GEOMETRIES = {
+    "lshape": Geometry(dim=2, cell_density=7.0, max_h=1.0, vertices_per_cell=0.53),
+    "obstacle": Geometry(dim=2, cell_density=3.2, max_h=0.41, vertices_per_cell=0.54),
+    "box": Geometry(dim=3, cell_density=4.9, max_h=1.0, vertices_per_cell=0.24),
+}
+
+
+def available_memory() -> int:
+    """Bytes of memory available to new allocations now (Linux ``MemAvailable``; else free pages)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def memory_budget(fraction: float = DEFAULT_MEMORY_FRACTION) -> int:
+    """``fraction`` of :func:`available_memory`, in bytes."""
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"fraction must be in (0, 1], got {fraction!r}")
+    return int(fraction * available_memory())
+
+
+def format_bytes(count: float) -> str:
+    """``count`` bytes as e.g. ``"3.2 GiB"``."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if abs(count) < 1024 or unit == "PiB":
+            return f"{count:.0f} {unit}" if unit == "B" else f"{count:.1f} {unit}"
+        count /= 1024
+    raise AssertionError("unreachable")
+
+
+def estimated_cells(name: str, h: float) -> float:
+    """Cells of the bundled geometry ``name`` meshed at size ``h`` (an estimate, within about 10%)."""
+    geometry = GEOMETRIES[name]
+    return geometry.cell_density * float(h) ** -geometry.dim
+
+
+def estimated_dofs(name: str, h: float, degree: int = 1, components: int = 1) -> float:
+    """Lagrange DOFs of degree ``degree`` with ``components`` per node on that mesh (an estimate)."""
+    geometry = GEOMETRIES[name]
+    return estimated_cells(name, h) * geometry.vertices_per_cell * degree ** geometry.dim * components

@@ -1,0 +1,241 @@
+"""Hostile and careless inputs: tampered and corrupt checkpoints, resumes of another run, shared output
+directories, names that would become paths, sizes beyond the machine, and solver options that would
+silently go wrong. Every case must end in a clear error (or warning) and never run foreign code."""
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from mpi4py import MPI
+
+from fempdl import checkpoints, cli, experiments, forms, mesh, rundir, scene
+from fempdl.checkpoints import CheckpointError
+from fempdl.ksp_adjoint import KSPOptions
+
+INVERSE = """
+[scene]
+name = "hostile-inverse"
+task = "inverse"
+[mesh]
+name = "lshape"
+h = 0.25
+[pde]
+type = "poisson"
+[inverse]
+theta_ref = [0.6, 1.9]
+theta_init = [3.0, 3.0]
+[optimizer]
+type = "sgd"
+lr = 1.0
+epochs = 6
+"""
+
+
+def inverse(text: str = INVERSE) -> scene.Scene:
+    return scene.parse(text)
+
+
+def train(out: Path, sc: scene.Scene | None = None, **kwargs):
+    return experiments.run(sc or inverse(), "fixed", 4, out_dir=out, k_eps_value=20, **kwargs)
+
+
+def call(argv) -> tuple[int, str]:
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        code = cli.main([str(a) for a in argv])
+    return code, err.getvalue()
+
+
+# ------------------------------------------------------------------ checkpoints
+class _Payload:
+    """Unpickling this object would run a shell command that creates ``marker``."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_and_nothing_runs(tmp_path):
+    out, marker = tmp_path / "run", tmp_path / "pwned"
+    train(out, stop_after=2)
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    state["prdp"] = _Payload(marker)
+    torch.save(state, out / "checkpoint.pt")
+    with pytest.raises(CheckpointError, match="holds objects other than tensors and plain values"):
+        train(out, resume=True)
+    assert not marker.exists()
+    # The command says the same and exits 2.
+    path = tmp_path / "hostile.toml"
+    path.write_text(INVERSE)
+    (tmp_path / "cli" / "converged").mkdir(parents=True)
+    torch.save({"model": _Payload(marker)}, tmp_path / "cli" / "converged" / "checkpoint.pt")
+    code, err = call(["run", path, "--k", 4, "--out", tmp_path / "cli", "--resume", "--no-progress"])
+    assert code == 2 and "holds objects other than tensors" in err
+    assert not marker.exists()
+
+
+def test_checkpoints_hold_only_tensors_and_plain_values(tmp_path):
+    train(tmp_path, stop_after=2)
+    state = torch.load(tmp_path / "checkpoint.pt", weights_only=True)     # would raise on any other object
+    assert isinstance(state["rng"]["numpy"]["keys"], list) and len(state["rng"]["numpy"]["keys"]) == 624
+    assert isinstance(state["rng"]["python"]["state"], list)
+    with pytest.raises(TypeError, match=r"checkpoint\['bad'\] is a _Payload"):
+        checkpoints.plain({"bad": _Payload(tmp_path)})
+
+
+@pytest.mark.parametrize("damage", ["truncated", "empty", "text", "no-model"])
+def test_a_corrupt_checkpoint_gives_one_error_naming_the_file_and_the_remedy(tmp_path, damage):
+    train(tmp_path, stop_after=2)
+    path = tmp_path / "checkpoint.pt"
+    data = path.read_bytes()
+    if damage == "truncated":
+        path.write_bytes(data[: len(data) // 2])
+    elif damage == "empty":
+        path.write_bytes(b"")
+    elif damage == "text":
+        path.write_text("not a checkpoint")
+    else:
+        state = torch.load(path, weights_only=True)
+        del state["model"]
+        torch.save(state, path)
+    with pytest.raises(CheckpointError) as info:
+        train(tmp_path, resume=True)
+    message = str(info.value)
+    assert str(path) in message and "start the run afresh" in message
+    assert f"mv {tmp_path / 'checkpoint.prev.pt'} {path}" in message
+
+
+def test_the_previous_checkpoint_is_kept_and_restores(tmp_path):
+    whole = train(tmp_path / "whole")
+    out = tmp_path / "torn"
+    train(out, stop_after=3)
+    assert torch.load(out / "checkpoint.prev.pt", weights_only=True)["epoch"] == 1
+    (out / "checkpoint.pt").write_bytes(b"")           # a torn write
+    os.replace(out / "checkpoint.prev.pt", out / "checkpoint.pt")
+    resumed = train(out, resume=True)
+    assert [row["val_metric"] for row in resumed.rows] == [row["val_metric"] for row in whole.rows]
+
+
+def test_stale_temporary_files_are_removed_and_files_follow_the_umask(tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    stale = [out / ".checkpoint.pt.0a1b2c3d.tmp", out / ".metrics.json.k3j4h5g6"]   # new and mkstemp naming
+    for path in stale:
+        path.write_bytes(b"")
+    keep = out / ".notes"
+    keep.write_text("mine")
+    old = os.umask(0o022)
+    try:
+        train(out, stop_after=1)
+    finally:
+        os.umask(old)
+    assert not any(path.exists() for path in stale) and keep.exists()
+    for name in ("metrics.csv", "metrics.json", "checkpoint.pt"):
+        assert (out / name).stat().st_mode & 0o777 == 0o644
+    assert not list(out.glob(".*.tmp"))
+
+
+# ------------------------------------------------------------------ resume of another run
+def test_resume_refuses_a_changed_scene_and_names_the_keys(tmp_path):
+    train(tmp_path, stop_after=2)
+    changed = inverse(INVERSE.replace("theta_ref = [0.6, 1.9]", "theta_ref = [0.5, 1.9]").replace("lr = 1.0",
+                                                                                                   "lr = 0.5"))
+    with pytest.raises(rundir.ResumeError) as info:
+        train(tmp_path, changed, resume=True)
+    message = str(info.value)
+    assert "run.scene.inverse.theta_ref: [0.6, 1.9] -> [0.5, 1.9]" in message
+    assert "run.scene.optimizer.lr: 1.0 -> 0.5" in message and "--overwrite" in message
+    with pytest.raises(rundir.ResumeError, match=r"run.k: 4 -> 5"):
+        experiments.run(inverse(), "fixed", 5, out_dir=tmp_path, k_eps_value=20, resume=True)
+
+
+def test_resume_may_change_the_number_of_epochs(tmp_path):
+    train(tmp_path, stop_after=2)
+    longer = inverse(INVERSE.replace("epochs = 6", "epochs = 8"))
+    assert len(train(tmp_path, longer, resume=True).rows) == 8
+
+
+# ------------------------------------------------------------------ output directories
+def test_a_directory_locked_by_a_live_process_is_refused(tmp_path):
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        tmp_path.joinpath(rundir.LOCK).write_text(f"{socket.gethostname()} {sleeper.pid}\n")
+        with pytest.raises(rundir.RunDirectoryError, match=f"in use by another run \\(process {sleeper.pid}"):
+            train(tmp_path)
+        assert not (tmp_path / "checkpoint.pt").exists()
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    # Its process is gone: the lock is stale, taken over, and removed after the run.
+    train(tmp_path, stop_after=1)
+    assert (tmp_path / "checkpoint.pt").exists() and not (tmp_path / rundir.LOCK).exists()
+
+
+def test_the_command_refuses_a_directory_holding_a_run_unless_resume_or_overwrite(tmp_path):
+    path = tmp_path / "hostile.toml"
+    path.write_text(INVERSE)
+    out = tmp_path / "out"
+    base = ["run", path, "--k", 4, "--out", out, "--no-progress", "--no-baseline"]
+    assert call(base)[0] == 0
+    code, err = call(base)
+    assert code == 2 and "holds the files of an earlier run; pass --resume" in err
+    assert call(base + ["--overwrite"])[0] == 0
+    assert call(base + ["--resume"])[0] == 0
+    assert call(base + ["--resume", "--overwrite"])[0] == 2
+    assert not (out / rundir.LOCK).exists()
+
+
+@pytest.mark.parametrize("name", ["../../../x", "/tmp/x", "..", "a/b", "", "x" * 129, "na me"])
+def test_scene_names_that_are_not_slugs_are_refused(name):
+    text = INVERSE.replace('name = "hostile-inverse"', f'name = "{name}"')
+    with pytest.raises(scene.SceneError, match=r"\[scene\] name must be 1-128 letters"):
+        scene.parse(text)
+    with pytest.raises(ValueError):
+        rundir.child(Path("runs"), name)
+
+
+def test_a_scene_file_that_is_not_utf8_is_a_scene_error(tmp_path):
+    path = tmp_path / "latin1.toml"
+    path.write_bytes(INVERSE.replace("hostile-inverse", "hostile").encode() + "# caf\xe9\n".encode("latin-1"))
+    with pytest.raises(scene.SceneError, match="not a UTF-8 text file"):
+        scene.load(path)
+
+
+# ------------------------------------------------------------------ sizes beyond the machine
+@pytest.mark.parametrize("h", [1e-12, 1e-8])
+def test_a_mesh_size_beyond_the_cell_budget_is_refused_with_the_estimate(h):
+    with pytest.raises(ValueError, match=r"would mesh 'lshape' into about 7e\+\d+ cells, more than max_cells"):
+        mesh.load("lshape", MPI.COMM_SELF, h=h)
+
+
+def test_a_mesh_size_beyond_the_geometry_is_refused():
+    with pytest.raises(ValueError, match=r"larger than the shortest feature of 'obstacle' \(0.41\)"):
+        mesh.load("obstacle", MPI.COMM_SELF, h=1.0)
+
+
+@pytest.mark.parametrize("section,key,value", [("network", "hidden", 10 ** 9), ("data", "train", 10 ** 12)])
+def test_scene_sizes_beyond_memory_are_scene_errors_with_the_estimate(section, key, value):
+    from test_training import TINY
+    text = TINY.replace(f"[{section}]\n", f"[{section}]\n{key} = {value}\n", 1)
+    text = text.replace("train = 16\n", "") if key == "train" else text.replace("hidden = 16\n", "")
+    with pytest.raises(scene.SceneError, match=r"the scene needs about [\d.]+ [TPG]iB .* more than the memory budget"):
+        scene.parse(text)
+
+
+def test_more_modes_than_the_mesh_resolves_is_a_scene_error():
+    from test_training import TINY
+    with pytest.raises(scene.SceneError, match=r"\[data\] modes = 1000000 gives 1000000\^2 sine modes"):
+        scene.parse(TINY.replace("modes = 3", "modes = 1000000"))
