@@ -13,7 +13,7 @@ This module knows PETSc and nothing of UFL or torch. It has three parts:
   savings are quoted in.
 
 Semantics of a capped solve (``max_it`` set): it starts from a zero initial
-guess and runs exactly ``max_it`` iterations, never more. It stops earlier only
+guess (or from a given one: a warm start) and runs exactly ``max_it`` iterations, never more. It stops earlier only
 if the user asked for a tolerance (``rtol``/``atol``) and it is met, or if the
 residual vanishes exactly. Without ``rtol`` the convergence test is effectively
 disabled (rtol = atol = 0, no divergence test), and Richardson/CG/Chebyshev skip
@@ -66,6 +66,16 @@ _RESTARTED_KSP_TYPES = frozenset({"gmres", "fgmres", "lgmres", "dgmres", "pgmres
 # run with NORM_NONE (no reduction per iteration).
 _NORM_FREE_KSP_TYPES = frozenset({"richardson", "cg", "chebyshev"})
 _DIRECT_KSP_TYPES = frozenset({"preonly"})
+# Preconditioners that solve the system exactly (a factorisation): only with one of
+# them is a single application (KSPPREONLY) a direct solve.
+_FACTORISING_PC_TYPES = frozenset({"lu", "cholesky", "qr", "svd", "redundant"})
+# PETSc's largest int in this build (32- or 64-bit indices): larger caps overflow inside PETSc.
+MAX_PETSC_INT = int(np.iinfo(PETSc.IntType).max)
+# Solves that may run this many iterations or more (and uncapped solves) get a
+# Python KSP monitor, so Ctrl-C (a pending KeyboardInterrupt) stops them within
+# an iteration; a monitor call costs time per iteration, so short caps go without
+# one (scripts/bench_bounds.py measures the cost).
+INTERRUPT_CHECK_MIN_IT = 1000
 # Keys that have a first-class field; setting them through petsc_options would
 # silently fight the cap that PRDP moves.
 _RESERVED_OPTIONS = {
@@ -85,6 +95,9 @@ ENGINES = ("auto", "petsc", "batched")
 ADJOINT_OPERATORS = ("auto", "transpose", "assembled")
 # Preconditioners without a correct transpose in PETSc 3.18 (measured).
 _NO_TRUE_TRANSPOSE = frozenset({"fieldsplit", "hypre"})
+# The algebraic multigrid of the "schur" preset: hypre's BoomerAMG where the
+# PETSc build has hypre (Debian's), PETSc's own GAMG where it has not (PyPI's).
+_AMG = "hypre" if PETSc.Sys.hasExternalPackage("hypre") else "gamg"
 DEFAULT_RTOL = 1e-10
 DEFAULT_CAP = 20  # max_it when not given, for iterative methods (direct ones get None)
 _UNSET = object()  # max_it not given
@@ -172,7 +185,7 @@ class KSPOptions:
         if self.max_it is _UNSET:
             object.__setattr__(self, "max_it", None if self.ksp_type in _DIRECT_KSP_TYPES else DEFAULT_CAP)
         if self.max_it is not None:
-            _check_int("max_it", self.max_it, minimum=1,
+            _check_int("max_it", self.max_it, minimum=1, maximum=MAX_PETSC_INT,
                        hint="use max_it=None to run to rtol instead of capping")
             if self.ksp_type in _DIRECT_KSP_TYPES:
                 raise ValueError(
@@ -192,8 +205,14 @@ class KSPOptions:
             raise ValueError(f"atol must be >= 0, got {self.atol!r}")
         if self.divtol is not None and self.divtol <= 1.0:
             raise ValueError(f"divtol must be > 1 (a growth factor of the residual), got {self.divtol!r}")
+        if self.ksp_type in _DIRECT_KSP_TYPES and self.pc_type not in _FACTORISING_PC_TYPES:
+            raise ValueError(
+                f"ksp_type={self.ksp_type!r} applies the preconditioner once, which solves the system only "
+                f"when it is a factorisation ({sorted(_FACTORISING_PC_TYPES)}); with pc_type={self.pc_type!r} "
+                "the result is not the solution. Use pc_type='lu' (KSPOptions.preset('lu')) for a direct "
+                "solve, or an iterative ksp_type such as 'richardson' (max_it=1 applies the preconditioner once)")
         if self.gmres_restart is not None:
-            _check_int("gmres_restart", self.gmres_restart, minimum=1)
+            _check_int("gmres_restart", self.gmres_restart, minimum=1, maximum=MAX_PETSC_INT)
             if self.ksp_type not in _RESTARTED_KSP_TYPES:
                 raise ValueError(
                     f"gmres_restart is only meaningful for {sorted(_RESTARTED_KSP_TYPES)}, "
@@ -298,11 +317,13 @@ class SolveStats:
         reason: PETSc's converged reason (> 0 converged, < 0 diverged/stopped).
         reason_name: its name, e.g. ``"DIVERGED_MAX_IT"`` (= the cap was reached).
         residual_norm: final residual norm, or ``None`` when not computed (NORM_NONE).
-        time: wall time of the KSP solve in seconds.
+        time: wall time of the iterations in seconds (the KSP solve after its set-up).
         capped: True when the solve stopped because it reached ``max_it``.
         ok: False when the solve diverged, broke down or produced NaN/inf.
         engine: ``"petsc"`` (a KSP solve) or ``"batched"`` (one column of a
             batched iteration; ``time`` is its share of the batch).
+        setup_time: seconds in KSPSetUp before the iterations (the
+            preconditioner's set-up or factorisation; about 0 while A is unchanged).
     """
 
     iterations: int
@@ -313,6 +334,7 @@ class SolveStats:
     capped: bool
     ok: bool
     engine: str = "petsc"
+    setup_time: float = 0.0
 
 
 @dataclass
@@ -320,8 +342,11 @@ class CumulativeStats:
     """Cumulative iteration and time counters of a layer (summed over samples).
 
     ``forward_iterations + backward_iterations`` is the cost metric PRDP savings
-    are quoted in; ``solve_time`` counts KSP time only, ``layer_time`` the whole
-    forward and backward of the layer (assembly and conversions included).
+    are quoted in. Seconds, split by what they bought: ``solve_time`` the
+    iterations (forward + backward), ``setup_time`` preconditioner set-up and
+    factorisations, ``assembly_time`` matrices, right-hand sides and gradient
+    forms, ``adjoint_operator_time`` forming an explicit A^T; ``layer_time`` is
+    the whole forward and backward of the layer (those and the conversions).
     """
 
     forward_iterations: int = 0
@@ -331,6 +356,9 @@ class CumulativeStats:
     forward_time: float = 0.0
     backward_time: float = 0.0
     layer_time: float = 0.0
+    setup_time: float = 0.0
+    assembly_time: float = 0.0
+    adjoint_operator_time: float = 0.0
     failures: int = 0
     solves_by_engine: dict = field(default_factory=dict)
     last: SolveStats | None = None
@@ -347,6 +375,7 @@ class CumulativeStats:
             self.backward_time += stats.time
         else:
             raise ValueError(f"direction must be 'forward' or 'backward', got {direction!r}")
+        self.setup_time += stats.setup_time
         self.failures += not stats.ok
         self.solves_by_engine[stats.engine] = self.solves_by_engine.get(stats.engine, 0) + 1
         self.last = stats
@@ -435,15 +464,26 @@ class CappedSolver:
         """The forward KSP (for inspection; do not change its tolerances)."""
         return self._ksp
 
-    def solve(self, b: PETSc.Vec, x: PETSc.Vec) -> SolveStats:
-        """Solve A x = b from a zero initial guess; ``x`` is overwritten.
+    def solve(self, b: PETSc.Vec, x: PETSc.Vec, *, warm: bool = False) -> SolveStats:
+        """Solve A x = b; ``x`` is overwritten.
+
+        The iteration starts from zero, or from the values ``x`` holds when
+        ``warm`` is True (a warm start: the K iterations then correct that
+        guess; direct solves ignore it).
 
         Raises:
             SolverFailedError: on divergence, breakdown or NaN/inf (unless the
                 options say ``on_failure="warn"``). The solve is counted in
                 :attr:`stats` either way.
         """
-        return self._run(self._ksp, self._options, b, x, direction="forward")
+        warm = warm and not self._options.direct   # PCLU under preonly refuses a nonzero guess
+        if warm:
+            self._ksp.setInitialGuessNonzero(True)
+        try:
+            return self._run(self._ksp, self._options, b, x, direction="forward")
+        finally:
+            if warm:
+                self._ksp.setInitialGuessNonzero(False)
 
     def solve_transpose(self, b: PETSc.Vec, x: PETSc.Vec) -> SolveStats:
         """Solve A^T x = b with the adjoint options (the forward ones by default),
@@ -458,6 +498,7 @@ class CappedSolver:
     def _assembled_adjoint_ksp(self) -> PETSc.KSP:
         """The KSP on A^T, with A^T refreshed if A changed since it was built."""
         state = self._A.stateGet()
+        t0 = time.perf_counter()
         if self._At is None:
             # petsc4py's A.transpose() without an argument transposes A in place;
             # an empty Mat as the target asks for a new matrix.
@@ -472,6 +513,7 @@ class CappedSolver:
             if nsp is not None:
                 self._At.setNullSpace(nsp)
             self._At_state = state
+        self.stats.adjoint_operator_time += time.perf_counter() - t0
         return self._ksp_adjoint
 
     def destroy(self) -> None:
@@ -499,9 +541,12 @@ class CappedSolver:
         if nsp is not None:
             nsp.remove(b)
         b_norm = b.norm()
+        self._set_interrupt_checks(ksp, options)
         t0 = time.perf_counter()
+        ksp.setUp()      # the preconditioner's set-up, timed apart from the iterations
+        t1 = time.perf_counter()
         (ksp.solveTranspose if transpose else ksp.solve)(b, x)
-        elapsed = time.perf_counter() - t0
+        elapsed = time.perf_counter() - t1
         if nsp is not None:
             nsp.remove(x)
         reason = int(ksp.getConvergedReason())
@@ -516,8 +561,22 @@ class CappedSolver:
         ok = finite and (reason > 0 or capped or exact)
         stats = SolveStats(iterations=iterations, reason=reason,
                            reason_name=_REASON_NAMES.get(reason, str(reason)),
-                           residual_norm=rnorm, time=elapsed, capped=capped, ok=ok)
+                           residual_norm=rnorm, time=elapsed, capped=capped, ok=ok, setup_time=t1 - t0)
         return self.record(direction, stats, finite=finite)
+
+    def _set_interrupt_checks(self, ksp: PETSc.KSP, options: KSPOptions) -> None:
+        """Give ``ksp`` a monitor that lets a pending KeyboardInterrupt stop a long solve (see
+        :data:`INTERRUPT_CHECK_MIN_IT`), or take it away when the cap has moved below that."""
+        wanted = not options.direct and (options.max_it is None or options.max_it >= INTERRUPT_CHECK_MIN_IT)
+        has = ksp.getAttr("fempdl_interruptible") is not None
+        if wanted and not has:
+            # Calling into Python runs the pending signal handlers: Ctrl-C raises
+            # KeyboardInterrupt inside the monitor, and KSPSolve returns with it.
+            ksp.setMonitor(_interrupt_point)
+            ksp.setAttr("fempdl_interruptible", True)
+        elif has and not wanted:
+            ksp.cancelMonitor()
+            ksp.setAttr("fempdl_interruptible", None)
 
     def record(self, direction: str, stats: SolveStats, *, finite: bool = True) -> SolveStats:
         """Count a solve (also one run outside this KSP, e.g. by the batched
@@ -531,6 +590,10 @@ class CappedSolver:
         """Raise :class:`SolverFailedError` or warn (per ``on_failure``) for a failed solve."""
         options = self._options if direction == "forward" else self._options.adjoint_options
         _report_failure(options, stats, finite, direction == "backward", samples)
+
+
+def _interrupt_point(ksp, iteration, residual_norm) -> None:
+    """A KSP monitor that does nothing: being Python, it lets signal handlers run (module docstring)."""
 
 
 def petsc_to_scipy(A: PETSc.Mat) -> "scipy.sparse.csr_matrix":
@@ -617,8 +680,36 @@ def _create_ksp(A: PETSc.Mat, options: KSPOptions, prefix: str, fields=None) -> 
         db[prefix + key] = "" if value is None else value
     # Inner solvers (fieldsplit blocks) read their options when the
     # preconditioner is first set up, so the options stay until _destroy_ksp.
-    ksp.setFromOptions()
+    try:
+        ksp.setFromOptions()
+    except PETSc.Error as err:
+        _destroy_ksp(ksp)
+        raise _rejected_option(A, options, err) from None
     return ksp
+
+
+def _rejected_option(A: PETSc.Mat, options: KSPOptions, err: PETSc.Error) -> ValueError:
+    """The error for petsc_options PETSc refused, naming the option (found by trying each alone)."""
+    for key, value in options.petsc_options.items():
+        probe = PETSc.KSP().create(A.getComm())
+        prefix = f"fempdl_probe{next(CappedSolver._counter)}_"
+        probe.setOptionsPrefix(prefix)
+        probe.setOperators(A)
+        probe.setType(options.ksp_type)
+        probe.getPC().setType(options.pc_type)
+        PETSc.Options()[prefix + key] = "" if value is None else value
+        try:
+            probe.setFromOptions()
+        except PETSc.Error:
+            return ValueError(f"petsc_options[{key!r}] = {value!r} was rejected by PETSc for ksp_type="
+                              f"{options.ksp_type!r}, pc_type={options.pc_type!r} (PETSc error code {err.ierr}); "
+                              "give the value the option takes (a number for scales and tolerances, an int for "
+                              "counts, a type name for types)")
+        finally:
+            _destroy_ksp(probe)
+    return ValueError(f"PETSc rejected petsc_options {dict(options.petsc_options)} for ksp_type="
+                      f"{options.ksp_type!r}, pc_type={options.pc_type!r} (PETSc error code {err.ierr}); check "
+                      "each option's value")
 
 
 def _destroy_ksp(ksp: PETSc.KSP) -> None:
@@ -664,11 +755,13 @@ def _check_choice(name: str, value, allowed: frozenset) -> None:
         raise ValueError(f"{name}={value!r} is not a PETSc type; choose one of {sorted(allowed)}")
 
 
-def _check_int(name: str, value, *, minimum: int, hint: str = "") -> None:
+def _check_int(name: str, value, *, minimum: int, maximum: int | None = None, hint: str = "") -> None:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise TypeError(f"{name} must be an int, got {value!r}" + (f"; {hint}" if hint else ""))
     if value < minimum:
         raise ValueError(f"{name} must be >= {minimum}, got {value!r}" + (f"; {hint}" if hint else ""))
+    if maximum is not None and value > maximum:
+        raise ValueError(f"{name} must be <= {maximum} (the largest PETSc int of this build), got {value!r}")
 
 
 PRESETS: Mapping[str, KSPOptions] = types.MappingProxyType({
@@ -681,7 +774,7 @@ PRESETS: Mapping[str, KSPOptions] = types.MappingProxyType({
         "pc_fieldsplit_schur_precondition": "self",
         "fieldsplit_u_ksp_type": "preonly", "fieldsplit_u_pc_type": "lu",
         "fieldsplit_p_ksp_type": "preonly", "fieldsplit_p_pc_type": "lsc",
-        "fieldsplit_p_lsc_pc_type": "hypre"}),
+        "fieldsplit_p_lsc_pc_type": _AMG}),
     "lu": KSPOptions(ksp_type="preonly", pc_type="lu", max_it=None,
                      petsc_options={"pc_factor_mat_solver_type": "mumps"}),
 })

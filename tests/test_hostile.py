@@ -239,3 +239,58 @@ def test_more_modes_than_the_mesh_resolves_is_a_scene_error():
     from test_training import TINY
     with pytest.raises(scene.SceneError, match=r"\[data\] modes = 1000000 gives 1000000\^2 sine modes"):
         scene.parse(TINY.replace("modes = 3", "modes = 1000000"))
+
+
+# ------------------------------------------------------------------ solver options
+def test_preonly_without_a_factorisation_is_refused():
+    with pytest.raises(ValueError, match=r"ksp_type='preonly' applies the preconditioner once.*pc_type='jacobi'"):
+        KSPOptions(ksp_type="preonly", pc_type="jacobi")
+    assert KSPOptions(ksp_type="preonly", pc_type="cholesky").direct
+
+
+@pytest.mark.parametrize("field", ["max_it", "gmres_restart"])
+def test_iteration_counts_beyond_petsc_int_are_refused(field):
+    extra = {"ksp_type": "gmres"} if field == "gmres_restart" else {}
+    with pytest.raises(ValueError, match=rf"{field} must be <= 2147483647 \(the largest PETSc int"):
+        KSPOptions(**extra, **{field: 2 ** 31})
+
+
+def test_a_non_numeric_petsc_option_names_the_option(coarse_problems):
+    from fempdl.bridge_torch import SolveLayer
+    opts = KSPOptions(max_it=5, petsc_options={"ksp_richardson_scale": "abc", "ksp_view": None})
+    with pytest.raises(ValueError, match=r"petsc_options\['ksp_richardson_scale'\] = 'abc' was rejected by PETSc"):
+        SolveLayer(coarse_problems["poisson"], opts)
+
+
+@pytest.mark.parametrize("kappa", [0.0, -1.0, lambda x: x[0]])
+@pytest.mark.parametrize("pde", ["poisson", "heat"])
+def test_a_nonpositive_kappa_is_refused(pde, kappa):
+    msh = mesh.load("lshape", MPI.COMM_SELF, h=0.5)
+    with pytest.raises(ValueError, match=r"kappa must be > 0 everywhere .* got a minimum of"):
+        getattr(forms, pde).problem(msh, kappa=kappa)
+
+
+_INTERRUPTED_SOLVE = """
+import os, signal, threading, torch
+from mpi4py import MPI
+from fempdl import forms, mesh
+from fempdl.bridge_torch import SolveLayer
+from fempdl.ksp_adjoint import KSPOptions
+layer = SolveLayer(forms.poisson.problem(mesh.load("lshape", MPI.COMM_SELF, h=0.1)),
+                   KSPOptions(max_it=10 ** 9, engine="petsc"))
+f = torch.ones(2, layer.problem.control_size("f"), dtype=torch.float64)
+threading.Timer(1.0, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+try:
+    layer(f=f)
+except KeyboardInterrupt:
+    print("interrupted after", layer.system._solver.ksp.getIterationNumber(), "iterations")
+"""
+
+
+def test_ctrl_c_stops_a_long_petsc_solve():
+    """The solve would take hours: SIGINT after a second must end it with KeyboardInterrupt."""
+    done = subprocess.run([sys.executable, "-c", _INTERRUPTED_SOLVE], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
+    assert done.returncode == 0, done.stderr
+    iterations = int(done.stdout.split("after")[1].split()[0])
+    assert 0 < iterations < 10 ** 9

@@ -6,6 +6,7 @@ from typing import Callable, Iterable
 
 import dolfinx.fem
 import numpy as np
+from mpi4py import MPI
 
 from fempdl import _dolfinx
 from fempdl.mesh import TaggedMesh, as_tagged
@@ -40,8 +41,11 @@ def coefficient_space(msh, kind: str):
     return _dolfinx.function_space(msh, *COEFFICIENT_SPACES[kind])
 
 
-def make_function(space, value, name: str) -> dolfinx.fem.Function:
-    """A Function on ``space`` holding ``value``: a float or a callable x (3, N) -> (N,)."""
+def make_function(space, value, name: str, *, positive: bool = False) -> dolfinx.fem.Function:
+    """A Function on ``space`` holding ``value``: a float or a callable x (3, N) -> (N,).
+
+    ``positive``: the values must be > 0 (a diffusion coefficient: zero or
+    negative values make the operator singular or indefinite)."""
     fn = dolfinx.fem.Function(space, name=name)
     if callable(value):
         fn.interpolate(value)
@@ -53,6 +57,11 @@ def make_function(space, value, name: str) -> dolfinx.fem.Function:
         raise TypeError(f"{name} must be a float or a callable x -> values, got {type(value).__name__}")
     if not np.all(np.isfinite(fn.x.array)):
         raise ValueError(f"{name}: the callable returned NaN or inf values")
+    if positive:
+        lowest = fn.function_space.mesh.comm.allreduce(float(fn.x.array.min(initial=np.inf)), op=MPI.MIN)
+        if lowest <= 0:
+            raise ValueError(f"{name} must be > 0 everywhere (a diffusion coefficient: zero or negative values "
+                             f"make the operator singular or indefinite), got a minimum of {lowest!r}")
     return fn
 
 

@@ -62,7 +62,7 @@ def problem(msh, controls=("u0",), *, dt: float = 0.01, theta: float = 1.0, degr
     dt_c = positive_constant(msh_, dt, "dt")
     u0_fn = make_function(V, u0, "u0")
     f_fn = make_function(V, f, "f")
-    kappa_fn = make_function(coefficient_space(msh_, kappa_space), kappa, "kappa")
+    kappa_fn = make_function(coefficient_space(msh_, kappa_space), kappa, "kappa", positive=True)
     bcs = dirichlet_bcs(tagged, V, g, dirichlet)
 
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)

@@ -45,7 +45,7 @@ def problem(msh, controls=("f",), *, degree: int = 1, kappa_space: str = "P1",
     check_degree(degree)
     V = _dolfinx.function_space(tagged.mesh, "Lagrange", degree)
     f_fn = make_function(V, f, "f")
-    kappa_fn = make_function(coefficient_space(tagged.mesh, kappa_space), kappa, "kappa")
+    kappa_fn = make_function(coefficient_space(tagged.mesh, kappa_space), kappa, "kappa", positive=True)
     bcs = dirichlet_bcs(tagged, V, g, dirichlet)
     if not bcs:
         raise ValueError("poisson: dirichlet=() leaves u determined only up to a constant; "
