@@ -320,7 +320,8 @@ class _SolveFunction(torch.autograd.Function):
         shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
         arrays = _batched_arrays(names, tensors, batch)
         guess = arrays.pop(INITIAL_GUESS, None)
-        U = layer.system.solve(arrays, batch, shared, initial_guess=guess)
+        U = layer.system.solve(arrays, batch, shared, initial_guess=guess,
+                               keep_matrices=any(ctx.needs_input_grad[3:]))
         out = torch.from_numpy(U)
         # Saved through autograd so that an in-place change of an input or of the
         # output before backward raises autograd's error instead of corrupting

@@ -80,6 +80,11 @@ def build_parser() -> argparse.ArgumentParser:
     comp.add_argument("--overwrite", action="store_true", help="replace the runs already in --out")
     comp.add_argument("--no-progress", action="store_true")
 
+    for command in (run, trade, comp):
+        command.add_argument("--threads", type=_positive_int,
+                             help="torch threads per process (default: torch's; under mpirun the node's "
+                                  "cores shared among its ranks)")
+
     sub.add_parser("scenes", help="list the bundled scenes")
     return parser
 
@@ -92,6 +97,8 @@ def main(argv=None) -> int:
     from mpi4py import MPI
 
     parallel.abort_on_error()  # under mpirun: one rank's error ends the job, never a hang
+    if args.command != "scenes":
+        parallel.fit_threads(args.threads)
     if args.command != "scenes" and getattr(args, "parallel", None) is None and MPI.COMM_WORLD.size > 1:
         # Without a mode every rank would train the same run and write the same files.
         print(f"fempdl: running on {MPI.COMM_WORLD.size} ranks needs `fempdl run SCENE --parallel data|mesh`",

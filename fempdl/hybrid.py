@@ -140,8 +140,7 @@ def _fine_reference(mesh_name: str, coarse_h, fine_h: float, pde_items: tuple, c
 class HybridTask(Task):
     """Coarse Oseen stepper + network correction, trained over unrolled steps (module docstring)."""
 
-    def __init__(self, scene: Scene, options: KSPOptions):
-        torch.manual_seed(scene.data["seed"])
+    def __init__(self, scene: Scene, options: KSPOptions, seed: int | None = None):
         pde, hyb, data = scene.pde, scene.hybrid, scene.data
         self.steps, self.rollout = hyb["steps"], data["rollout"]
         n_train, n_val = data["train"], data["validation"]
@@ -154,11 +153,13 @@ class HybridTask(Task):
         self.train_size, self.val_size = n_train, n_val
         self.u_dofs = torch.as_tensor(self.problem.fields["u"])
         free = ~np.isin(self.problem.fields["u"], self.problem.bc_dofs)
+        torch.manual_seed(data["seed"] if seed is None else seed)
         self.model = ResidualMLP(len(self.u_dofs), scene.network["hidden"], scene.network["layers"],
                                  mask=torch.as_tensor(free, dtype=torch.float32), start_at_identity=True)
         self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
         self.layer = SolveLayer(self.problem, options, diff=scene.solver["diff"])
         self.layers = [self.layer]
+        self.warm_start = scene.solver["warm_start"]
         self.reference = SolveLayer(self.problem, KSPOptions.preset("lu"))
         with torch.no_grad():
             self.uncorrected_metric = float(self._rollout_errors(self.reference, lambda u: u, self.val_states,
@@ -167,11 +168,20 @@ class HybridTask(Task):
     def advance(self, layer: SolveLayer, u: torch.Tensor, steps: int, correct=None) -> list[torch.Tensor]:
         """``steps`` hybrid steps from velocities ``u`` (B, n_u); returns every new state."""
         correct = self.model if correct is None else correct
-        out = []
+        out, solution = [], None
         for _ in range(steps):
-            u = correct(layer(w=u, u_prev=u)[:, self.u_dofs])
+            solution = layer(w=u, u_prev=u, **self._start(layer, u, solution))
+            u = correct(solution[:, self.u_dofs])
             out.append(u)
         return out
+
+    def _start(self, layer: SolveLayer, u: torch.Tensor, previous: torch.Tensor | None) -> dict:
+        """With ``[solver] warm_start`` the capped solve starts from the state being
+        advanced: velocity u, and the previous step's pressure (0 at the first step)."""
+        if not (self.warm_start and layer is self.layer):
+            return {}
+        base = torch.zeros(u.shape[0], self.problem.output_size, dtype=u.dtype) if previous is None else previous
+        return {"initial_guess": base.index_copy(1, self.u_dofs, u.to(base.dtype))}
 
     def _rollout_errors(self, layer, correct, states, steps) -> torch.Tensor:
         """Per sample: the nMSE of every step of a ``steps``-step rollout, averaged over the steps."""
@@ -186,7 +196,8 @@ class HybridTask(Task):
 
     def k_eps_rhs(self) -> dict:
         """K_eps is measured on the first step of the validation samples."""
-        return {"w": self.val_states[0].double(), "u_prev": self.val_states[0].double()}
+        u = self.val_states[0].double()
+        return {"w": u, "u_prev": u, **self._start(self.layer, u, None)}
 
     def close(self) -> None:
         self.layer.close()

@@ -27,6 +27,7 @@ are compared after every epoch, and a mismatch is an error, not a silent drift.
 """
 from __future__ import annotations
 
+import os
 import sys
 import traceback
 
@@ -34,7 +35,25 @@ import numpy as np
 import torch
 from mpi4py import MPI
 
-__all__ = ["abort_on_error", "allreduce_sum", "check_identical", "shard", "sum_gradients"]
+__all__ = ["abort_on_error", "allreduce_sum", "check_identical", "fit_threads", "shard", "sum_gradients"]
+
+
+def fit_threads(threads: int | None = None, comm: MPI.Comm = MPI.COMM_WORLD) -> int:
+    """Set torch's threads: ``threads``, or this node's cores shared among its ranks.
+
+    Every rank of an mpirun starts as many threads as the node has cores, so P
+    ranks on P cores oversubscribe them P-fold; this gives each rank
+    cores // (ranks on its node), at least 1. Returns the number set."""
+    if threads is None:
+        node = comm.Split_type(MPI.COMM_TYPE_SHARED)
+        local_ranks = node.size
+        node.Free()
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        threads = max(1, cores // local_ranks) if local_ranks > 1 else torch.get_num_threads()
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ValueError(f"threads must be an int >= 1, got {threads!r}")
+    torch.set_num_threads(threads)
+    return threads
 
 
 def abort_on_error(comm: MPI.Comm = MPI.COMM_WORLD, exit_code: int = 1) -> None:

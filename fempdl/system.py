@@ -73,6 +73,7 @@ class LinearSystem:
         self._rhs_mats: dict = {}                              # name -> (Mat, vec on m, vec on V, fingerprint)
         self._grad_vecs: dict = {}                             # name -> ghosted Vec on M
         self._jacobians: dict = {}                             # name -> (pattern, v0, J)
+        self._kept_matrices = _KeptMatrices(problem.matrix_controls)
 
     # ------------------------------------------------------------ properties
     @property
@@ -93,12 +94,14 @@ class LinearSystem:
 
     # ----------------------------------------------------------------- solve
     def solve(self, controls: Mapping[str, np.ndarray], batch: int, shared=frozenset(),
-              initial_guess: np.ndarray | None = None) -> np.ndarray:
+              initial_guess: np.ndarray | None = None, keep_matrices: bool = False) -> np.ndarray:
         """Forward solves for ``batch`` samples; returns U of shape (batch, n).
 
         ``shared`` names controls whose rows are all equal (one tensor for the
         whole batch): a matrix that depends only on those is assembled once.
         ``initial_guess`` (batch, n) warm-starts the iterations (a broadcast view is fine).
+        ``keep_matrices``: keep copies of per-sample matrices for the adjoint of
+        this call (it then copies them instead of assembling again).
         """
         p = self.problem
         names = frozenset(controls)
@@ -107,6 +110,7 @@ class LinearSystem:
         affine = not (names & p.matrix_controls) and names <= p.affine_rhs_controls
         use_batched = self._use_batched(batch, per_sample_matrix)
         U = np.empty((batch, p.output_size))
+        kept = self._kept_matrices.start(controls, batch) if keep_matrices and per_sample_matrix else None
         with _ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             b_base = self._base_rhs(names, ctl) if affine else None
@@ -118,6 +122,8 @@ class LinearSystem:
                     ctl.set_sample(i)
                     if per_sample_matrix:
                         self._assemble_matrix()
+                        if kept is not None:
+                            kept.append(self._A)
                     with self._assembling():
                         _dolfinx.assemble_vector_into(self._b, p.L_form, p.a_form, p.bcs)
                 if use_batched:
@@ -158,6 +164,7 @@ class LinearSystem:
             # u = g on the boundary does not depend on the controls.
             G[:, p.bc_dofs] = 0.0
         n_owned = p.output_size
+        kept = self._kept_matrices.find(controls, batch) if per_sample_matrix else None
         with _ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             rhs_mats = {name: self._rhs_matrix(name) for name in by_matrix}
@@ -170,7 +177,10 @@ class LinearSystem:
                 if use_batched:
                     self._x.setArray(Lam[i])
                 else:
-                    if per_sample_matrix:
+                    if kept is not None:
+                        kept.restore(i, self._A)
+                        self._A_version += 1
+                    elif per_sample_matrix:
                         self._assemble_matrix()
                     self._rhs.setArray(G[i])
                     self._solver.solve_transpose(self._rhs, self._x)
@@ -318,6 +328,7 @@ class LinearSystem:
         objs += list(self._grad_vecs.values())
         for obj in objs:
             obj.destroy()
+        self._kept_matrices.clear()
         self._b_base.clear()
         self._rhs_mats.clear()
         self._grad_vecs.clear()
@@ -410,6 +421,73 @@ class LinearSystem:
         with self._assembling():
             _dolfinx.assemble_vector_into(vec, form)
         return vec.getArray(readonly=True)[:n].copy()
+
+
+class _KeptMatrices:
+    """Copies of the per-sample matrices of recent forward calls, for their adjoints.
+
+    An adjoint finds a call's matrices by the values of its matrix controls;
+    the oldest call is dropped beyond ``calls`` calls or ``max_bytes`` of
+    matrix values (unrolled multi-step chains run several forward calls before
+    their adjoints)."""
+
+    def __init__(self, matrix_controls, calls: int = 4, max_bytes: int = 256 * 2 ** 20):
+        self._names = frozenset(matrix_controls)
+        self._calls, self._max_bytes = calls, max_bytes
+        self._entries: list[_KeptCall] = []
+
+    def start(self, controls: Mapping[str, np.ndarray], batch: int) -> "_KeptCall | None":
+        if self._calls == 0:
+            return None
+        key = {n: np.array(v) for n, v in controls.items() if n in self._names}
+        spare = self._entries.pop(0).mats if len(self._entries) >= self._calls else []
+        entry = _KeptCall(key, batch, spare, self._max_bytes)
+        self._entries.append(entry)
+        return entry
+
+    def find(self, controls: Mapping[str, np.ndarray], batch: int) -> "_KeptCall | None":
+        for entry in reversed(self._entries):
+            if entry.matches(controls, batch):
+                return entry
+        return None
+
+    def clear(self) -> None:
+        for entry in self._entries:
+            entry.destroy()
+        self._entries.clear()
+
+
+class _KeptCall:
+    def __init__(self, key: dict, batch: int, spare: list, max_bytes: int):
+        self.key, self.batch, self.mats, self._spare, self._max_bytes = key, batch, [], spare, max_bytes
+        self.complete = True
+
+    def append(self, A: PETSc.Mat) -> None:
+        if not self.complete:
+            return
+        if (len(self.mats) + 1) * A.getInfo()["nz_used"] * 8 > self._max_bytes:
+            self.complete = False          # too big to keep: the adjoint assembles again
+            self.destroy()
+            return
+        if self._spare:
+            target = self._spare.pop()
+            A.copy(target, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        else:
+            target = A.duplicate(copy=True)
+        self.mats.append(target)
+
+    def matches(self, controls: Mapping[str, np.ndarray], batch: int) -> bool:
+        return (self.complete and batch == self.batch == len(self.mats)
+                and all(n in controls and np.array_equal(controls[n], v) for n, v in self.key.items()))
+
+    def restore(self, i: int, A: PETSc.Mat) -> None:
+        """Copy sample ``i``'s matrix into ``A`` (same pattern)."""
+        self.mats[i].copy(A, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+
+    def destroy(self) -> None:
+        for mat in self.mats + self._spare:
+            mat.destroy()
+        self.mats, self._spare = [], []
 
 
 class _Timer:

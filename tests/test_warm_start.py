@@ -113,3 +113,38 @@ def test_bad_guess_is_refused(heat):
         layer(u0=u0, initial_guess=torch.zeros(2, heat.output_size + 1, dtype=torch.float64))
     with pytest.raises(ValueError, match="initial_guess.*NaN"):
         layer(u0=u0, initial_guess=torch.full((heat.output_size,), float("nan"), dtype=torch.float64))
+
+
+def test_adjoint_reuses_the_forward_per_sample_matrices(heat, monkeypatch):
+    """A batch of per-sample matrices (kappa) is assembled once, in the forward pass;
+    the adjoint copies the kept matrices and gives the same gradient as reassembly."""
+    from fempdl.system import LinearSystem
+    u0 = control_values(heat, "u0", 3, seed=7)
+    kappa = control_values(heat, "kappa", 3, seed=7).requires_grad_()
+    calls = []
+    original = LinearSystem._assemble_matrix
+    monkeypatch.setattr(LinearSystem, "_assemble_matrix", lambda self: (calls.append(1), original(self))[1])
+    layer = SolveLayer(heat, KSPOptions(ksp_type="cg", rtol=1e-13, max_it=None))
+    out = layer(u0=u0, kappa=kappa)
+    grad = torch.autograd.grad(out.square().sum(), kappa)[0]
+    assert len(calls) == 3
+    with torch.no_grad():                      # no backward follows: nothing is kept
+        layer(u0=u0, kappa=kappa.detach() + 0.1)
+    assert len(layer.system._kept_matrices._entries) == 1
+    monkeypatch.setattr(LinearSystem, "_assemble_matrix", original)
+    fresh = SolveLayer(heat, KSPOptions(ksp_type="cg", rtol=1e-13, max_it=None))
+    fresh.system._kept_matrices._calls = 0     # keep nothing: the adjoint assembles again
+    out = fresh(u0=u0, kappa=kappa)
+    assert torch.allclose(torch.autograd.grad(out.square().sum(), kappa)[0], grad, rtol=1e-12, atol=0)
+
+
+def test_fit_threads():
+    from fempdl.parallel import fit_threads
+    before = torch.get_num_threads()
+    try:
+        assert fit_threads(1) == 1 and torch.get_num_threads() == 1
+        assert fit_threads() == 1          # one rank on this node: torch's current count is kept
+        with pytest.raises(ValueError, match="threads"):
+            fit_threads(0)
+    finally:
+        torch.set_num_threads(before)
