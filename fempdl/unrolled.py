@@ -23,19 +23,25 @@ lengths are 0 and the column stays where it is; forward values and gradients
 stay finite. Up to that point the iterate is PETSc's.
 
 Memory: autograd keeps ``stored_values`` floats (a few K n B). With
-``max_values`` set below that, the iterations run in checkpointed segments of
-about sqrt(K) iterations, each recomputed during the backward pass, so about
-2 sqrt(K) states are stored instead of K (recomputation is exact: the
-iteration is deterministic).
+``max_values`` set below that, the iterations run in segments of about
+sqrt(K) iterations that build no graph in the forward pass (one autograd node
+per segment, holding the segment's starting state) and are recomputed one at
+a time during the backward pass, so about 2 sqrt(K) states are stored instead
+of K (``checkpointed_values``; recomputation is exact: the iteration is
+deterministic). A solve whose stored values would exceed the memory budget
+(:func:`fempdl.resources.memory_budget`, half the available memory) is
+refused before it starts, with the estimate and the ways out.
 """
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
-from torch.utils.checkpoint import checkpoint
 
-__all__ = ["solve", "METHODS", "stored_values"]
+from fempdl.resources import format_bytes, memory_budget
+
+__all__ = ["solve", "METHODS", "stored_values", "checkpointed_values"]
 
 
 # A column counts as solved once its residual norm has fallen by 1e-20 (far past
@@ -164,22 +170,99 @@ def stored_values(method: str, K: int, n: int, batch: int, *, matrix_grad: bool 
     return _STORED_PER_ITERATION[method][int(matrix_grad)] * K * n * batch
 
 
+# Vectors (n, B) in a method's state: what a checkpointed segment keeps at its start.
+_STATE_VECTORS = {"jacobi": 1, "steepest_descent": 2, "cg": 4}
+
+
+def _segment_length(K: int) -> int:
+    return max(1, int(math.sqrt(K)))
+
+
+def checkpointed_values(method: str, K: int, n: int, batch: int, *, matrix_grad: bool = False) -> int:
+    """Float values a checkpointed K-step solve keeps at most: the starting state of every segment plus,
+    during the backward pass, one segment's stored iterates."""
+    segment = _segment_length(K)
+    starts = math.ceil(K / segment) * _STATE_VECTORS[method] * n * batch
+    return starts + stored_values(method, segment, n, batch, matrix_grad=matrix_grad)
+
+
+class _Segment(torch.autograd.Function):
+    """``run(state, extras)`` computed without a graph; recomputed with one in the backward pass.
+
+    Only the inputs are kept: the segment's starting state and the ``extras``,
+    the operands that need gradients (right-hand side, preconditioner, matrix
+    entries). The recomputation runs on detached copies of all of them, so it
+    never reaches into the graph outside the segment."""
+
+    @staticmethod
+    def forward(ctx, run, n_state: int, *tensors):
+        ctx.run, ctx.n_state = run, n_state
+        ctx.save_for_backward(*tensors)
+        with torch.no_grad():
+            return tuple(run(tensors[:n_state], tensors[n_state:]))
+
+    @staticmethod
+    def backward(ctx, *grads):
+        inputs = [t.detach().requires_grad_(t.requires_grad) for t in ctx.saved_tensors]
+        with torch.enable_grad():
+            out = ctx.run(inputs[:ctx.n_state], inputs[ctx.n_state:])
+        used = [(o, g) for o, g in zip(out, grads) if g is not None and o.requires_grad]
+        wanted = [t for t in inputs if t.requires_grad]
+        found = iter(torch.autograd.grad([o for o, _ in used], wanted, [g for _, g in used], allow_unused=True)
+                     if used and wanted else [None] * len(wanted))
+        return (None, None, *[next(found) if t.requires_grad else None for t in inputs])
+
+
+def _check_memory(method: str, K: int, R: torch.Tensor, matrix_grad: bool, checkpointed: bool,
+                  budget: int | None) -> None:
+    """Refuse a solve whose stored iterates would exceed ``budget`` bytes (default: half the available memory)."""
+    n, batch = R.shape
+    size = R.element_size()
+    plain = stored_values(method, K, n, batch, matrix_grad=matrix_grad) * size
+    if method in _STATE_VECTORS:
+        bounded = checkpointed_values(method, K, n, batch, matrix_grad=matrix_grad) * size
+    else:
+        bounded = None
+    need = bounded if checkpointed and bounded is not None else plain
+    budget = memory_budget() if budget is None else budget
+    if need <= budget:
+        return
+    ways = ["diff='implicit' (stores nothing per iteration)", "fewer samples per call"]
+    if bounded is not None and not checkpointed:
+        ways.insert(0, f"max_unrolled_values below {plain // size} (checkpointing keeps about 2 sqrt(K) states: "
+                       f"{format_bytes(bounded)})")
+    raise MemoryError(f"diff='unrolled' with {method}, K={K}, n={n}, B={batch} would keep about "
+                      f"{format_bytes(need)} for the backward pass, more than the memory budget of "
+                      f"{format_bytes(budget)} (half the available memory); use " + ", or ".join(ways))
+
+
 def solve(method: str, A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int, *,
           omega: float = 1.0, restart: int = 30, max_values: int | None = None,
-          X0: torch.Tensor | None = None) -> torch.Tensor:
+          X0: torch.Tensor | None = None, memory_budget: int | None = None) -> torch.Tensor:
     """K iterations of ``method`` on A X = R (R: (n, B)) from X = 0 or from ``X0``; returns X (n, B).
 
     A warm start is the K-step solve of the residual equation, X0 + S_K(R - A X0),
     which is what PETSc's Krylov methods do with a nonzero initial guess; autograd
     differentiates the dependence on X0 exactly. GMRES is not checkpointed (its
     state is a whole Krylov basis).
+
+    Raises:
+        MemoryError: with gradients on, the iterates to keep (``stored_values``,
+            or ``checkpointed_values`` when ``max_values`` is below it) exceed
+            ``memory_budget`` bytes (default: half the available memory).
     """
     if X0 is not None:
-        return X0 + solve(method, A, P, R - A @ X0, K, omega=omega, restart=restart, max_values=max_values)
+        return X0 + solve(method, A, P, R - A @ X0, K, omega=omega, restart=restart, max_values=max_values,
+                          memory_budget=memory_budget)
+    if method != "gmres" and method not in METHODS:
+        raise ValueError(f"method must be one of {sorted(METHODS) + ['gmres']}, got {method!r}")
+    matrix_grad = bool(getattr(A, "requires_grad", False))
+    stored = stored_values(method, K, *R.shape, matrix_grad=matrix_grad)
+    checkpointed = method != "gmres" and max_values is not None and stored > max_values
+    if torch.is_grad_enabled():
+        _check_memory(method, K, R, matrix_grad, checkpointed, memory_budget)
     if method == "gmres":
         return gmres(A, P, R, K, restart)
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {sorted(METHODS) + ['gmres']}, got {method!r}")
     impl = METHODS[method]
     if method == "jacobi":
         # One step tensor for all iterations: omega D^{-1}, or omega alone.
@@ -191,13 +274,27 @@ def solve(method: str, A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor,
             s = impl.step(A, P, R, omega, s)
         return s
 
-    stored = stored_values(method, K, *R.shape, matrix_grad=bool(getattr(A, "requires_grad", False)))
-    if max_values is None or not torch.is_grad_enabled() or stored <= max_values:
+    if not checkpointed or not torch.is_grad_enabled():
         return run(K, *state)[0]
-    segment = max(1, int(math.sqrt(K)))
-    done = 0
+    # The operands that need gradients pass through _Segment as inputs; an operator's
+    # differentiable entries are its ``values`` (fempdl.bridge_torch's matrix controls).
+    operands = {"R": R, "P": P, "omega": omega, "values": getattr(A, "values", None)}
+    varying = [name for name, t in operands.items() if isinstance(t, torch.Tensor) and t.requires_grad]
+
+    def segment_run(count: int, s: tuple, extras: tuple) -> tuple:
+        given = {**operands, **dict(zip(varying, extras))}
+        op = A
+        if "values" in varying:
+            op = copy.copy(A)
+            op.values = given["values"]
+        for _ in range(count):
+            s = impl.step(op, given["P"], given["R"], given["omega"], s)
+        return s
+
+    segment, done = _segment_length(K), 0
     while done < K:
         count = min(segment, K - done)
-        state = checkpoint(run, count, *state, use_reentrant=False)
+        state = _Segment.apply(lambda s, extras, count=count: segment_run(count, s, extras), len(state), *state,
+                               *[operands[name] for name in varying])
         done += count
     return state[0]

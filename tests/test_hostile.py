@@ -294,3 +294,57 @@ def test_ctrl_c_stops_a_long_petsc_solve():
     assert done.returncode == 0, done.stderr
     iterations = int(done.stdout.split("after")[1].split()[0])
     assert 0 < iterations < 10 ** 9
+
+
+# ------------------------------------------------------------------ unrolled memory
+def _graph_nodes(tensor: torch.Tensor) -> int:
+    seen, stack = set(), [tensor.grad_fn]
+    while stack:
+        node = stack.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        stack.extend(next_node for next_node, _ in node.next_functions)
+    return len(seen)
+
+
+@pytest.mark.parametrize("control", ["f", "kappa"])
+def test_max_unrolled_values_bounds_what_the_forward_pass_keeps(coarse_problems, control):
+    """Checkpointed segments keep one autograd node (and one starting state) per segment, not a graph
+    of every iteration (measured RSS: scripts/bench_bounds.py); the gradient is unchanged."""
+    from fempdl import unrolled
+    from fempdl.bridge_torch import SolveLayer
+    prob = coarse_problems["poisson"]
+    K, batch = 400, 2
+    m = torch.rand(batch, prob.control_size(control), dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(0)) + 0.5
+    w = torch.randn(batch, prob.output_size, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    opts = KSPOptions.preset("cg", max_it=K) if control == "f" else KSPOptions(max_it=K)
+    grads, nodes = [], []
+    for limit in (None, 10):
+        x = m.clone().requires_grad_()
+        u = SolveLayer(prob, opts, diff="unrolled", max_unrolled_values=limit)(**{control: x})
+        nodes.append(_graph_nodes(u))
+        (u * w).sum().backward()
+        grads.append(x.grad)
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-12, atol=1e-14)
+    assert nodes[0] > 3 * K and nodes[1] < 2 * 20 + 30      # 20 segments of 20 iterations
+    assert unrolled.checkpointed_values("cg", K, 100, batch) < unrolled.stored_values("cg", K, 100, batch) / 5
+
+
+def test_an_unrolled_solve_beyond_the_memory_budget_is_refused_up_front(coarse_problems):
+    from fempdl import unrolled
+    from fempdl.bridge_torch import SolveLayer
+    prob = coarse_problems["poisson"]
+    f = torch.ones(2, prob.control_size("f"), dtype=torch.float64, requires_grad=True)
+    layer = SolveLayer(prob, KSPOptions.preset("cg", max_it=2 * 10 ** 9), diff="unrolled")
+    with pytest.raises(MemoryError, match=r"K=2000000000.* would keep about [\d.]+ [TP]iB for the backward pass, "
+                                          r"more than the memory budget .* max_unrolled_values below"):
+        layer(f=f)
+    with torch.no_grad():                                    # nothing is stored: nothing to refuse
+        SolveLayer(prob, KSPOptions.preset("cg", max_it=3), diff="unrolled")(f=f)
+    A = torch.eye(4, dtype=torch.float64).to_sparse_csr()
+    R = torch.ones(4, 1, dtype=torch.float64, requires_grad=True)
+    with pytest.raises(MemoryError, match=r"more than the memory budget of 1.0 KiB"):
+        unrolled.solve("cg", A, None, R, 1000, memory_budget=1024)
+    unrolled.solve("cg", A, None, R, 1000, max_values=100, memory_budget=2 ** 20)   # checkpointed: fits
