@@ -9,6 +9,9 @@ random boxes ("rectangles"), zero at the Dirichlet DOFs; the observations are
 the converged (LU) solutions, plus Gaussian noise when ``[data] noise`` > 0.
 With ``[data] resample`` the training truths are drawn anew every epoch
 (seeded by the epoch, so a resumed run draws the same ones).
+The marker PDE (an initial velocity from the marker it moved, a rollout of
+flow and marker steps) has its own task, :mod:`fempdl.marker_inversion`
+(``TASKS``); :func:`run` and :mod:`fempdl.compare` treat it alike.
 
 Three ways to train the same network (``method``):
 
@@ -42,6 +45,7 @@ from fempdl.bridge_torch import SolveLayer
 from fempdl.experiments import RunResult, Task, make_optimizer, run_settings, smooth_fields
 from fempdl.hig import HIG
 from fempdl.ksp_adjoint import KSPOptions
+from fempdl.marker_inversion import MarkerInversionTask
 from fempdl.networks import mlp
 from fempdl.scene import Scene
 from fempdl.sip import ExactLinearInverse, GaussNewtonInverse, TikhonovInverse, proxy_loss
@@ -181,13 +185,17 @@ class InversionTask(Task):
         self.layer.close()
 
 
+# Tasks of the PDEs whose inverse problem is not one layer's (the others: InversionTask).
+TASKS = {"marker": MarkerInversionTask}
+
+
 def run(scene: Scene, method: str, *, out_dir: Path | None = None, resume: bool = False, epochs: int | None = None,
         progress: bool = False, stop_after: int | None = None, stop_at_time: float | None = None) -> RunResult:
     """Train a sip or hig scene with ``method`` (its own, or "backprop"); metrics and checkpoints in ``out_dir``.
 
     ``stop_at_time`` ends the run once its training steps took that many
     seconds (a resumed run can so be extended to equal training time)."""
-    task = InversionTask(scene, method)
+    task = TASKS.get(scene.pde["type"], InversionTask)(scene, method)
     trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer["batch"],
                       out_dir=out_dir, seed=scene.data["seed"], progress=progress, stop_after=stop_after,
                       stop_at=scene.optimizer["stop_at"], stop_at_time=stop_at_time,

@@ -7,7 +7,7 @@ brackets; ``required`` has none)::
                  task (required: "emulator" | "inverse" | "hybrid" | "sip" | "hig")
     [mesh]       name (required: bundled name or path to a .msh), h [bundled default]
     [pde]        type (required: "heat" | "burgers" for emulators, "poisson" for inverse
-                 and hig, "poisson" | "heat" for sip, "oseen" for hybrid), degree [1; 2 for oseen], kappa [1.0] (heat, poisson),
+                 and hig, "poisson" | "heat" | "marker" for sip, "oseen" for hybrid), degree [1; 2 for oseen, marker], kappa [1.0] (heat, poisson),
                  dt [0.01] (heat, burgers, oseen), theta [1.0] (heat), nu [0.01] (burgers,
                  oseen), inflow [1.0] (oseen: peak of the parabolic inlet profile)
     [data]       seed [0], k_eps_rtol [1e-5] (not sip, hig), and for all but inverse
@@ -22,6 +22,11 @@ brackets; ``required`` has none)::
     [sip]        inverse (required: "exact" | "tikhonov" | "gauss-newton"), eta [1.0],
                  damping [0.0] (Tikhonov alpha; tikhonov, gauss-newton), cg_iterations
                  [20] (gauss-newton)                                          (sip only)
+    [marker]     steps [4], smoothing [0.1] (the projection's length ell), speed [1.0] (largest
+                 initial speed), shape ["blob"] ("blob" | "band"), width [0.25], prior [1e-4]
+                 (Tikhonov prior of the Gauss-Newton inverse); [pde] dt, nu (fluid), kappa
+                 (marker diffusivity), degree [2] (velocity); [sip] inverse "gauss-newton"
+                                                                   (sip on pde "marker" only)
     [hig]        lr [1.0], kappa [-0.5], beta [0.0], tau [1e-5], method ["auto"] ("auto" |
                  "svd" | "gram"), max_jacobian_mib [1024]                     (hig only)
     [baseline]   lr [the optimizer's lr; 1e-3 for hig], decay [the optimizer's decay; 1.0
@@ -87,7 +92,7 @@ SCHEMA: dict[str, dict[str, _Key]] = {
     "scene": {"name": _Key(str), "description": _Key(str, ""),
               "task": _Key(str, choices=("emulator", "inverse", "hybrid", "sip", "hig"))},
     "mesh": {"name": _Key(str), "h": _Key(float, None, minimum=_POSITIVE)},
-    "pde": {"type": _Key(str, choices=("heat", "poisson", "burgers", "oseen")),
+    "pde": {"type": _Key(str, choices=("heat", "poisson", "burgers", "oseen", "marker")),
             "dt": _Key(float, 0.01, minimum=_POSITIVE), "theta": _Key(float, 1.0, minimum=0.0, maximum=1.0),
             "kappa": _Key(float, 1.0, minimum=_POSITIVE), "degree": _Key(int, None, minimum=1),
             "nu": _Key(float, 0.01, minimum=_POSITIVE), "inflow": _Key(float, 1.0, minimum=_POSITIVE)},
@@ -102,6 +107,9 @@ SCHEMA: dict[str, dict[str, _Key]] = {
     "sip": {"inverse": _Key(str, choices=("exact", "tikhonov", "gauss-newton")),
             "eta": _Key(float, 1.0, minimum=_POSITIVE),
             "damping": _Key(float, 0.0, minimum=0.0), "cg_iterations": _Key(int, 20, minimum=1)},
+    "marker": {"steps": _Key(int, 4, minimum=1), "smoothing": _Key(float, 0.1, minimum=_POSITIVE),
+               "speed": _Key(float, 1.0, minimum=_POSITIVE), "shape": _Key(str, "blob", choices=("blob", "band")),
+               "width": _Key(float, 0.25, minimum=_POSITIVE), "prior": _Key(float, 1e-4, minimum=0.0)},
     "hig": {"lr": _Key(float, 1.0, minimum=_POSITIVE), "kappa": _Key(float, -0.5), "beta": _Key(float, 0.0),
             "tau": _Key(float, 1e-5, minimum=0.0, maximum=1.0),
             "method": _Key(str, "auto", choices=("auto", "svd", "gram")),
@@ -128,12 +136,13 @@ _TASK_SECTIONS = {
     "inverse": {"required": {"scene", "mesh", "pde", "inverse"}, "optional": {"data", "optimizer", "solver", "prdp"}},
     "hybrid": {"required": {"scene", "mesh", "pde", "hybrid"},
                "optional": {"data", "network", "optimizer", "solver", "prdp"}},
-    "sip": {"required": {"scene", "mesh", "pde", "sip"}, "optional": {"data", "network", "optimizer", "baseline"}},
+    "sip": {"required": {"scene", "mesh", "pde", "sip"},
+            "optional": {"data", "network", "optimizer", "baseline", "marker"}},
     "hig": {"required": {"scene", "mesh", "pde", "hig"}, "optional": {"data", "network", "optimizer", "baseline"}},
 }
 # The PDEs each task is built for.
 _TASK_PDES = {"emulator": ("heat", "burgers"), "inverse": ("poisson",), "hybrid": ("oseen",),
-              "sip": ("poisson", "heat"), "hig": ("poisson",)}
+              "sip": ("poisson", "heat", "marker"), "hig": ("poisson",)}
 # Tasks that compare a training method with Adam and backpropagation (fempdl.inversion).
 METHOD_TASKS = ("sip", "hig")
 _INVERSION_DATA = {"truths", "noise", "resample"}
@@ -151,6 +160,7 @@ _NOT_FOR = {
     ("pde", "heat"): {"pde": {"nu", "inflow"}},
     ("pde", "burgers"): {"pde": {"theta", "kappa", "inflow"}},
     ("pde", "oseen"): {"pde": {"theta", "kappa"}},
+    ("pde", "marker"): {"pde": {"theta", "inflow"}},
 }
 
 
@@ -177,6 +187,7 @@ class Scene:
     sip: dict | None = None
     hig: dict | None = None
     baseline: dict | None = None
+    marker: dict | None = None
     source: str = ""
 
     def as_dict(self) -> dict:
@@ -291,7 +302,8 @@ def _check_method(values: dict, raw: dict, source: str) -> None:
     """The SIP / HIG scenes: degree default, an MLP, the inverse's keys, the baseline's learning rate and decay."""
     pde, network = values["pde"], values["network"]
     if pde["degree"] is None:
-        pde["degree"] = 1
+        pde["degree"] = 2 if pde["type"] == "marker" else 1
+    _check_marker(values, raw, source)
     if network["type"] != "mlp":
         raise SceneError(f"{source}: [network] type must be 'mlp' for the {values['scene']['task']} task "
                          f"(a dense network from the observation to the source), got {network['type']!r}")
@@ -307,6 +319,22 @@ def _check_method(values: dict, raw: dict, source: str) -> None:
     for key, hig_default in (("lr", 1e-3), ("decay", 1.0)):
         if baseline[key] is None:
             baseline[key] = values["optimizer"][key] if sip is not None else hig_default
+
+
+def _check_marker(values: dict, raw: dict, source: str) -> None:
+    """[marker] belongs to the marker PDE (elsewhere it is dropped, or refused if given); it needs
+    Taylor-Hood (degree >= 2) and the Gauss-Newton inverse (the physics is nonlinear)."""
+    if values["pde"]["type"] != "marker":
+        if "marker" in raw:
+            raise SceneError(f"{source}: [marker] applies to [pde] type 'marker' only; remove it")
+        values.pop("marker", None)
+        return
+    if values["pde"]["degree"] < 2:
+        raise SceneError(f"{source}: [pde] degree must be >= 2 for marker (the Taylor-Hood velocity P_k-P_(k-1)), "
+                         f"got {values['pde']['degree']}")
+    if values["sip"]["inverse"] != "gauss-newton":
+        raise SceneError(f"{source}: [sip] inverse must be 'gauss-newton' for the marker PDE (its physics is "
+                         f"nonlinear in the velocity), got {values['sip']['inverse']!r}")
 
 
 def _section(raw: dict, name: str, source: str) -> dict:

@@ -252,7 +252,9 @@ class LinearisedGaussNewton:
 
     Args:
         physics: x (B, n_x) -> y (B, n_y), differentiable by autograd, samples
-            independent (row b of y depends on row b of x only).
+            independent (row b of y depends on row b of x only); called as
+            ``physics(x, **fixed)`` with the keyword inputs given to the call
+            (e.g. each sample's initial marker).
     """
 
     def __init__(self, physics, *, damping: float = 0.0, prior: float = 0.0, max_it: int = 10, rtol: float = 0.0,
@@ -271,10 +273,10 @@ class LinearisedGaussNewton:
         self.eta, self.fd_step = float(eta), float(fd_step)
         self.last_iterations = 0
 
-    def __call__(self, x0: torch.Tensor, y_target: torch.Tensor) -> torch.Tensor:
+    def __call__(self, x0: torch.Tensor, y_target: torch.Tensor, **fixed) -> torch.Tensor:
         x0d = x0.detach().double().clone().requires_grad_(True)
         with torch.enable_grad():
-            y0 = self.physics(x0d)
+            y0 = self.physics(x0d, **fixed)
         scale = 1.0 + x0d.detach().norm(dim=-1, keepdim=True)
 
         def adjoint(w):                                               # J^T w
@@ -283,7 +285,7 @@ class LinearisedGaussNewton:
 
         def tangent(v):                                               # J v by a forward difference
             eps = self.fd_step * scale / v.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-            return (self.physics(x0d.detach() + eps * v) - y0.detach()) / eps
+            return (self.physics(x0d.detach() + eps * v, **fixed) - y0.detach()) / eps
 
         x = x0d.detach()
         with torch.no_grad():

@@ -12,7 +12,8 @@ from fempdl import scene
 from fempdl.scene import SCHEMA, SceneError
 
 EXPECTED_BUNDLED = {"heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
-                    "burgers-emulator", "ns-hybrid", "sip-poisson", "sip-heat", "hig-poisson"}
+                    "burgers-emulator", "ns-hybrid", "sip-poisson", "sip-heat", "hig-poisson", "sip-flow",
+                    "sip-flow-full"}
 
 EMULATOR = {"scene": 'name = "t"\ntask = "emulator"', "mesh": 'name = "lshape"', "pde": 'type = "heat"'}
 INVERSE = {"scene": 'name = "t"\ntask = "inverse"', "mesh": 'name = "lshape"', "pde": 'type = "poisson"',
@@ -226,7 +227,7 @@ BAD = {
                         ["[prdp] tau_step must be of type float, got {'value': 0.9} (dict)"]),
     # choices
     "pde-choice": (toml(drop=("pde",)) + '[pde]\ntype = "wave"\n',
-                   ["[pde] type must be one of ['heat', 'poisson', 'burgers', 'oseen'], got 'wave'"]),
+                   ["[pde] type must be one of ['heat', 'poisson', 'burgers', 'oseen', 'marker'], got 'wave'"]),
     # PDE and task, solver and network combinations
     "poisson-emulator": (toml(drop=("pde",)) + '[pde]\ntype = "poisson"\n',
                          ["[pde] type 'poisson' does not apply to task 'emulator'; it takes ['heat', 'burgers']"]),
@@ -321,7 +322,7 @@ BAD = {
     "sip-negative-damping": (toml(base={**SIP, "sip": 'inverse = "gauss-newton"\ndamping = -1.0'}),
                              ["[sip] damping must be >= 0, got -1.0"]),
     "sip-oseen": (toml(base={**SIP, "pde": 'type = "oseen"'}),
-                  ["[pde] type 'oseen' does not apply to task 'sip'", "['poisson', 'heat']"]),
+                  ["[pde] type 'oseen' does not apply to task 'sip'", "['poisson', 'heat', 'marker']"]),
     "sip-graph": (toml({"network": 'type = "graph"'}, base=SIP), ["[network] type must be 'mlp' for the sip task"]),
     "sip-solver": (toml({"solver": 'preset = "cg"'}, base=SIP), ["section(s) ['solver'] do not apply to task 'sip'"]),
     "sip-prdp": (toml({"prdp": "k0 = 2"}, base=SIP), ["section(s) ['prdp'] do not apply to task 'sip'"]),

@@ -8,10 +8,11 @@ import ufl
 from mpi4py import MPI
 
 import dolfinx.fem
-from fempdl import _dolfinx, mesh
+from fempdl import _dolfinx, compare, mesh, scene
 from fempdl.experiments import smooth_fields
 from fempdl.ksp_adjoint import KSPOptions
 from fempdl.marker_flow import ENCLOSED_LU, MarkerFlow
+from fempdl.marker_inversion import MarkerInversionTask
 from fempdl.sip import LinearisedGaussNewton, batched_cg
 
 
@@ -156,3 +157,93 @@ def test_gauss_newton_reaches_a_marker_error_gradient_descent_does_not_reach_in_
     start = float(P.relative_error("marker", m0, y))
     assert gn_errors[-1] < 0.1 * start and gn_errors[-1] < 0.5 * gd_error, (start, gn_errors, gd_error)
     P.close()
+
+
+# ------------------------------------------------------------------ the sip-flow scene
+TINY_FLOW = """
+[scene]
+name = "tiny-flow"
+task = "sip"
+[mesh]
+name = "lshape"
+h = 0.5
+[pde]
+type = "marker"
+dt = 0.1
+nu = 0.05
+kappa = 0.01
+[marker]
+steps = 2
+width = 0.3
+[data]
+train = 4
+validation = 3
+modes = 2
+[network]
+hidden = 16
+layers = 1
+[sip]
+inverse = "gauss-newton"
+cg_iterations = 3
+[optimizer]
+lr = 1e-3
+epochs = 2
+batch = 4
+"""
+
+
+def test_the_bundled_sip_flow_scenes_parse_with_the_marker_keys():
+    for name in ("sip-flow", "sip-flow-full"):
+        sc = scene.load(name)
+        assert sc.pde["type"] == "marker" and sc.pde["degree"] == 2 and sc.sip["inverse"] == "gauss-newton"
+        assert set(sc.marker) == {"steps", "smoothing", "speed", "shape", "width", "prior"}
+    assert scene.load("sip-poisson").marker is None
+
+
+@pytest.mark.parametrize("edit, fragment", [
+    (lambda t: t.replace('inverse = "gauss-newton"\ncg_iterations = 3', 'inverse = "exact"'),
+     "[sip] inverse must be 'gauss-newton' for the marker PDE"),
+    (lambda t: t.replace("kappa = 0.01", "kappa = 0.01\ndegree = 1"), "[pde] degree must be >= 2 for marker"),
+    (lambda t: t.replace('type = "marker"\ndt = 0.1\nnu = 0.05\nkappa = 0.01', 'type = "poisson"'),
+     "[marker] applies to [pde] type 'marker' only"),
+    (lambda t: t.replace("kappa = 0.01", "kappa = 0.01\ntheta = 0.5"), "[pde] theta do(es) not apply to pde 'marker'"),
+    (lambda t: t.replace("width = 0.3", 'shape = "ring"'), "[marker] shape must be one of ['blob', 'band']"),
+])
+def test_scene_errors_name_the_marker_keys(edit, fragment):
+    with pytest.raises(scene.SceneError) as err:
+        scene.parse(edit(TINY_FLOW))
+    assert fragment in str(err.value)
+
+
+@pytest.fixture(scope="module")
+def tiny_flow_scene():
+    return scene.parse(TINY_FLOW)
+
+
+def test_marker_task_data_and_a_sip_step(tiny_flow_scene):
+    task = MarkerInversionTask(tiny_flow_scene, "sip")
+    P = task.physics
+    assert task.train["inputs"].shape == (4, 2 * P.marker_size) and task.train["g"].shape == (4, P.velocity_size)
+    speeds = task.train["v0"].reshape(4, -1, 2).norm(dim=-1).max(dim=1).values
+    torch.testing.assert_close(speeds, torch.ones(4, dtype=torch.float64))         # [marker] speed
+    torch.testing.assert_close(task.train["y"], P(task.train["g"], task.train["m0"]))
+    idx = torch.arange(4)
+    x = task.model(task.train["inputs"]).detach()
+    x_star = task.inverse(x, task.train["y"], m0=task.train["m0"])
+    before = P.relative_error("marker", P(x, task.train["m0"]), task.train["y"])
+    after = P.relative_error("marker", P(x_star, task.train["m0"]), task.train["y"])
+    assert bool((after < 0.7 * before).all()), (before, after)                  # the inverse's target is better
+    first = float(task.loss(idx).detach())
+    for _ in range(5):
+        task.train_step(idx)
+    assert float(task.loss(idx).detach()) < first
+    assert task.validation_errors(torch.arange(3)).shape == (3,) and task.marker_errors(torch.arange(3)).shape == (3,)
+    task.close()
+
+
+def test_compare_runs_sip_flow_against_adam(tiny_flow_scene, tmp_path):
+    runs = compare.compare(tiny_flow_scene, tmp_path, max_factor=3)
+    split = compare.summary(tiny_flow_scene, runs)
+    assert split["method"] == "sip" and split["iterations"] == 2
+    assert len(runs["backprop"].rows) >= 2 and split["ratio_equal_iterations"] > 0
+    assert all(0 < row["val_metric"] < 2 for r in runs.values() for row in r.rows)
