@@ -6,6 +6,17 @@ Public names::
     from fempdl.ksp_adjoint import KSPOptions, CappedSolver, SolveStats
     from fempdl.bridge_torch import SolveLayer
 """
+import os
+
+# OpenMP threads (torch's, the BLAS's) that spin-wait between parallel regions
+# stall any other busy process on the same cores (measured: two runs at once
+# on 2 cores took 6x as long as one). The policy is read when the OpenMP
+# runtime loads, so it is set here, before anything that loads it; a value the
+# user set wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+# The version shim first: it loads MPI before DOLFINx, which PyPI's DOLFINx needs.
+from fempdl import _dolfinx  # noqa: F401  isort: skip
 from fempdl import forms, mesh
 from fempdl.problem import Problem
 

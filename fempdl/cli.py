@@ -59,6 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--epochs", type=_positive_int, help="override the scene's number of epochs")
     run.add_argument("--no-baseline", action="store_true", help="skip the converged baseline run")
     run.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    run.add_argument("--seed", type=int, help="network initialisation and minibatch order (default: the "
+                                              "scene's data seed; the data stay the scene's)")
     run.add_argument("--parallel", choices=("data", "mesh"),
                      help="under mpirun: spread every batch over the ranks (data) or distribute the mesh (mesh)")
 
@@ -174,7 +176,7 @@ def _command(args, sc, out: Path) -> int:
         return 2
     runs = {}
     baseline = None
-    common = {"progress": progress, "parallel": args.parallel}
+    common = {"progress": progress, "parallel": args.parallel, "seed": args.seed}
     if not args.no_baseline or args.converged:
         baseline = experiments.run(sc, "converged", out_dir=out / "converged",
                                    resume=_can_resume(args, out / "converged"), **common)
@@ -189,7 +191,12 @@ def _command(args, sc, out: Path) -> int:
         ranks = f" on {MPI.COMM_WORLD.size} ranks ({args.parallel})" if args.parallel else ""
         print(f"scene {sc.name}: {sc.description}{ranks}")
         print(tradeoff.comparison_table(runs))
-        print(f"metrics and checkpoints in {out}")
+        print("where the time went [s]:")
+        for label, r in runs.items():
+            print(f"  {label:<12} " + ", ".join(f"{part.replace('_', ' ')} {sec:.2f}"
+                                               for part, sec in tradeoff.time_split(r).items()))
+        tradeoff.plot_time_split(runs, out / "time_split.png", sc.name)
+        print(f"metrics, checkpoints and time_split.png in {out}")
     return 0
 
 

@@ -401,7 +401,7 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
                       out_dir=out_dir, prdp=prdp, seed=scene.data["seed"] if seed is None else seed,
                       progress=progress,
                       stop_after=stop_after, stop_at=scene.optimizer["stop_at"], parallel=parallel, comm=comm,
-                      settings=run_settings(scene, mode=mode, k=k))
+                      settings=run_settings(scene, mode=mode, k=k, seed=seed))
     try:
         rows = trainer.run(resume=resume)
     finally:

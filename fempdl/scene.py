@@ -42,8 +42,8 @@ brackets; ``required`` has none)::
     [solver]     preset ["jacobi"] ("jacobi" | "cg" | "gmres" | "gmres-ilu" | "schur": the
                  capped solver; "schur" is for oseen and only it),
                  diff ["implicit"] ("implicit" | "unrolled"), warm_start [false] (start the
-                 capped solve from the state being advanced, or the previous solution of
-                 an inverse problem, instead of zero)                        (not sip, hig)
+                 capped solve from the state being advanced instead of zero; emulator,
+                 hybrid)                                                     (not sip, hig)
     [prdp]       k0 [1], dk [1], tau_step [0.95], tau_stop [0.9], delta [3], ema_window [6],
                  k_cap [none], guard [none] (refine at once when the metric rises above
                  guard x its best), growth [1.0] (a refinement sets K to
@@ -151,7 +151,7 @@ _INVERSION_DATA = {"truths", "noise", "resample"}
 # Keys a task or PDE type does not use: setting them is an error, not a silent no-op.
 _NOT_FOR = {
     ("task", "inverse"): {"data": {"train", "validation", "modes", "rollout"} | _INVERSION_DATA,
-                          "optimizer": {"batch"}},
+                          "optimizer": {"batch"}, "solver": {"warm_start"}},
     ("task", "emulator"): {"data": _INVERSION_DATA},
     ("task", "hybrid"): {"data": _INVERSION_DATA},
     ("task", "sip"): {"data": {"k_eps_rtol", "rollout"}},

@@ -17,9 +17,10 @@ cumulative forward + backward inner iterations (and, separately, wall time).
 For tasks trained to a target (``stop_at``), K_max is the smallest fixed K
 that reaches it.
 
-:func:`write_report` writes ``tradeoff.json``, ``tradeoff.csv`` and two PNG
-plots: the metric per epoch for every run with PRDP's K schedule, and the
-metric against cumulative iterations and against wall time.
+:func:`write_report` writes ``tradeoff.json``, ``tradeoff.csv`` and three PNG
+plots: the metric per epoch for every run with PRDP's K schedule, the
+metric against cumulative iterations and against wall time, and where each
+run's wall time went (:func:`plot_time_split`).
 """
 from __future__ import annotations
 
@@ -30,9 +31,10 @@ from pathlib import Path
 from fempdl import experiments
 from fempdl.experiments import RunResult
 from fempdl.scene import Scene
-from fempdl.training import write_atomically
+from fempdl.training import TIME_PARTS, write_atomically
 
-__all__ = ["sweep", "savings", "comparison_table", "write_report", "geometric_caps", "summary_lines"]
+__all__ = ["sweep", "savings", "comparison_table", "write_report", "geometric_caps", "summary_lines",
+           "time_split", "plot_time_split"]
 
 
 def geometric_caps(k_eps: int) -> list[int]:
@@ -116,20 +118,51 @@ def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir:
                  for label, r in runs.items()},
     }
     paths = [out_dir / "tradeoff.json", out_dir / "tradeoff.csv", out_dir / "metric_per_epoch.png",
-             out_dir / "metric_vs_cost.png"]
+             out_dir / "metric_vs_cost.png", out_dir / "time_split.png"]
     write_atomically(paths[0], lambda p: p.write_text(json.dumps(summary, indent=1)))
 
     def write_csv(p: Path) -> None:
         with p.open("w", newline="") as fh:
             writer = csv.writer(fh)
-            writer.writerow(["run", "mode", "k_schedule", "final_metric", "total_iterations", "wall_time"])
+            writer.writerow(["run", "mode", "k_schedule", "final_metric", "total_iterations", "wall_time",
+                             *(f"time_{part}" for part in TIME_PARTS)])
             for label, r in runs.items():
                 writer.writerow([label, r.mode, _schedule_text(r.k_schedule), r.final_metric,
-                                 r.total_iterations, r.wall_time])
+                                 r.total_iterations, r.wall_time, *time_split(r).values()])
     write_atomically(paths[1], write_csv)
     _plot_per_epoch(runs, paths[2], scene.name)
     _plot_against_cost(runs, paths[3], scene.name)
+    plot_time_split(runs, paths[4], scene.name)
     return paths
+
+
+def time_split(run: RunResult) -> dict[str, float]:
+    """Seconds of the run's wall time per part (:data:`fempdl.training.TIME_PARTS`)."""
+    last = run.rows[-1]
+    return {part: float(last.get(f"time_{part}", 0.0)) for part in TIME_PARTS}
+
+
+def plot_time_split(runs: dict[str, RunResult], path: Path, title: str) -> None:
+    """A stacked bar per run: its wall time split into solver iterations, set-up,
+    assembly, adjoint operator, network, validation and the rest."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = list(runs)
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.2 * len(labels) + 3.0), 5))
+    bottom = [0.0] * len(labels)
+    for part in TIME_PARTS:
+        heights = [time_split(runs[label])[part] for label in labels]
+        ax.bar(labels, heights, bottom=bottom, label=part.replace("_", " "))
+        bottom = [b + h for b, h in zip(bottom, heights)]
+    ax.set_ylabel("wall time [s]")
+    ax.set_title(f"{title}: where the training time went")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
+    fig.tight_layout()
+    write_atomically(path, lambda p: fig.savefig(p, format="png", dpi=120))
+    plt.close(fig)
 
 
 def _schedule_text(schedule: list[tuple[int, int]]) -> str:

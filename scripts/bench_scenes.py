@@ -1,64 +1,103 @@
-"""Benchmark: PRDP against converged physics on the bundled scenes.
+"""Benchmark: PRDP against converged physics on the bundled PRDP scenes, over seeds.
 
-For each scene: one training run with the converged cap K_eps (the baseline)
-and one with PRDP, same seed, same epochs, one after the other in this process
-(so both see the same machine load). Recorded per run: the final validation
-metric, cumulative forward + backward inner iterations, the solvers' time
-(KSP solves only) and the whole training wall time, the K schedule; and the
-ratios PRDP / baseline for each. For ``hybrid`` scenes also the validation
-metric of the coarse solver alone (no correction), so the network's gain is on
-record.
+For each scene and each seed (network initialisation and minibatch order;
+the data are the scene's): one training run with the converged cap K_eps (the
+baseline) and one with PRDP, one after the other in this process, so both see
+the same machine load. Recorded per run: the final validation metric,
+cumulative forward + backward inner iterations, wall time and where it went
+(solver iterations, set-up, assembly, adjoint operator, network, validation,
+other), and the K schedule. Per scene: PRDP / baseline ratios of the seeds'
+means (metric, iterations, wall time) and each seed's ratios (the spread);
+with ``--sweep`` also the fixed-K sweep of :mod:`fempdl.tradeoff` (seed 0)
+and PRDP's saving split into incomplete-convergence and progressive-refinement
+parts. The summary averages the savings over the scenes.
 
-Writes ``bench-results/bench_scenes.json`` (``--out``) and prints one line per
-scene. Run: ``python scripts/bench_scenes.py --scenes burgers-emulator,ns-hybrid``
-(about 6 minutes on 2 cores).
+Writes ``bench-results/bench_scenes.json`` (``--out``) after every scene.
+Run on an idle machine: ``python scripts/bench_scenes.py --threads 1``.
 """
 from __future__ import annotations
 
 import argparse
+import os
+import statistics
 import sys
 from pathlib import Path
 
-from fempdl import experiments, scene
-
 from bench_common import comma_list, machine_info, write_json_atomically
+
+import torch
+
+from fempdl import experiments, scene, tradeoff
+
+PRDP_SCENES = ["heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
+               "burgers-emulator", "ns-hybrid"]
 
 
 def summary(run) -> dict:
-    last = run.rows[-1]
     return {"final_metric": run.final_metric, "total_iterations": run.total_iterations,
-            "solve_time": last["solve_time"], "wall_time": run.wall_time, "k_schedule": run.k_schedule,
-            "epochs": len(run.rows)}
+            "wall_time": run.wall_time, "train_time": run.rows[-1]["train_time"],
+            "time_split": tradeoff.time_split(run), "k_schedule": run.k_schedule, "epochs": len(run.rows)}
 
 
-def bench_scene(name: str) -> dict:
+def _ratio(prdp: list, base: list, key: str) -> float:
+    return statistics.mean(r[key] for r in prdp) / statistics.mean(r[key] for r in base)
+
+
+def bench_scene(name: str, seeds: list[int], sweep: bool) -> dict:
     sc = scene.load(name)
-    base = experiments.run(sc, "converged")
-    prdp = experiments.run(sc, "prdp", k_eps_value=base.k_eps)
-    out = {"k_eps": base.k_eps, "converged": summary(base), "prdp": summary(prdp)}
-    out["ratios"] = {key: out["prdp"][key] / out["converged"][key]
-                     for key in ("final_metric", "total_iterations", "solve_time", "wall_time")}
-    if sc.task == "hybrid":
-        task = experiments.build_task(sc, experiments.solver_options(sc, 1))
-        out["uncorrected_metric"] = task.uncorrected_metric
-        task.close()
+    base, prdp, k_eps = [], [], None
+    for seed in seeds:
+        b = experiments.run(sc, "converged", seed=seed, k_eps_value=k_eps)
+        k_eps = b.k_eps
+        p = experiments.run(sc, "prdp", seed=seed, k_eps_value=k_eps)
+        base.append(summary(b))
+        prdp.append(summary(p))
+    out = {"k_eps": k_eps, "seeds": seeds, "converged": base, "prdp": prdp,
+           "ratios": {key: _ratio(prdp, base, key) for key in ("final_metric", "total_iterations", "wall_time",
+                                                               "train_time")},
+           "ratios_per_seed": [{key: p[key] / b[key] for key in ("final_metric", "total_iterations", "wall_time")}
+                               for p, b in zip(prdp, base)]}
+    out["iteration_savings"] = 1.0 - out["ratios"]["total_iterations"]
+    out["wall_time_savings"] = 1.0 - out["ratios"]["wall_time"]
+    if sweep:
+        runs = tradeoff.sweep(sc)
+        out["sweep"] = {"savings": tradeoff.savings(runs, stop_at=sc.optimizer["stop_at"]),
+                        "runs": {label: summary(r) for label, r in runs.items()}}
     return out
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--scenes", type=comma_list(str), default=["burgers-emulator", "ns-hybrid"])
+    parser.add_argument("--scenes", type=comma_list(str), default=PRDP_SCENES)
+    parser.add_argument("--seeds", type=comma_list(int), default=[0, 1, 2])
+    parser.add_argument("--sweep", type=comma_list(str), default=[],
+                        help="scenes to also sweep fixed K for (the IC / PR split)")
+    parser.add_argument("--threads", type=int, help="torch threads (default: torch's)")
     parser.add_argument("--out", type=Path, default=Path("bench-results/bench_scenes.json"))
     args = parser.parse_args(argv)
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     results = {"machine": machine_info(), "scenes": {}}
     for name in args.scenes:
-        results["scenes"][name] = r = bench_scene(name)
-        write_json_atomically(results, args.out)
+        results["scenes"][name] = r = bench_scene(name, args.seeds, name in args.sweep)
         ratio = r["ratios"]
-        print(f"{name}: K_eps {r['k_eps']}, PRDP K {r['prdp']['k_schedule']}; PRDP / converged: metric "
-              f"{ratio['final_metric']:.2f}x, iterations {ratio['total_iterations']:.2f}x, solver time "
-              f"{ratio['solve_time']:.2f}x, wall time {ratio['wall_time']:.2f}x", flush=True)
-    print(f"wrote {args.out}")
+        metric_spread = [x["final_metric"] for x in r["ratios_per_seed"]]
+        print(f"{name}: K_eps {r['k_eps']}; PRDP / converged over seeds {args.seeds}: metric "
+              f"{ratio['final_metric']:.2f}x ({min(metric_spread):.2f}-{max(metric_spread):.2f}), iterations "
+              f"{ratio['total_iterations']:.2f}x, wall time {ratio['wall_time']:.2f}x", flush=True)
+        done = results["scenes"].values()
+        results["summary"] = {
+            "scenes": list(results["scenes"]),
+            "mean_iteration_savings": statistics.mean(s["iteration_savings"] for s in done),
+            "mean_wall_time_savings": statistics.mean(s["wall_time_savings"] for s in done),
+            "wall_over_iteration_savings": {n: s["wall_time_savings"] / s["iteration_savings"]
+                                            for n, s in results["scenes"].items() if s["iteration_savings"] > 0},
+        }
+        results["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
+        write_json_atomically(results, args.out)
+    s = results["summary"]
+    print(f"mean over {len(s['scenes'])} scenes: {100 * s['mean_iteration_savings']:.0f}% fewer inner iterations, "
+          f"{100 * s['mean_wall_time_savings']:.0f}% less wall time; wrote {args.out}")
     return 0
 
 

@@ -148,12 +148,12 @@ def test_run_prints_prdp_and_baseline_rows(default_run):
     assert prdp["metric"] == pytest.approx(last_prdp["val_metric"], rel=1e-3)
     assert base["metric"] == pytest.approx(last_base["val_metric"], rel=1e-3)
     assert prdp["rel_its"] == f"{last_prdp['total_iterations'] / last_base['total_iterations']:.2f}x"
-    assert f"metrics and checkpoints in {default_run['out']}" in stdout
+    assert f"metrics, checkpoints and time_split.png in {default_run['out']}" in stdout
 
 
 def test_run_writes_metrics_and_checkpoints(default_run):
     out = default_run["out"]
-    assert sorted(p.name for p in out.iterdir()) == ["converged", "prdp"]
+    assert sorted(p.name for p in out.iterdir()) == ["converged", "prdp", "time_split.png"]
     for sub in ("prdp", "converged"):
         names = {p.name for p in (out / sub).iterdir()}
         assert {"metrics.csv", "metrics.json", "checkpoint.pt"} <= names
@@ -212,7 +212,7 @@ def test_fixed_k_run(tiny, tmp_path):
     code, stdout, stderr = call(["run", tiny, "--k", "3", "--epochs", "3", "--no-baseline", "--out", out,
                                  "--no-progress"])
     assert code == 0, stderr
-    assert sorted(p.name for p in out.iterdir()) == ["k3"]
+    assert sorted(p.name for p in out.iterdir()) == ["k3", "time_split.png"]
     rows = metrics(out / "k3")
     assert [r["epoch"] for r in rows] == [0, 1, 2]  # --epochs overrides the scene's 6
     for epoch, row in enumerate(rows):
@@ -228,7 +228,7 @@ def test_converged_only(tiny, tmp_path):
     out = tmp_path / "out"
     code, stdout, stderr = call(["run", tiny, "--converged", "--epochs", "2", "--out", out, "--no-progress"])
     assert code == 0, stderr
-    assert sorted(p.name for p in out.iterdir()) == ["converged"]
+    assert sorted(p.name for p in out.iterdir()) == ["converged", "time_split.png"]
     rows = metrics(out / "converged")
     keps = rows[0]["k"]
     assert [r["k"] for r in rows] == [keps, keps]
@@ -284,7 +284,7 @@ def test_tradeoff_writes_its_report(tradeoff_run):
     out = tradeoff_run["out"]
     for name in ("tradeoff.json", "tradeoff.csv"):
         assert (out / name).is_file()
-    for name in ("metric_per_epoch.png", "metric_vs_cost.png"):
+    for name in ("metric_per_epoch.png", "metric_vs_cost.png", "time_split.png"):
         data = (out / name).read_bytes()
         assert data.startswith(PNG_SIGNATURE), name
         assert len(data) > 5_000, (name, len(data))
@@ -417,3 +417,14 @@ def test_compare_writes_the_report_and_prints_both_ratios(tiny_sip, tmp_path):
 def test_method_commands_refuse_what_does_not_apply(argv, fragment, tiny, tiny_sip):
     code, _, stderr = call([a.format(sip=tiny_sip, tiny=tiny) for a in argv])
     assert code == 2 and fragment in stderr
+
+
+def test_tradeoff_csv_splits_each_runs_wall_time(tradeoff_run):
+    """Every run's time parts in tradeoff.csv add up to its wall time."""
+    import csv
+    with (tradeoff_run["out"] / "tradeoff.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert rows
+    for row in rows:
+        parts = sum(float(v) for k, v in row.items() if k.startswith("time_"))
+        assert parts == pytest.approx(float(row["wall_time"]), rel=1e-9)

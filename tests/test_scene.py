@@ -422,3 +422,23 @@ def test_strings_are_never_evaluated(tmp_path):
     # A string where a number belongs is a type error, not an expression.
     assert_scene_error(toml({"optimizer": f'lr = "{quoted}"'}), "[optimizer] lr must be of type float")
     assert not marker.exists()
+
+
+def test_warm_start_is_for_time_steppers_only():
+    text = """
+[scene]
+name = "inv"
+task = "inverse"
+[mesh]
+name = "lshape"
+[pde]
+type = "poisson"
+[inverse]
+theta_ref = [1.0]
+theta_init = [2.0]
+[solver]
+warm_start = true
+"""
+    with pytest.raises(SceneError, match=r"\[solver\] warm_start do\(es\) not apply to task 'inverse'"):
+        scene.parse(text)
+    assert "warm_start" not in scene.parse(text.replace("warm_start = true", "")).solver

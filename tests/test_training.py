@@ -124,3 +124,16 @@ def test_unrolled_and_implicit_jacobi_train_identically():
         assert a["val_metric"] == pytest.approx(b["val_metric"], rel=1e-10, abs=1e-14)
         assert a["total_iterations"] == b["total_iterations"]
     assert implicit.rows[-1]["val_metric"] < implicit.rows[0]["val_metric"]
+
+
+def test_metrics_split_the_wall_time(tiny, baseline):
+    """The time parts add up to the wall time, the iterations part is the layers' solve time,
+    and the cheap parts are not lost in 'other'."""
+    from fempdl.training import TIME_FIELDS
+    for row in baseline.rows:
+        parts = [row[f] for f in TIME_FIELDS]
+        assert all(p >= 0.0 for p in parts)
+        assert sum(parts) == pytest.approx(row["wall_time"], rel=1e-9)
+        assert row["time_iterations"] == pytest.approx(row["solve_time"], rel=1e-9)
+    last = baseline.rows[-1]
+    assert last["time_network"] > 0 and last["time_validation"] > 0 and last["time_assembly"] > 0
