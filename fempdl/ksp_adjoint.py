@@ -71,11 +71,13 @@ _DIRECT_KSP_TYPES = frozenset({"preonly"})
 _FACTORISING_PC_TYPES = frozenset({"lu", "cholesky", "qr", "svd", "redundant"})
 # PETSc's largest int in this build (32- or 64-bit indices): larger caps overflow inside PETSc.
 MAX_PETSC_INT = int(np.iinfo(PETSc.IntType).max)
-# Solves that may run this many iterations or more (and uncapped solves) get a
-# Python KSP monitor, so Ctrl-C (a pending KeyboardInterrupt) stops them within
-# an iteration; a monitor call costs time per iteration, so short caps go without
-# one (scripts/bench_bounds.py measures the cost).
-INTERRUPT_CHECK_MIN_IT = 1000
+# Solves whose cap (DEFAULT_CONVERGED_MAX_IT when uncapped) times the number of
+# unknowns reaches this get a Python KSP monitor, so that Ctrl-C (a pending
+# KeyboardInterrupt) stops them within an iteration. That is about 0.3 s of
+# Richardson-Jacobi iterations or more; the monitor's call costs about 0.2 us per
+# iteration (scripts/bench_bounds.py), which only matters for small, short solves,
+# and those go without it.
+INTERRUPT_CHECK_MIN_WORK = 10 ** 8
 # Keys that have a first-class field; setting them through petsc_options would
 # silently fight the cap that PRDP moves.
 _RESERVED_OPTIONS = {
@@ -566,8 +568,9 @@ class CappedSolver:
 
     def _set_interrupt_checks(self, ksp: PETSc.KSP, options: KSPOptions) -> None:
         """Give ``ksp`` a monitor that lets a pending KeyboardInterrupt stop a long solve (see
-        :data:`INTERRUPT_CHECK_MIN_IT`), or take it away when the cap has moved below that."""
-        wanted = not options.direct and (options.max_it is None or options.max_it >= INTERRUPT_CHECK_MIN_IT)
+        :data:`INTERRUPT_CHECK_MIN_WORK`), or take it away when the cap has moved below that."""
+        cap = DEFAULT_CONVERGED_MAX_IT if options.max_it is None else options.max_it
+        wanted = not options.direct and cap * ksp.getOperators()[0].getSize()[0] >= INTERRUPT_CHECK_MIN_WORK
         has = ksp.getAttr("fempdl_interruptible") is not None
         if wanted and not has:
             # Calling into Python runs the pending signal handlers: Ctrl-C raises

@@ -348,3 +348,19 @@ def test_an_unrolled_solve_beyond_the_memory_budget_is_refused_up_front(coarse_p
     with pytest.raises(MemoryError, match=r"more than the memory budget of 1.0 KiB"):
         unrolled.solve("cg", A, None, R, 1000, memory_budget=1024)
     unrolled.solve("cg", A, None, R, 1000, max_values=100, memory_budget=2 ** 20)   # checkpointed: fits
+
+
+def test_the_interrupt_monitor_is_installed_only_on_long_solves(coarse_problems):
+    from fempdl import ksp_adjoint
+    from fempdl.bridge_torch import SolveLayer
+    prob = coarse_problems["poisson"]
+    layer = SolveLayer(prob, KSPOptions(max_it=20, engine="petsc"))
+    solver = layer.system._solver
+    long_cap = -(-ksp_adjoint.INTERRUPT_CHECK_MIN_WORK // prob.output_size)
+    installed = []
+    for options in (KSPOptions(max_it=20), KSPOptions(max_it=long_cap), KSPOptions(max_it=long_cap - 1),
+                    KSPOptions(max_it=None), KSPOptions.preset("lu")):
+        solver._set_interrupt_checks(solver.ksp, options)
+        installed.append(len(solver.ksp.getMonitor() or ()))
+    uncapped = ksp_adjoint.DEFAULT_CONVERGED_MAX_IT * prob.output_size >= ksp_adjoint.INTERRUPT_CHECK_MIN_WORK
+    assert installed == [0, 1, 0, int(uncapped), 0]
