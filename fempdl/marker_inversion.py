@@ -6,7 +6,9 @@ velocity v0 = Pi g (:class:`fempdl.marker_flow.MarkerFlow`: divergence-free,
 no-slip) has the largest speed ``[marker] speed``; an initial marker m0, a
 Gaussian blob of standard deviation ``[marker] width`` centred at a random node
 at least ``width`` from the walls (``shape = "blob"``), or a Gaussian band of
-that half-width through such a node in a random direction (``"band"``); and the
+that half-width through such a node in a random direction (``"band"``); with
+``placement = "central"`` every marker is centred at the node farthest from
+the walls (only the velocity varies); and the
 observation y = m_T = P(g, m0) after ``[marker] steps`` steps of ``[pde] dt``.
 
 The network (an MLP, ``[network]``) maps (m0, m_T), (B, 2 n_m), to a raw
@@ -75,7 +77,7 @@ class MarkerInversionTask(Task):
         self.layers = list(self.physics.layers)
         data = scene.data
         self.train_size, self.val_size = data["train"], data["validation"]
-        self._centres = self._interior_nodes(scene.marker["width"])
+        self._centres = self._interior_nodes(scene.marker["width"], scene.marker["placement"])
         self.val = self._samples(self.val_size, np.random.default_rng([data["seed"], 1]))
         self.train = self._samples(self.train_size, np.random.default_rng([data["seed"], 0]))
         torch.manual_seed(data["seed"])
@@ -91,13 +93,16 @@ class MarkerInversionTask(Task):
                                                  max_it=spec["cg_iterations"], eta=spec["eta"])
 
     # ------------------------------------------------------------ data
-    def _interior_nodes(self, margin: float) -> np.ndarray:
-        """Marker node coordinates (x, y) at least ``margin`` from the boundary (all nodes if none is)."""
+    def _interior_nodes(self, margin: float, placement: str) -> np.ndarray:
+        """Marker node coordinates (x, y) at least ``margin`` from the boundary (all nodes if none is);
+        for ``placement = "central"`` only the node farthest from it."""
         coords = self.physics.transport.dof_coordinates()[:, :2]
         V = self.physics.transport.V
         walls = _dolfinx.dirichlet_bc(V, make_function(V, 0.0, "walls"), _dolfinx.boundary_facets(V.mesh))
         wall = _dolfinx.bc_dofs_owned((walls,), len(coords))
         distance, _ = cKDTree(coords[wall]).query(coords)
+        if placement == "central":
+            return coords[[int(np.argmax(distance))]]
         inside = coords[distance >= margin]
         return inside if len(inside) else coords
 

@@ -23,7 +23,8 @@ brackets; ``required`` has none)::
                  damping [0.0] (Tikhonov alpha; tikhonov, gauss-newton), cg_iterations
                  [20] (gauss-newton)                                          (sip only)
     [marker]     steps [4], smoothing [0.1] (the projection's length ell), speed [1.0] (largest
-                 initial speed), shape ["blob"] ("blob" | "band"), width [0.25], prior [1e-4]
+                 initial speed), shape ["blob"] ("blob" | "band"), width [0.25], placement
+                 ["random"] ("random" | "central": the node farthest from the walls), prior [1e-4]
                  (Tikhonov prior of the Gauss-Newton inverse); [pde] dt, nu (fluid), kappa
                  (marker diffusivity), degree [2] (velocity); [sip] inverse "gauss-newton"
                                                                    (sip on pde "marker" only)
@@ -109,7 +110,8 @@ SCHEMA: dict[str, dict[str, _Key]] = {
             "damping": _Key(float, 0.0, minimum=0.0), "cg_iterations": _Key(int, 20, minimum=1)},
     "marker": {"steps": _Key(int, 4, minimum=1), "smoothing": _Key(float, 0.1, minimum=_POSITIVE),
                "speed": _Key(float, 1.0, minimum=_POSITIVE), "shape": _Key(str, "blob", choices=("blob", "band")),
-               "width": _Key(float, 0.25, minimum=_POSITIVE), "prior": _Key(float, 1e-4, minimum=0.0)},
+               "width": _Key(float, 0.25, minimum=_POSITIVE), "prior": _Key(float, 1e-4, minimum=0.0),
+               "placement": _Key(str, "random", choices=("random", "central"))},
     "hig": {"lr": _Key(float, 1.0, minimum=_POSITIVE), "kappa": _Key(float, -0.5), "beta": _Key(float, 0.0),
             "tau": _Key(float, 1e-5, minimum=0.0, maximum=1.0),
             "method": _Key(str, "auto", choices=("auto", "svd", "gram")),
