@@ -181,7 +181,7 @@ class HybridTask(Task):
         if not (self.warm_start and layer is self.layer):
             return {}
         base = torch.zeros(u.shape[0], self.problem.output_size, dtype=u.dtype) if previous is None else previous
-        return {"initial_guess": base.index_copy(1, self.u_dofs, u.to(base.dtype))}
+        return {"initial_guess": base.index_copy(1, self.u_dofs.long(), u.to(base.dtype))}
 
     def _rollout_errors(self, layer, correct, states, steps) -> torch.Tensor:
         """Per sample: the nMSE of every step of a ``steps``-step rollout, averaged over the steps."""

@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from fempdl.sparse import sparse_to_torch
+from fempdl.sparse import SparseOperator, sparse_to_torch
 
 __all__ = ["ResidualMLP", "GraphConvNet", "mlp", "normalised_adjacency"]
 
@@ -92,11 +92,22 @@ class GraphConvNet(torch.nn.Module):
 
     def forward(self, u: torch.Tensor) -> torch.Tensor:
         batch, n = u.shape
-        coords = self.coords.to(u.dtype).expand(batch, n, -1)
-        h = self.lift(torch.cat([u.unsqueeze(-1), coords], dim=-1))           # (B, n, hidden)
-        adjacency = self._adjacency if self._adjacency.dtype == u.dtype else self._adjacency.to(u.dtype)
+        coords = self.coords.to(u.dtype)[:, None, :].expand(n, batch, -1)
+        # Node-major features (n, B, hidden): the graph products need no transposed copies.
+        h = self.lift(torch.cat([u.T.unsqueeze(-1), coords], dim=-1))
+        adjacency = self._operator(u.dtype)
         for conv in self.convs:
-            mixed = adjacency @ conv(h).transpose(0, 1).reshape(n, -1)         # (n, B * hidden)
+            mixed = adjacency @ conv(h).reshape(n, -1)                          # (n, B * hidden)
             # Residual blocks: each layer adds a neighbourhood-mixed update.
-            h = h + torch.nn.functional.gelu(mixed.reshape(n, batch, -1).transpose(0, 1))
-        return u + self.head(h).squeeze(-1)
+            h = h + torch.nn.functional.gelu(mixed.reshape(n, batch, -1))
+        return u + self.head(h).squeeze(-1).T
+
+    def _operator(self, dtype) -> SparseOperator:
+        """The adjacency as a constant operator; it is symmetric, so it is its own transpose
+        (autograd's CSR backward would sort a transposed copy at every step)."""
+        if self._adjacency.dtype != dtype:
+            self._adjacency = self._adjacency.to(dtype)
+            self._op = None
+        if getattr(self, "_op", None) is None:
+            self._op = SparseOperator(self._adjacency, self._adjacency)
+        return self._op
