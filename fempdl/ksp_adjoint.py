@@ -74,7 +74,7 @@ MAX_PETSC_INT = int(np.iinfo(PETSc.IntType).max)
 # Solves whose cap (DEFAULT_CONVERGED_MAX_IT when uncapped) times the number of
 # unknowns reaches this get a Python KSP monitor, so that Ctrl-C (a pending
 # KeyboardInterrupt) stops them within an iteration. That is about 0.3 s of
-# Richardson-Jacobi iterations or more; the monitor's call costs about 0.2 us per
+# Richardson-Jacobi iterations or more; the monitor's call costs 0.2-0.7 us per
 # iteration (scripts/bench_bounds.py), which only matters for small, short solves,
 # and those go without it.
 INTERRUPT_CHECK_MIN_WORK = 10 ** 8
