@@ -25,6 +25,7 @@ from __future__ import annotations
 import os
 import pickle
 import random
+import re
 import secrets
 import zipfile
 from pathlib import Path
@@ -154,6 +155,12 @@ def save(directory: Path, state: dict) -> Path:
     return path
 
 
+def _refused_object(err: Exception) -> str:
+    """What torch's weights-only unpickler refused, e.g. ``"GLOBAL posix.system"``, from its message."""
+    found = re.search(r"(GLOBAL [\w.]+)", str(err))
+    return f"it refers to {found.group(1)}" if found else type(err).__name__
+
+
 def load(path: Path) -> dict:
     """The checkpoint at ``path``, loaded with ``weights_only=True`` (nothing in it is executed).
 
@@ -172,10 +179,9 @@ def load(path: Path) -> dict:
     try:
         state = torch.load(path, weights_only=True, map_location="cpu")
     except pickle.UnpicklingError as err:
-        first_line = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise CheckpointError(f"checkpoint {str(path)!r} holds objects other than tensors and plain values "
-                              f"({first_line}); it was not written by this version of fempdl and is not "
-                              f"loaded, since unpickling objects can run code. To continue: {remedy}") from None
+                              f"({_refused_object(err)}); it was not written by this version of fempdl and is "
+                              f"not loaded, since unpickling objects can run code. To continue: {remedy}") from None
     except (EOFError, OSError, RuntimeError, ValueError, zipfile.BadZipFile, KeyError, IndexError) as err:
         raise CheckpointError(f"checkpoint {str(path)!r} is unreadable or incomplete "
                               f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); "
