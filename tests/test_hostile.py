@@ -10,11 +10,9 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from mpi4py import MPI
@@ -365,3 +363,24 @@ def test_the_interrupt_monitor_is_installed_only_on_long_solves(coarse_problems)
         installed.append(len(solver.ksp.getMonitor() or ()))
     uncapped = ksp_adjoint.DEFAULT_CONVERGED_MAX_IT * prob.output_size >= ksp_adjoint.INTERRUPT_CHECK_MIN_WORK
     assert installed == [0, 1, 0, int(uncapped), 0]
+
+
+def test_a_second_command_on_the_same_output_directory_is_refused_while_the_first_runs(tmp_path):
+    path = tmp_path / "long.toml"
+    path.write_text(INVERSE.replace("epochs = 6", "epochs = 100000"))
+    out = tmp_path / "out"
+    argv = ["run", str(path), "--k", "4", "--out", str(out), "--no-progress", "--no-baseline"]
+    first = subprocess.Popen([sys.executable, "-m", "fempdl.cli", *argv], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "k4" / "metrics.csv").exists():       # the first run is training
+            assert first.poll() is None and time.monotonic() < deadline, first.stderr.read().decode()
+            time.sleep(0.1)
+        code, err = call(argv + ["--overwrite"])
+        assert code == 2 and f"in use by another run (process {first.pid}" in err
+        assert first.poll() is None                              # untouched: still training
+    finally:
+        first.send_signal(signal.SIGINT)
+        first.wait(timeout=60)
+    assert not (out / rundir.LOCK).exists()                      # released on Ctrl-C
