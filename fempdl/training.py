@@ -62,9 +62,8 @@ from tqdm import tqdm
 
 from mpi4py import MPI
 
-from fempdl import __version__, parallel
+from fempdl import __version__, checkpoints, parallel, rundir
 from fempdl.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
-from fempdl import checkpoints, rundir
 from fempdl.prdp import PRDP
 
 __all__ = ["Trainer", "nmse", "sample_nmse", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES"]
@@ -329,10 +328,10 @@ class Trainer:
         state = checkpoints.load(path)
         changed = rundir.differences(state["fingerprint"], self.fingerprint(), RESUMABLE_CHANGES)
         if changed:
-            raise rundir.ResumeError(f"resume: {path} was written by a different run; changed since: {'; '.join(changed)}. "
-                             "A resume continues the same run (only the number of epochs may change); to start "
-                             "afresh with these settings pass --overwrite (Python: resume=False), or choose "
-                             "another output directory")
+            raise rundir.ResumeError(
+                f"resume: {path} was written by a different run; changed since: {'; '.join(changed)}. A resume "
+                "continues the same run (only the number of epochs may change); to start afresh with these "
+                "settings pass --overwrite (Python: resume=False), or choose another output directory")
         self.task.model.load_state_dict(state["model"])
         self.task.optimizer.load_state_dict(state["optimizer"])
         if self.task.scheduler is not None:
