@@ -3,7 +3,7 @@
 A scene declares only what its task needs. Sections and keys (defaults in
 brackets; ``required`` has none)::
 
-    [scene]      name (required), description [""],
+    [scene]      name (required: letters, digits, "-_.": it names the run directory), description [""],
                  task (required: "emulator" | "inverse" | "hybrid" | "sip" | "hig")
     [mesh]       name (required: bundled name or path to a .msh), h [bundled default]
     [pde]        type (required: "heat" | "burgers" for emulators, "poisson" for inverse
@@ -56,8 +56,12 @@ gradients): they compare training methods, not solver caps.
 Unknown sections or keys, keys that do not apply to the task or PDE, wrong
 types, out-of-range values and missing required keys raise :class:`SceneError`
 naming the key and the allowed values. Values are data: strings are never
-evaluated. The fixed cap of a run is not part of a scene: it is chosen per run
-(``fempdl run --k K``), as PRDP and the converged cap K_eps are.
+evaluated. A scene whose data and network would not fit in half the available
+memory (estimated from the bundled mesh's size at h, :func:`estimated_memory`),
+or that asks for more sine modes than the mesh resolves, is refused with the
+estimate; a file that is not UTF-8 is a SceneError too. The fixed cap of a
+run is not part of a scene: it is chosen per run (``fempdl run --k K``), as
+PRDP and the converged cap K_eps are.
 
 Bundled scenes live in ``fempdl/scenes/``; :func:`load` takes a bundled name
 or a path.
