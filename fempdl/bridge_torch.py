@@ -73,6 +73,10 @@ class SolveLayer(torch.nn.Module):
         max_unrolled_values: in unrolled mode, the number of floats the stored
             iterates may take (about K * B * n * 2-5); above it the iterations
             are checkpointed (recomputed in backward). ``None``: no bound.
+        memory_budget: in unrolled mode, the bytes the stored iterates may
+            take at most; a call that would keep more is refused with a
+            MemoryError before it starts. ``None``: half the memory available
+            at the call (:func:`fempdl.resources.memory_budget`).
 
     Attributes:
         max_it: the iteration cap K; assign to move it between calls (PRDP does).
@@ -86,7 +90,8 @@ class SolveLayer(torch.nn.Module):
     """
 
     def __init__(self, problem: Problem, options: KSPOptions | str | None = None, *,
-                 diff: str = "implicit", max_unrolled_values: int | None = None):
+                 diff: str = "implicit", max_unrolled_values: int | None = None,
+                 memory_budget: int | None = None):
         super().__init__()
         if not isinstance(problem, Problem):
             raise TypeError(f"problem must be a fempdl.Problem, got {type(problem).__name__}; "
@@ -109,6 +114,7 @@ class SolveLayer(torch.nn.Module):
         self.problem = problem
         self.diff = diff
         self.max_unrolled_values = max_unrolled_values
+        self.memory_budget = memory_budget
         self._unrolled_cache = None
         self._unrolled_jacobians: dict = {}
         self._system = LinearSystem(problem, options, batched_engine=BatchedEngine())
@@ -186,7 +192,7 @@ class SolveLayer(torch.nn.Module):
         X0 = None if guess is None else (guess.unsqueeze(1) if guess.dim() == 1 else guess.T).expand(-1, batch)
         X = unrolled.solve(method, A, P if options.pc_type == "jacobi" else None, R, options.max_it,
                            omega=omega, restart=options.gmres_restart or 30, max_values=self.max_unrolled_values,
-                           X0=X0)
+                           X0=X0, memory_budget=self.memory_budget)
         seconds = time.perf_counter() - t_solve
         finite = torch.isfinite(X).all(0)
         stats = self.system.stats

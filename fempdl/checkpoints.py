@@ -9,7 +9,7 @@ anything else, and the RNG states are stored as lists and ints
 (:func:`rng_state`).
 
 :func:`save` keeps the checkpoint it replaces as ``checkpoint.prev.pt`` (a
-hard link, so ``checkpoint.pt`` exists at every moment), and :func:`load`
+hard link, or a copy, so ``checkpoint.pt`` exists at every moment), and :func:`load`
 turns every way a file can be unreadable (truncated, empty, not a zip, not
 written by fempdl, missing keys) into one :class:`CheckpointError` that names
 the file and says what to do.
@@ -27,6 +27,7 @@ import pickle
 import random
 import re
 import secrets
+import shutil
 import zipfile
 from pathlib import Path
 from typing import Callable
@@ -147,7 +148,10 @@ def save(directory: Path, state: dict) -> Path:
         # A hard link (then an atomic rename onto checkpoint.prev.pt): checkpoint.pt never goes missing.
         link = directory / f".{PREVIOUS}.{secrets.token_hex(4)}{_TEMP_SUFFIX}"
         try:
-            os.link(path, link)
+            try:
+                os.link(path, link)
+            except OSError:          # a file system without hard links: a copy
+                shutil.copyfile(path, link)
             os.replace(link, previous)
         except OSError:
             link.unlink(missing_ok=True)

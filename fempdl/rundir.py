@@ -90,11 +90,18 @@ class RunLock:
         key = os.path.abspath(self.path)
         if key in RunLock._held:
             return
-        self.directory.mkdir(parents=True, exist_ok=True)
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as err:      # a file in the way, no permission, read-only file system
+            raise RunDirectoryError(f"cannot use {str(self.directory)!r} as an output directory ({err.strerror}); "
+                                    "choose another (--out)") from None
         me = f"{socket.gethostname()} {os.getpid()}\n"
         for _ in range(3):
             try:
                 fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
+            except PermissionError as err:
+                raise RunDirectoryError(f"cannot write to {str(self.directory)!r} ({err.strerror}); choose another "
+                                        "output directory (--out)") from None
             except FileExistsError:
                 owner = self._owner()
                 if owner is not None and _alive(*owner):

@@ -342,6 +342,9 @@ def test_an_unrolled_solve_beyond_the_memory_budget_is_refused_up_front(coarse_p
         layer(f=f)
     with torch.no_grad():                                    # nothing is stored: nothing to refuse
         SolveLayer(prob, KSPOptions.preset("cg", max_it=3), diff="unrolled")(f=f)
+    small = SolveLayer(prob, KSPOptions.preset("cg", max_it=50), diff="unrolled", memory_budget=4096)
+    with pytest.raises(MemoryError, match=r"K=50, n=\d+, B=2 would keep about .* budget of 4.0 KiB"):
+        small(f=f)
     A = torch.eye(4, dtype=torch.float64).to_sparse_csr()
     R = torch.ones(4, 1, dtype=torch.float64, requires_grad=True)
     with pytest.raises(MemoryError, match=r"more than the memory budget of 1.0 KiB"):
@@ -384,3 +387,11 @@ def test_a_second_command_on_the_same_output_directory_is_refused_while_the_firs
         first.send_signal(signal.SIGINT)
         first.wait(timeout=60)
     assert not (out / rundir.LOCK).exists()                      # released on Ctrl-C
+
+
+def test_an_output_directory_that_is_a_file_is_refused(tmp_path):
+    path = tmp_path / "hostile.toml"
+    path.write_text(INVERSE)
+    (tmp_path / "taken").write_text("a file")
+    code, err = call(["run", path, "--k", 4, "--out", tmp_path / "taken", "--no-progress", "--no-baseline"])
+    assert code == 2 and "cannot use" in err and "as an output directory" in err
