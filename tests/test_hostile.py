@@ -195,6 +195,9 @@ def test_the_command_refuses_a_directory_holding_a_run_unless_resume_or_overwrit
     assert call(base + ["--resume"])[0] == 0
     assert call(base + ["--resume", "--overwrite"])[0] == 2
     assert not (out / rundir.LOCK).exists()
+    path.write_text(INVERSE.replace("theta_ref = [0.6, 1.9]", "theta_ref = [0.6, 2.0]"))
+    code, err = call(base + ["--resume"])
+    assert code == 2 and "was written by a different run; changed since: run.scene.inverse.theta_ref" in err
 
 
 @pytest.mark.parametrize("name", ["../../../x", "/tmp/x", "..", "a/b", "", "x" * 129, "na me"])
