@@ -94,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from fempdl import parallel, scene
-    from fempdl.checkpoints import CheckpointError
+    from fempdl.checkpoints import CheckpointError, remove_stale_temporaries
 
     from mpi4py import MPI
 
@@ -123,6 +123,8 @@ def main(argv=None) -> int:
         # The whole command holds the lock: a second command on the same --out is refused,
         # not only a second run in one of its subdirectories.
         with rundir.RunLock(out) if MPI.COMM_WORLD.rank == 0 else contextlib.nullcontext():
+            if MPI.COMM_WORLD.rank == 0:
+                remove_stale_temporaries(out)       # of reports a killed command was writing
             return _command(args, sc, out)
     except (rundir.RunDirectoryError, rundir.ResumeError, CheckpointError) as err:
         if MPI.COMM_WORLD.size > 1:
