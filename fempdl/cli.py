@@ -12,6 +12,11 @@ baseline and PRDP, and writes a table, plots and the IC/PR savings split.
 backpropagation side by side, at equal iterations and at equal training time,
 and writes the ratios and plots of the error against both. ``fempdl scenes``
 lists the bundled scenes.
+
+A command locks its output directory while it runs (a second command on it
+is refused) and refuses a directory that holds an earlier run unless told
+``--resume`` (continue it; a changed scene or setting is refused, naming
+what changed) or ``--overwrite`` (replace it).
 """
 from __future__ import annotations
 
