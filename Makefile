@@ -10,7 +10,7 @@ setup:
 	@bash scripts/setup_env.sh $(VENV)
 
 run: setup
-	$(VENV)/bin/fempdl run
+	$(VENV)/bin/fempdl run --overwrite
 
 test: setup
 	$(PYTHON) -m pytest -q $(PYTEST_ARGS)
