@@ -300,7 +300,9 @@ def operator_pattern(problem) -> "sp.csr_matrix":
 def make_optimizer(spec: dict, params):
     params = list(params)
     if spec["type"] == "adam":
-        optimizer = torch.optim.Adam(params, lr=spec["lr"])
+        # The fused kernel updates all parameters in one call: the per-tensor loop of
+        # the default implementation costs more than these small networks' arithmetic.
+        optimizer = torch.optim.Adam(params, lr=spec["lr"], fused=True)
     else:
         optimizer = torch.optim.SGD(params, lr=spec["lr"])
     scheduler = None if spec["decay"] == 1.0 else torch.optim.lr_scheduler.ExponentialLR(optimizer, spec["decay"])
@@ -345,21 +347,24 @@ def check_parallel(scene: Scene, parallel: str | None) -> None:
 
 def solver_options(scene: Scene, k: int | None, rtol: float | None = None) -> KSPOptions:
     """The scene's capped solver: ``k`` iterations, or run to ``rtol`` when ``k`` is None."""
-    return KSPOptions.preset(scene.solver["preset"], max_it=k, rtol=rtol)
+    return KSPOptions.preset(scene.solver["preset"], max_it=k, rtol=rtol,
+                             lag_preconditioner=scene.solver["lag_preconditioner"])
 
 
-def k_eps(task, options: KSPOptions, shard_over: MPI.Comm = MPI.COMM_SELF) -> int:
+def k_eps(task, options: KSPOptions, shard_over: MPI.Comm = MPI.COMM_SELF, batch: int = 1) -> int:
     """Largest iteration count the solver needs to reach its rtol on the task's reference inputs.
 
     With ``shard_over`` the samples are spread over its ranks (data-parallel
-    runs, where every rank holds the whole problem) and the maximum is theirs."""
+    runs, where every rank holds the whole problem) and the maximum is theirs.
+    A lagged preconditioner is probed in calls of ``batch`` samples, as it trains."""
     probe = SolveLayer(task.problem, dataclasses.replace(options, engine="petsc"))
     inputs = {name: torch.atleast_2d(value) for name, value in task.k_eps_rhs().items()}
-    most = 0
+    size = batch if options.lag_preconditioner else 1
     with torch.no_grad():
-        for i in shard(torch.arange(next(iter(inputs.values())).shape[0]), shard_over).tolist():
-            probe(**{name: value[i] for name, value in inputs.items()})
-            most = max(most, probe.stats.last.iterations)
+        idx = shard(torch.arange(next(iter(inputs.values())).shape[0]), shard_over)
+        for chunk in idx.split(size):
+            probe(**{name: value[chunk] for name, value in inputs.items()})
+    most = probe.stats.max_forward_iterations
     probe.close()
     return shard_over.allreduce(most, op=MPI.MAX)
 
@@ -388,7 +393,7 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
     task = build_task(scene, solver_options(scene, k or 1), parallel, comm, seed)
     keps = k_eps_value if k_eps_value is not None else k_eps(
         task, solver_options(scene, None, scene.data["k_eps_rtol"]),
-        shard_over=comm if parallel == "data" else MPI.COMM_SELF)
+        shard_over=comm if parallel == "data" else MPI.COMM_SELF, batch=scene.optimizer.get("batch", 1))
     prdp = None
     if mode == "converged":
         task.layer.max_it = keps

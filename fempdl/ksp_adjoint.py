@@ -166,6 +166,13 @@ class KSPOptions:
             whose transpose PETSc 3.18 lacks or gets wrong (fieldsplit: no
             transpose, KSPSolveTranspose silently falls back and needs 230-330
             iterations; hypre: breaks down at iteration 1), transpose otherwise.
+        lag_preconditioner: when a call solves several samples with different
+            matrices, set the preconditioner up on the first sample's matrix and
+            reuse it for the others (forward and adjoint). Set-up (e.g. the LU of
+            a fieldsplit's velocity block) then costs once per call instead of
+            once per sample; the Krylov method still runs on each sample's own
+            matrix, and a capped solve still runs exactly ``max_it`` iterations,
+            but a converged one may need more of them.
     """
 
     ksp_type: str = "richardson"
@@ -180,6 +187,7 @@ class KSPOptions:
     on_failure: str = "raise"
     engine: str = "auto"
     adjoint_operator: str = "auto"
+    lag_preconditioner: bool = False
 
     def __post_init__(self):
         _check_choice("ksp_type", self.ksp_type, _KSP_TYPES)
@@ -229,6 +237,8 @@ class KSPOptions:
             raise ValueError(f"on_failure must be 'raise' or 'warn', got {self.on_failure!r}")
         if self.engine not in ENGINES:
             raise ValueError(f"engine must be one of {list(ENGINES)}, got {self.engine!r}")
+        if not isinstance(self.lag_preconditioner, bool):
+            raise TypeError(f"lag_preconditioner must be True or False, got {self.lag_preconditioner!r}")
         if self.adjoint_operator not in ADJOINT_OPERATORS:
             raise ValueError(f"adjoint_operator must be one of {list(ADJOINT_OPERATORS)}, "
                              f"got {self.adjoint_operator!r}")
@@ -361,6 +371,7 @@ class CumulativeStats:
     setup_time: float = 0.0
     assembly_time: float = 0.0
     adjoint_operator_time: float = 0.0
+    max_forward_iterations: int = 0
     failures: int = 0
     solves_by_engine: dict = field(default_factory=dict)
     last: SolveStats | None = None
@@ -368,6 +379,7 @@ class CumulativeStats:
     def record(self, direction: str, stats: SolveStats) -> None:
         """Add one solve; ``direction`` is ``"forward"`` or ``"backward"``."""
         if direction == "forward":
+            self.max_forward_iterations = max(self.max_forward_iterations, stats.iterations)
             self.forward_iterations += stats.iterations
             self.forward_solves += 1
             self.forward_time += stats.time
@@ -443,6 +455,17 @@ class CappedSolver:
         if options.adjoint is not None and not options.assembled_adjoint:
             self._ksp_adjoint = _create_ksp(A, options.adjoint, self._prefix + "adj_", fields)
         self.stats = CumulativeStats()
+        self.reuse_preconditioner = False
+
+    @property
+    def reuse_preconditioner(self) -> bool:
+        """While True, solves keep the preconditioners set up for earlier matrices
+        (``KSPOptions.lag_preconditioner``: the system sets it between samples)."""
+        return self._reuse
+
+    @reuse_preconditioner.setter
+    def reuse_preconditioner(self, value: bool) -> None:
+        self._reuse = bool(value)
 
     @property
     def options(self) -> KSPOptions:
@@ -545,7 +568,7 @@ class CappedSolver:
         b_norm = b.norm()
         self._set_interrupt_checks(ksp, options)
         t0 = time.perf_counter()
-        ksp.setUp()      # the preconditioner's set-up, timed apart from the iterations
+        _set_up(ksp, self._reuse)      # the preconditioner's set-up, timed apart from the iterations
         t1 = time.perf_counter()
         (ksp.solveTranspose if transpose else ksp.solve)(b, x)
         elapsed = time.perf_counter() - t1
@@ -713,6 +736,17 @@ def _rejected_option(A: PETSc.Mat, options: KSPOptions, err: PETSc.Error) -> Val
     return ValueError(f"PETSc rejected petsc_options {dict(options.petsc_options)} for ksp_type="
                       f"{options.ksp_type!r}, pc_type={options.pc_type!r} (PETSc error code {err.ierr}); check "
                       "each option's value")
+
+
+def _set_up(ksp: PETSc.KSP, reuse: bool) -> None:
+    """KSPSetUp, and the set-up of a fieldsplit's inner solvers (otherwise done lazily
+    in the first iteration); with ``reuse`` the preconditioner is kept as it is."""
+    pc = ksp.getPC()
+    pc.setReusePreconditioner(reuse)
+    ksp.setUp()
+    if not reuse and pc.getType() == "fieldsplit":
+        for sub in pc.getFieldSplitSubKSP():
+            sub.setUp()
 
 
 def _destroy_ksp(ksp: PETSc.KSP) -> None:

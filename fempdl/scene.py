@@ -44,7 +44,8 @@ brackets; ``required`` has none)::
                  capped solver; "schur" is for oseen and only it),
                  diff ["implicit"] ("implicit" | "unrolled"), warm_start [false] (start the
                  capped solve from the state being advanced instead of zero; emulator,
-                 hybrid)                                                     (not sip, hig)
+                 hybrid), lag_preconditioner [false] (per-sample matrices share the
+                 first sample's preconditioner within a call; KSPOptions)    (not sip, hig)
     [prdp]       k0 [1], dk [1], tau_step [0.95], tau_stop [0.9], delta [3], ema_window [6],
                  k_cap [none], guard [none] (refine at once when the metric rises above
                  guard x its best), growth [1.0] (a refinement sets K to
@@ -128,7 +129,7 @@ SCHEMA: dict[str, dict[str, _Key]] = {
                   "batch": _Key(int, 16, minimum=1), "stop_at": _Key(float, None, minimum=_POSITIVE)},
     "solver": {"preset": _Key(str, "jacobi", choices=("jacobi", "cg", "gmres", "gmres-ilu", "schur")),
                "diff": _Key(str, "implicit", choices=("implicit", "unrolled")),
-               "warm_start": _Key(bool, False)},
+               "warm_start": _Key(bool, False), "lag_preconditioner": _Key(bool, False)},
     "prdp": {"k0": _Key(int, 1, minimum=1), "dk": _Key(int, 1, minimum=1),
              "tau_step": _Key(float, 0.95, minimum=_POSITIVE, maximum=1.0),
              "tau_stop": _Key(float, 0.9, minimum=_POSITIVE, maximum=1.0),

@@ -74,6 +74,7 @@ class LinearSystem:
         self._grad_vecs: dict = {}                             # name -> ghosted Vec on M
         self._jacobians: dict = {}                             # name -> (pattern, v0, J)
         self._kept_matrices = _KeptMatrices(problem.matrix_controls)
+        self._rhs_scipy: dict = {}                             # name -> (fingerprint, scipy C_m)
 
     # ------------------------------------------------------------ properties
     @property
@@ -115,6 +116,11 @@ class LinearSystem:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             b_base = self._base_rhs(names, ctl) if affine else None
             rhs_mats = {name: self._rhs_matrix(name) for name in sorted(names)} if affine else {}
+            if affine and use_batched:
+                # All right-hand sides at once: b_i = b_base + sum_m C_m m_i (no per-sample PETSc calls).
+                with self._assembling():
+                    R = self._affine_rhs_block(b_base, controls, batch)
+                return self._batched_solve(R, "forward", initial_guess)
             for i in range(batch):
                 if affine:
                     self._affine_rhs(b_base, rhs_mats, controls, i)
@@ -131,8 +137,10 @@ class LinearSystem:
                 else:
                     if initial_guess is not None:
                         self._x.setArray(initial_guess[i])
+                    self._lag_preconditioner(per_sample_matrix and i > 0)
                     self._solver.solve(self._b, self._x, warm=initial_guess is not None)
                     U[i] = self._x.getArray(readonly=True)
+            self._lag_preconditioner(False)
         if use_batched:
             U = self._batched_solve(U, "forward", initial_guess)
         return U
@@ -171,6 +179,11 @@ class LinearSystem:
             Lam = self._batched_solve(G, "backward") if use_batched else None
             if use_batched and residual:
                 grads[INITIAL_GUESS] = G - self._batched.matmul(Lam, transpose=True)
+            if use_batched and not per_sample_matrix and not by_form:
+                for name in rhs_mats:       # C_m^T lam_i for the whole batch in one product
+                    grads[name] = np.asarray((self._rhs_matrix_scipy(name).T @ Lam.T).T)
+                self._lag_preconditioner(False)
+                return grads
             for i in range(batch):
                 if per_sample_matrix or by_form:
                     ctl.set_sample(i)
@@ -182,6 +195,7 @@ class LinearSystem:
                         self._A_version += 1
                     elif per_sample_matrix:
                         self._assemble_matrix()
+                    self._lag_preconditioner(per_sample_matrix and i > 0)
                     self._rhs.setArray(G[i])
                     self._solver.solve_transpose(self._rhs, self._x)
                     if residual:
@@ -195,6 +209,7 @@ class LinearSystem:
                     _set_owned(p.u, U[i], n_owned)
                     for name in by_form:
                         grads[name][i] = self._assemble_gradient(name)
+            self._lag_preconditioner(False)
         return grads
 
     def affine_operators(self, names: frozenset) -> tuple:
@@ -347,6 +362,11 @@ class LinearSystem:
             ctl.set_sample(0)
             self._assemble_matrix()
 
+    def _lag_preconditioner(self, later_sample: bool) -> None:
+        """Keep the first sample's preconditioner for the later samples of a call
+        (``KSPOptions.lag_preconditioner``)."""
+        self._solver.reuse_preconditioner = later_sample and self.options.lag_preconditioner
+
     def _assembling(self) -> "_Timer":
         """Counts the enclosed seconds as assembly in the layer's stats."""
         return _Timer(self.stats, "assembly_time")
@@ -389,6 +409,24 @@ class LinearSystem:
             if len(bc):
                 out.array_w[bc] = 0.0
             self._b.axpy(1.0, out)
+
+    def _affine_rhs_block(self, b_base: PETSc.Vec, controls, batch: int) -> np.ndarray:
+        """(batch, n) right-hand sides b_base + sum_m C_m m_i, BC rows of the control part zeroed."""
+        R = np.zeros((p_size := self.problem.output_size, batch))
+        for name in sorted(controls):
+            R += self._rhs_matrix_scipy(name) @ np.asarray(controls[name]).T
+        if len(self.problem.bc_dofs):
+            R[self.problem.bc_dofs] = 0.0
+        R += b_base.getArray(readonly=True)[:p_size, None]
+        return np.ascontiguousarray(R.T)
+
+    def _rhs_matrix_scipy(self, name: str):
+        """C_m as scipy CSR, refreshed with the PETSc matrix of :meth:`_rhs_matrix`."""
+        entry = self._rhs_matrix(name)
+        cached = self._rhs_scipy.get(name)
+        if cached is None or cached[0] is not entry[3]:
+            cached = self._rhs_scipy[name] = (entry[3], petsc_to_scipy(entry[0]))
+        return cached[1]
 
     def _rhs_matrix(self, name: str):
         """(C_m, input vector, output vector, fingerprint), reassembled when its inputs change."""

@@ -134,7 +134,7 @@ def test_parse_fills_the_schema_defaults():
     assert sc.data == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "k_eps_rtol": 1e-5, "rollout": 1}
     assert sc.network == {"type": "mlp", "hidden": 128, "layers": 2}
     assert sc.optimizer == {"type": "adam", "lr": 1e-3, "decay": 1.0, "epochs": 30, "batch": 16, "stop_at": None}
-    assert sc.solver == {"preset": "jacobi", "diff": "implicit", "warm_start": False}
+    assert sc.solver == {"preset": "jacobi", "diff": "implicit", "warm_start": False, "lag_preconditioner": False}
     assert sc.prdp == {"k0": 1, "dk": 1, "tau_step": 0.95, "tau_stop": 0.9, "delta": 3, "ema_window": 6,
                        "k_cap": None, "guard": None, "growth": 1.0}
     assert sc.inverse is None
