@@ -744,9 +744,12 @@ def _set_up(ksp: PETSc.KSP, reuse: bool) -> None:
     pc = ksp.getPC()
     pc.setReusePreconditioner(reuse)
     ksp.setUp()
+    pc.setUp()     # KSPSetUp leaves a changed matrix's preconditioner to the solve
     if not reuse and pc.getType() == "fieldsplit":
+        # The blocks' preconditioners (e.g. the velocity block's LU) refresh in the first
+        # iteration otherwise: their KSPs see the same submatrix objects, new values.
         for sub in pc.getFieldSplitSubKSP():
-            sub.setUp()
+            sub.getPC().setUp()
 
 
 def _destroy_ksp(ksp: PETSc.KSP) -> None:
