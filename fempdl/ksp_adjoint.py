@@ -510,6 +510,39 @@ class CappedSolver:
             if warm:
                 self._ksp.setInitialGuessNonzero(False)
 
+    def solve_many(self, R: np.ndarray) -> np.ndarray:
+        """A X = R for the rows of R (B, n) with one factorisation and one MatMatSolve
+        (a direct solve on one process: ``options.direct``); returns X (B, n).
+
+        Each sample is counted as one solve of one iteration, with its share of the time.
+        """
+        if not self._options.direct or self._A.getComm().getSize() > 1:
+            raise ValueError("solve_many needs a direct solve (ksp_type='preonly' with a factorising pc_type) "
+                             "on one process")
+        batch, n = R.shape
+        t0 = time.perf_counter()
+        _set_up(self._ksp, self._reuse)
+        t1 = time.perf_counter()
+        # A dense PETSc matrix is column-major: the rows of R are its columns.
+        rhs = PETSc.Mat().createDense((n, batch), array=np.asfortranarray(R.T, dtype=PETSc.ScalarType),
+                                      comm=PETSc.COMM_SELF)
+        sol = PETSc.Mat().createDense((n, batch), comm=PETSc.COMM_SELF)
+        sol.setUp()
+        try:
+            self._ksp.getPC().getFactorMatrix().matSolve(rhs, sol)
+            X = np.array(sol.getDenseArray().T)
+        finally:
+            rhs.destroy()
+            sol.destroy()
+        elapsed = time.perf_counter() - t1
+        reason = PETSc.KSP.ConvergedReason.CONVERGED_ITS
+        for ok in np.isfinite(X).all(axis=1):
+            self.record("forward", SolveStats(iterations=1, reason=reason, reason_name=_REASON_NAMES[reason],
+                                              residual_norm=None, time=elapsed / batch, capped=False,
+                                              ok=bool(ok), setup_time=(t1 - t0) / batch),
+                        finite=bool(ok))
+        return X
+
     def solve_transpose(self, b: PETSc.Vec, x: PETSc.Vec) -> SolveStats:
         """Solve A^T x = b with the adjoint options (the forward ones by default),
         by KSPSolveTranspose or on an assembled A^T (``options.assembled_adjoint``)."""

@@ -121,6 +121,7 @@ class LinearSystem:
                 with self._assembling():
                     R = self._affine_rhs_block(b_base, controls, batch)
                 return self._batched_solve(R, "forward", initial_guess)
+            many = self._direct_many(batch, per_sample_matrix)
             for i in range(batch):
                 if affine:
                     self._affine_rhs(b_base, rhs_mats, controls, i)
@@ -132,7 +133,7 @@ class LinearSystem:
                             kept.append(self._A)
                     with self._assembling():
                         _dolfinx.assemble_vector_into(self._b, p.L_form, p.a_form, p.bcs)
-                if use_batched:
+                if use_batched or many:
                     U[i] = self._b.getArray(readonly=True)     # the RHS; solved below
                 else:
                     if initial_guess is not None:
@@ -143,7 +144,14 @@ class LinearSystem:
             self._lag_preconditioner(False)
         if use_batched:
             U = self._batched_solve(U, "forward", initial_guess)
+        elif many:
+            U = self._solver.solve_many(U)
         return U
+
+    def _direct_many(self, batch: int, per_sample_matrix: bool) -> bool:
+        """Whether a call's direct solves share one factorisation and one MatMatSolve."""
+        return (self.options.direct and batch > 1 and not per_sample_matrix and self._comm.size == 1
+                and not len(self.problem.nullspace))
 
     def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
                 wanted, shared=frozenset(), initial_guess: bool = False) -> dict[str, np.ndarray]:
