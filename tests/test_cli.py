@@ -403,7 +403,13 @@ def test_compare_writes_the_report_and_prints_both_ratios(tiny_sip, tmp_path):
     assert split["iterations"] == 3 and len(report["runs"]["sip"]["rows"]) == 3
     assert len(report["runs"]["backprop"]["rows"]) >= 3
     assert f"ratio {split['ratio_equal_iterations']:.3f}" in stdout
-    assert f"SIP / Adam + backprop = {split['ratio_equal_time']:.3f}" in stdout
+    if split["ratio_equal_time"] is None:
+        # Three epochs last milliseconds: on a loaded machine the baseline's first epoch can
+        # outlast the method's whole run, and the report must then say there is no equal-time ratio.
+        assert split["baseline_metric_at_equal_time"] is None
+        assert "no comparison at equal training time" in stdout
+    else:
+        assert f"SIP / Adam + backprop = {split['ratio_equal_time']:.3f}" in stdout
     assert (tmp_path / "error_vs_cost.png").read_bytes()[:8] == PNG_SIGNATURE
 
 
