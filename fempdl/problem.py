@@ -176,6 +176,61 @@ class Problem:
                              f"{self._n_owned} (problem.output_size)")
         return {name: values[..., dofs] for name, dofs in self.fields.items()}
 
+    def to_function(self, values, name: str | None = None) -> dolfinx.fem.Function:
+        """A new Function holding ``values`` (owned DOF values, shape (n,); a
+        tensor or an array), ghosts updated, named ``name`` (``"u"`` for the output).
+
+        ``name`` picks the space: a control name (its space; ``control_size``
+        values), a field of a mixed solution such as ``"u"`` or ``"p"`` (the
+        collapsed subspace; either that field's values, as :meth:`split` gives
+        them, or the whole solution), or ``None``/``"u"`` for the solution space
+        (``output_size`` values; the whole mixed space for a flow problem).
+        Use it to post-process or write a layer's output (:mod:`fempdl.io`).
+        """
+        space, kind = self._space_of(name)
+        array = _as_array(values, "values")
+        n = _owned_size(space)
+        if kind == "field" and array.shape == (self._n_owned,):
+            array = array[self.fields[name]]
+        if array.shape != (n,):
+            expected = f"({n},)" + (f" or ({self._n_owned},) (the whole solution)" if kind == "field" else "")
+            raise ValueError(f"values for {name!r} must have shape {expected} (owned DOFs of its space), got "
+                             f"{tuple(array.shape)}; pass one sample (values[i]) of a batch")
+        fn = dolfinx.fem.Function(space, name="u" if name is None else name)
+        fn.x.array[:n] = array
+        fn.x.scatter_forward()
+        return fn
+
+    def from_function(self, fn: dolfinx.fem.Function, name: str | None = None) -> np.ndarray:
+        """The owned DOF values (n,) (float64) of Function ``fn`` in the space that
+        ``name`` picks (as in :meth:`to_function`), the order a layer's tensors use
+        (``torch.from_numpy`` makes it a tensor). A Function on another space of
+        the same mesh is interpolated into that space first; on the same space
+        the values are copied exactly, so ``from_function(to_function(x))`` is x."""
+        if not isinstance(fn, dolfinx.fem.Function):
+            raise TypeError(f"fn must be a dolfinx.fem.Function, got {type(fn).__name__}")
+        space, _ = self._space_of(name)
+        if fn.function_space != space:
+            if fn.function_space.mesh is not space.mesh:
+                raise ValueError(f"fn lives on a different mesh than the space of {name!r}; "
+                                 "interpolate it onto this problem's mesh first")
+            target = dolfinx.fem.Function(space)
+            target.interpolate(fn)
+            fn = target
+        return np.array(fn.x.array[:_owned_size(space)], dtype=np.float64)
+
+    def _space_of(self, name: str | None):
+        """(space, kind) of ``name``: a control, a field of a mixed solution, or the output."""
+        if name is not None and name in self._controls:
+            return self._controls[name].function_space, "control"
+        if name is not None and name in self._field_spaces:
+            return self._field_spaces[name], "field"
+        if name is None or name == "u":
+            return self.V, "output"
+        raise ValueError(f"unknown name {name!r}; use a control {list(self.control_names)}, "
+                         + (f"a field {list(self.fields)}, " if self.fields else "")
+                         + "or None for the solution space")
+
     def field_space(self, name: str):
         """The collapsed function space of field ``name``."""
         if name not in self._field_spaces:
@@ -263,6 +318,20 @@ def _validated_controls(controls: Mapping, a: ufl.Form, L: ufl.Form, msh) -> dic
                              "object when building the forms")
         out[name] = fn
     return out
+
+
+def _owned_size(space) -> int:
+    return space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+
+
+def _as_array(values, argname: str) -> np.ndarray:
+    """A float64 numpy copy of a tensor (detached, on the CPU) or array-like."""
+    if hasattr(values, "detach"):
+        values = values.detach().cpu().numpy()
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"{argname} must be a tensor or an array of numbers, got {type(values).__name__}") from None
 
 
 def _orthonormal(vectors, n: int, comm) -> np.ndarray:

@@ -1,0 +1,143 @@
+"""Fields out: Problem.to_function / from_function and XDMF files (fempdl.io).
+
+The XDMF tests write with the ASCII encoding, so the values can be read back
+from the XML itself and compared with the field's nodal values; one test
+writes HDF5 and checks that the XML points into an HDF5 file.
+"""
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+import torch
+
+from fempdl import forms, io, mesh
+
+from conftest import smooth
+
+
+@pytest.fixture(scope="module")
+def coarse():
+    return mesh.load("lshape", h=0.25)
+
+
+@pytest.fixture(scope="module")
+def poisson_p2(coarse):
+    return forms.poisson.problem(coarse, controls=("f", "kappa"), degree=2, kappa_space="DG0", kappa=smooth)
+
+
+@pytest.fixture(scope="module")
+def stokes(coarse):
+    return forms.stokes.problem(coarse)
+
+
+def _linear(x):
+    return 1.0 + 2.0 * x[0] - 3.0 * x[1]
+
+
+def test_round_trip_is_exact_for_every_space(poisson_p2, stokes):
+    rng = np.random.default_rng(0)
+    for prob, names in ((poisson_p2, (None, "u", "f", "kappa")), (stokes, (None, "u", "p", "f"))):
+        for name in names:
+            space, _ = prob._space_of(name)
+            n = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+            x = torch.from_numpy(rng.standard_normal(n))
+            fn = prob.to_function(x, name)
+            assert fn.name == ("u" if name is None else name)
+            back = prob.from_function(fn, name)
+            assert back.dtype == np.float64
+            np.testing.assert_array_equal(back, x.numpy())
+
+
+def test_mixed_field_from_whole_solution(stokes):
+    x = np.random.default_rng(1).standard_normal(stokes.output_size)
+    whole = stokes.to_function(x)
+    assert whole.function_space == stokes.V
+    for field, dofs in stokes.fields.items():
+        np.testing.assert_array_equal(stokes.from_function(stokes.to_function(x, field), field), x[dofs])
+    # the velocity control f lives on an equal but distinct space: interpolated, same values
+    f = stokes.to_function(x[stokes.fields["u"]], "f")
+    np.testing.assert_allclose(stokes.from_function(f, "u"), x[stokes.fields["u"]], rtol=0, atol=1e-14)
+
+
+def test_to_function_errors_name_the_argument(poisson_p2):
+    with pytest.raises(ValueError, match=r"values for 'kappa' must have shape \(\d+,\) .* got \(2, 3\); "
+                                         r"pass one sample"):
+        poisson_p2.to_function(np.zeros((2, 3)), "kappa")
+    with pytest.raises(ValueError, match=r"unknown name 'p'; use a control \['f', 'kappa'\], or None"):
+        poisson_p2.to_function(np.zeros(3), "p")
+    with pytest.raises(TypeError, match="fn must be a dolfinx.fem.Function, got ndarray"):
+        poisson_p2.from_function(np.zeros(3))
+
+
+def _ascii_attributes(path):
+    """{(name, time): (values array, center)} from an ASCII-encoded XDMF file."""
+    root = ET.parse(path).getroot()
+    out, geometry = {}, None
+    for grid in root.iter("Grid"):
+        time = grid.find("Time")
+        g = grid.find("Geometry")
+        if g is not None and g.find("DataItem") is not None:
+            geometry = np.array(g.find("DataItem").text.split(), dtype=float)
+        for attr in grid.findall("Attribute"):
+            item = attr.find("DataItem")
+            dims = [int(d) for d in item.get("Dimensions").split()]
+            values = np.array(item.text.split(), dtype=float).reshape(dims)
+            out[(attr.get("Name"), float(time.get("Value")))] = (values, attr.get("Center"))
+    return out, geometry
+
+
+def test_xdmf_p2_solution_written_at_nodes_with_time_steps(tmp_path, poisson_p2, coarse):
+    u = poisson_p2.interpolate(_linear)
+    steps = np.stack([u, 2.0 * u, -u])
+    path = io.write_fields(tmp_path / "series", poisson_p2, {"prediction": steps, "kappa": poisson_p2.interpolate(
+        smooth, "kappa")}, times=[0.0, 0.5, 1.0], encoding="ascii")
+    assert path == tmp_path / "series.xdmf" and not (tmp_path / "series.h5").exists()
+    attrs, geometry = _ascii_attributes(path)
+    assert sorted(attrs) == sorted((n, t) for n in ("prediction", "kappa") for t in (0.0, 0.5, 1.0))
+    xy = geometry.reshape(-1, 2)
+    exact = _linear(xy.T)
+    for t, scale in ((0.0, 1.0), (0.5, 2.0), (1.0, -1.0)):
+        values, center = attrs[("prediction", t)]
+        assert center == "Node" and values.shape == (len(xy), 1)
+        # a linear field: its P1 interpolant at the nodes is exact
+        np.testing.assert_allclose(values[:, 0], scale * exact, rtol=0, atol=1e-12)
+    kappa, center = attrs[("kappa", 1.0)]
+    assert center == "Cell"
+    # (the XML holds 16 significant digits)
+    np.testing.assert_allclose(kappa[:, 0], poisson_p2.interpolate(smooth, "kappa"), rtol=1e-15, atol=0)
+
+
+def test_xdmf_vector_field_and_hdf5(tmp_path, stokes):
+    velocity = np.zeros(stokes.output_size)
+    dofs = stokes.fields["u"]
+    coords = stokes.dof_coordinates("f")          # velocity nodes (f lives on the velocity space)
+    velocity[dofs[0::2]] = _linear(coords.T)
+    velocity[dofs[1::2]] = coords[:, 0]
+    path = io.write_fields(tmp_path / "flow", stokes, {"pred": velocity}, encoding="ascii")
+    attrs, geometry = _ascii_attributes(path)
+    assert sorted(attrs) == [("pred_p", 0.0), ("pred_u", 0.0)]
+    values, _ = attrs[("pred_u", 0.0)]
+    xy = geometry.reshape(-1, 2)
+    np.testing.assert_allclose(values[:, 0], _linear(xy.T), atol=1e-12)
+    np.testing.assert_allclose(values[:, 1], xy[:, 0], atol=1e-12)
+    np.testing.assert_array_equal(attrs[("pred_p", 0.0)][0], 0.0)
+
+    h5 = io.write_fields(tmp_path / "flow_h5", stokes, {"pred": velocity})
+    assert (tmp_path / "flow_h5.h5").read_bytes()[:8] == b"\x89HDF\r\n\x1a\n"
+    items = [item.text.strip() for item in ET.parse(h5).getroot().iter("DataItem")]
+    assert "flow_h5.h5:/Function/pred_u/0" in items and "flow_h5.h5:/Function/pred_p/0" in items
+
+
+def test_write_xdmf_errors(tmp_path, poisson_p2, stokes):
+    fn = poisson_p2.to_function(np.zeros(poisson_p2.output_size))
+    with pytest.raises(ValueError, match=r"every field needs one Function per time step \(or one for all steps\); "
+                                         r"got \{'a': 2, 'b': 3\} Functions"):
+        io.write_xdmf(tmp_path / "x", {"a": [fn, fn], "b": [fn, fn, fn]})
+    with pytest.raises(ValueError, match=r"times must hold 2 finite values .* got \[0.0\]"):
+        io.write_xdmf(tmp_path / "x", {"a": [fn, fn]}, times=[0.0])
+    with pytest.raises(ValueError, match="field 'w' is on a mixed space; write its parts instead"):
+        io.write_xdmf(tmp_path / "x", {"w": stokes.to_function(np.zeros(stokes.output_size))})
+    with pytest.raises(ValueError, match=r"encoding must be one of \['hdf5', 'ascii'\], got 'vtk'"):
+        io.write_xdmf(tmp_path / "x", fn, encoding="vtk")
