@@ -18,6 +18,7 @@ Run on an idle machine: ``python scripts/bench_scenes.py --threads 1``.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import sys
@@ -66,6 +67,23 @@ def bench_scene(name: str, seeds: list[int], sweep: bool) -> dict:
     return out
 
 
+def markdown_table(results: dict) -> str:
+    """The README's table: per scene, PRDP against the converged baseline (means over the seeds)."""
+    lines = ["| scene | K_eps | PRDP's final K | metric / baseline (seeds' range) | inner iterations | wall time "
+             "| wall-time saving / iteration saving | IC / PR savings |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, r in results["scenes"].items():
+        spread = [x["final_metric"] for x in r["ratios_per_seed"]]
+        finals = sorted({p["k_schedule"][-1][1] for p in r["prdp"]})
+        sweep = r.get("sweep", {}).get("savings")
+        split = "" if sweep is None else f"{100 * sweep['ic_savings']:.0f}% / {100 * sweep['pr_savings']:.0f}%"
+        share = r["wall_time_savings"] / r["iteration_savings"] if r["iteration_savings"] > 0 else float("nan")
+        lines.append(f"| `{name}` | {r['k_eps']} | {', '.join(map(str, finals))} | {r['ratios']['final_metric']:.2f}x "
+                     f"({min(spread):.2f}-{max(spread):.2f}) | {r['ratios']['total_iterations']:.2f}x "
+                     f"| {r['ratios']['wall_time']:.2f}x | {share:.2f} | {split} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scenes", type=comma_list(str), default=PRDP_SCENES)
@@ -74,10 +92,16 @@ def main(argv=None) -> int:
                         help="scenes to also sweep fixed K for (the IC / PR split)")
     parser.add_argument("--threads", type=int, help="torch threads (default: torch's)")
     parser.add_argument("--out", type=Path, default=Path("bench-results/bench_scenes.json"))
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the other scenes already in --out (rerun some scenes only)")
     args = parser.parse_args(argv)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     results = {"machine": machine_info(), "scenes": {}}
+    if args.merge and args.out.exists():
+        previous = json.loads(args.out.read_text())
+        results["scenes"] = {n: r for n, r in previous["scenes"].items() if n not in args.scenes}
+        results["machine_of_kept_scenes"] = previous.get("machine_of_kept_scenes", previous["machine"])
     for name in args.scenes:
         results["scenes"][name] = r = bench_scene(name, args.seeds, name in args.sweep)
         ratio = r["ratios"]
@@ -95,6 +119,7 @@ def main(argv=None) -> int:
         }
         results["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
         write_json_atomically(results, args.out)
+    print(markdown_table(results))
     s = results["summary"]
     print(f"mean over {len(s['scenes'])} scenes: {100 * s['mean_iteration_savings']:.0f}% fewer inner iterations, "
           f"{100 * s['mean_wall_time_savings']:.0f}% less wall time; wrote {args.out}")
