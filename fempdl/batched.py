@@ -56,6 +56,8 @@ class BatchedEngine:
             extra = set(opts.petsc_options) - _OWN_OPTIONS
             if extra:
                 return f"it does not interpret petsc_options {sorted(extra)}"
+            if opts.options_prefix is not None:
+                return f"it reads no PETSc options (options_prefix={opts.options_prefix!r} is set)"
         return None
 
     @staticmethod

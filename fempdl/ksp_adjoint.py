@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import re
 import sys
 import time
 import types
@@ -89,6 +90,15 @@ _RESERVED_OPTIONS = {
     "ksp_divtol": "divtol",
     "ksp_gmres_restart": "gmres_restart",
 }
+# Types of the fields a reserved key sets (KSPOptions.from_petsc_options); others are str.
+_OPTION_TYPES = {"max_it": int, "rtol": float, "atol": float, "divtol": float, "gmres_restart": int}
+# Prefixes of solvers without options_prefix (their options are all their own).
+_PRIVATE_PREFIX = "fempdl_"
+# Options set under users' prefixes by live solvers: {full name: number of solvers}.
+_ADDED_OPTIONS: dict[str, int] = {}
+_ADDED_KEYS = "fempdl_added_options"     # the KSP attribute listing the keys it added
+# A PETSc options prefix a user can address from the command line.
+_PREFIX = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 # Keys that would break the documented semantics outright.
 _FORBIDDEN_OPTIONS = {
     "ksp_initial_guess_nonzero": "capped solves always start from a zero initial guess",
@@ -173,6 +183,17 @@ class KSPOptions:
             once per sample; the Krylov method still runs on each sample's own
             matrix, and a capped solve still runs exactly ``max_it`` iterations,
             but a converged one may need more of them.
+        options_prefix: a PETSc options prefix of your own, e.g. ``"myprefix_"``:
+            the layer's KSP reads the options database under it when it is
+            created, so command-line options such as ``-myprefix_ksp_monitor``,
+            ``-myprefix_ksp_view`` or ``-myprefix_ksp_converged_reason`` reach it
+            (a separate adjoint KSP reads ``myprefix_adj_``). Options given there
+            override these fields (a ``-myprefix_ksp_max_it`` fights the cap
+            PRDP moves: leave the cap to ``max_it``); a key given both there and
+            in ``petsc_options`` keeps the database's value. Only the keys this
+            solver added are removed when it is destroyed. The batched engine
+            reads no PETSc options, so a prefix makes ``engine="auto"`` use
+            PETSc. ``None`` (default): a private prefix per solver.
     """
 
     ksp_type: str = "richardson"
@@ -188,6 +209,7 @@ class KSPOptions:
     engine: str = "auto"
     adjoint_operator: str = "auto"
     lag_preconditioner: bool = False
+    options_prefix: str | None = None
 
     def __post_init__(self):
         _check_choice("ksp_type", self.ksp_type, _KSP_TYPES)
@@ -242,11 +264,51 @@ class KSPOptions:
         if self.adjoint_operator not in ADJOINT_OPERATORS:
             raise ValueError(f"adjoint_operator must be one of {list(ADJOINT_OPERATORS)}, "
                              f"got {self.adjoint_operator!r}")
+        if self.options_prefix is not None and (not isinstance(self.options_prefix, str)
+                                                or not _PREFIX.fullmatch(self.options_prefix)
+                                                or self.options_prefix.startswith(_PRIVATE_PREFIX)):
+            raise ValueError(f"options_prefix must be letters, digits and underscores starting with a letter, "
+                             f"not starting with {_PRIVATE_PREFIX!r} (fempdl's own), e.g. 'myprefix_' (no "
+                             f"leading '-'); got {self.options_prefix!r}")
 
     def __hash__(self):
         # petsc_options is a read-only mapping: hash its items.
         return hash(tuple((f.name, tuple(sorted(v.items())) if f.name == "petsc_options" else v)
                           for f in dataclasses.fields(self) for v in (getattr(self, f.name),)))
+
+    @classmethod
+    def from_petsc_options(cls, options: Mapping[str, Any], **fields) -> "KSPOptions":
+        """Options from a DOLFINx-style PETSc options dict, as given to
+        ``dolfinx.fem.petsc.LinearProblem(..., petsc_options=...)``.
+
+        ``ksp_type``, ``pc_type``, ``ksp_rtol``, ``ksp_atol``, ``ksp_max_it``,
+        ``ksp_divtol`` and ``ksp_gmres_restart`` become the fields of the same
+        meaning (numbers may be given as strings, as on a command line); every
+        other key goes into ``petsc_options``. Without ``ksp_max_it`` the solve
+        runs to ``ksp_rtol`` (default 1e-10) and not reaching it is an error,
+        as PETSc would report; with it the solve is capped there. Keyword
+        arguments set any other field (``options_prefix=``, ``adjoint=``, ...).
+
+        Example:
+            ``KSPOptions.from_petsc_options({"ksp_type": "cg", "pc_type": "jacobi", "ksp_rtol": 1e-8})``
+        """
+        if not isinstance(options, Mapping):
+            raise TypeError(f"options must be a mapping of PETSc option name to value, got {type(options).__name__}")
+        values = {"ksp_type": "gmres", "pc_type": "ilu", "max_it": None}   # PETSc's defaults
+        rest = {}
+        for key, value in options.items():
+            name = key[1:] if isinstance(key, str) and key.startswith("-") else key
+            if name in _RESERVED_OPTIONS:
+                field_name = _RESERVED_OPTIONS[name]
+                if field_name in fields:
+                    raise ValueError(f"options[{key!r}] and the keyword {field_name}= both set {field_name}; "
+                                     "give one of them")
+                values[field_name] = _parse_option(key, value, _OPTION_TYPES.get(field_name, str))
+            else:
+                rest[name] = value
+        if "petsc_options" in fields:
+            rest = {**rest, **fields.pop("petsc_options")}
+        return cls(**{**values, **fields}, petsc_options=rest)
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "KSPOptions":
@@ -426,7 +488,8 @@ class CappedSolver:
     Args:
         A: the assembled operator (square PETSc Mat).
         options: the solver options.
-        prefix: options prefix; a unique private one by default.
+        prefix: options prefix; ``options.options_prefix`` when set, else a
+            unique private one.
 
     Attributes:
         stats: :class:`CumulativeStats` of every solve (``solve`` counts as
@@ -445,7 +508,7 @@ class CappedSolver:
         self._options = options
         self._A = A
         self._fields = fields
-        self._prefix = prefix or f"fempdl_ksp{next(self._counter)}_"
+        self._prefix = prefix or options.options_prefix or f"fempdl_ksp{next(self._counter)}_"
         self._ksp = _create_ksp(A, options, self._prefix, fields)
         # The adjoint has its own KSP when its options differ, or when it runs on
         # an assembled A^T (created at the first transposed solve: A must be assembled).
@@ -735,8 +798,25 @@ def _create_ksp(A: PETSc.Mat, options: KSPOptions, prefix: str, fields=None) -> 
     ksp.setTolerances(**options.petsc_tolerances())
     ksp.setInitialGuessNonzero(False)
     db = PETSc.Options()
-    for key, value in options.petsc_options.items():
-        db[prefix + key] = "" if value is None else value
+    if prefix.startswith(_PRIVATE_PREFIX):
+        for key, value in options.petsc_options.items():
+            db[prefix + key] = "" if value is None else value
+        ksp.setAttr(_ADDED_KEYS, None)           # destroy removes everything under the prefix
+    else:
+        # A user's prefix: options already in the database (the command line's, or
+        # another solver's under the same prefix) win and are not this solver's to remove.
+        added = []
+        for key, value in options.petsc_options.items():
+            name = prefix + key
+            if name in _ADDED_OPTIONS:
+                _ADDED_OPTIONS[name] += 1
+            elif not db.hasName(name):
+                db[name] = "" if value is None else value
+                _ADDED_OPTIONS[name] = 1
+            else:
+                continue
+            added.append(name)
+        ksp.setAttr(_ADDED_KEYS, added)
     # Inner solvers (fieldsplit blocks) read their options when the
     # preconditioner is first set up, so the options stay until _destroy_ksp.
     try:
@@ -786,12 +866,22 @@ def _set_up(ksp: PETSc.KSP, reuse: bool) -> None:
 
 
 def _destroy_ksp(ksp: PETSc.KSP) -> None:
-    """Destroy ``ksp`` and remove the options under its prefix from the global database."""
+    """Destroy ``ksp`` and remove its options from the global database: everything
+    under a private prefix; under a user's prefix only the keys it added (once no
+    other solver under that prefix uses them)."""
     db = PETSc.Options()
-    prefix = ksp.getOptionsPrefix() or ""
-    for key in db.getAll():
-        if prefix and key.startswith(prefix):
-            db.delValue(key)
+    added = ksp.getAttr(_ADDED_KEYS)
+    if added is None:
+        prefix = ksp.getOptionsPrefix() or ""
+        for key in db.getAll():
+            if prefix and key.startswith(prefix):
+                db.delValue(key)
+    else:
+        for name in added:
+            _ADDED_OPTIONS[name] -= 1
+            if not _ADDED_OPTIONS[name]:
+                del _ADDED_OPTIONS[name]
+                db.delValue(name)
     ksp.destroy()
 
 
@@ -814,11 +904,31 @@ def _frozen_petsc_options(options) -> Mapping[str, Any]:
             raise ValueError(f"petsc_options[{key!r}] is not supported: {_FORBIDDEN_OPTIONS[key]}")
         if key in _RESERVED_OPTIONS:
             raise ValueError(f"petsc_options[{key!r}] conflicts with a KSPOptions field; "
-                             f"set {_RESERVED_OPTIONS[key]} instead")
+                             f"set {_RESERVED_OPTIONS[key]} instead, or build the options from a DOLFINx-style "
+                             "dict with KSPOptions.from_petsc_options")
         if value is not None and not isinstance(value, (str, bool, int, float, np.integer, np.floating)):
             raise TypeError(f"petsc_options[{key!r}] must be str, number, bool or None, got {value!r}")
         clean[key] = value
     return types.MappingProxyType(clean)
+
+
+def _parse_option(key: str, value, kind: type):
+    """A reserved option's value as its field's type (strings parsed, as from a command line)."""
+    if kind is str:
+        if not isinstance(value, str):
+            raise TypeError(f"options[{key!r}] must be a type name (str), got {value!r}")
+        return value
+    if isinstance(value, bool) or value is None:
+        raise TypeError(f"options[{key!r}] must be a number, got {value!r}")
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"options[{key!r}] must be a number, got {value!r}") from None
+    if kind is int:
+        if not number.is_integer():
+            raise ValueError(f"options[{key!r}] must be a whole number, got {value!r}")
+        return int(number)
+    return number
 
 
 def _check_choice(name: str, value, allowed: frozenset) -> None:
