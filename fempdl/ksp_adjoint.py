@@ -193,7 +193,12 @@ class KSPOptions:
             in ``petsc_options`` keeps the database's value. Only the keys this
             solver added are removed when it is destroyed. The batched engine
             reads no PETSc options, so a prefix makes ``engine="auto"`` use
-            PETSc. ``None`` (default): a private prefix per solver.
+            PETSc. petsc4py reads ``sys.argv`` only when the script calls
+            ``petsc4py.init(sys.argv)`` before importing fempdl; the environment
+            variable ``PETSC_OPTIONS`` works always. A pure cap computes no
+            residual norm (a monitor prints 0); give
+            ``petsc_options={"ksp_norm_type": "unpreconditioned"}`` to see it.
+            ``None`` (default): a private prefix per solver.
     """
 
     ksp_type: str = "richardson"
