@@ -11,7 +11,9 @@ baseline and PRDP, and writes a table, plots and the IC/PR savings split.
 ``fempdl compare SCENE`` runs a sip or hig scene's method and Adam with
 backpropagation side by side, at equal iterations and at equal training time,
 and writes the ratios and plots of the error against both. ``fempdl scenes``
-lists the bundled scenes.
+lists the bundled scenes; ``fempdl scenes --show NAME`` prints one's TOML.
+``--set section.key=value`` (repeatable) overrides a scene value, checked
+like the file.
 
 A command locks its output directory while it runs (a second command on it
 is refused) and refuses a directory that holds an earlier run unless told
@@ -91,8 +93,13 @@ def build_parser() -> argparse.ArgumentParser:
         command.add_argument("--threads", type=_positive_int,
                              help="torch threads per process (default: torch's; under mpirun the node's "
                                   "cores shared among its ranks)")
+        command.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                             help="override a scene value (repeatable), e.g. --set optimizer.epochs=5 "
+                                  "--set solver.preset=cg; VALUE is a TOML value or plain text (a string), "
+                                  "checked like the file")
 
-    sub.add_parser("scenes", help="list the bundled scenes")
+    scenes = sub.add_parser("scenes", help="list the bundled scenes, or print one")
+    scenes.add_argument("--show", metavar="NAME", help="print bundled scene NAME's TOML (a start for your own)")
     return parser
 
 
@@ -113,11 +120,18 @@ def main(argv=None) -> int:
         return 2
 
     if args.command == "scenes":
+        if args.show is not None:
+            try:
+                print(scene.bundled_text(args.show), end="")
+            except scene.SceneError as err:
+                print(f"fempdl: {err}", file=sys.stderr)
+                return 2
+            return 0
         for name in scene.available():
             print(f"{name:<22} {scene.load(name).description}")
         return 0
     try:
-        sc = scene.load(args.scene)
+        sc = scene.load(args.scene, args.set)
     except (scene.SceneError, FileNotFoundError) as err:
         print(f"fempdl: {err}", file=sys.stderr)
         return 2

@@ -206,8 +206,21 @@ def available() -> list[str]:
     return sorted(p.name[:-5] for p in resources.files("fempdl.scenes").iterdir() if p.name.endswith(".toml"))
 
 
-def load(name_or_path) -> Scene:
-    """A bundled scene by name, or any scene file by path."""
+def bundled_text(name: str) -> str:
+    """The TOML text of bundled scene ``name`` (a start for a scene of your own)."""
+    if name not in available():
+        raise SceneError(f"unknown scene {name!r}; bundled scenes are {available()}")
+    return resources.files("fempdl.scenes").joinpath(f"{name}.toml").read_text()
+
+
+def load(name_or_path, overrides=()) -> Scene:
+    """A bundled scene by name, or any scene file by path.
+
+    ``overrides``: ``"section.key=value"`` strings applied to the file's values
+    before validation (the command line's ``--set``); ``value`` is a TOML value
+    (``5``, ``1e-3``, ``true``, ``"cg"``, ``[1, 2]``), and text that is no TOML
+    value is taken as a string (``solver.preset=cg``).
+    """
     if not isinstance(name_or_path, (str, Path)):
         raise TypeError(f"scene must be a bundled name or a path, got {type(name_or_path).__name__}")
     path = Path(name_or_path)
@@ -215,8 +228,7 @@ def load(name_or_path) -> Scene:
         if str(name_or_path) not in available():
             raise SceneError(f"unknown scene {str(name_or_path)!r}; bundled scenes are {available()}, "
                              "or pass a path to a .toml file")
-        text = resources.files("fempdl.scenes").joinpath(f"{name_or_path}.toml").read_text()
-        return parse(text, source=f"bundled:{name_or_path}")
+        return parse(bundled_text(str(name_or_path)), source=f"bundled:{name_or_path}", overrides=overrides)
     if not path.is_file():
         raise FileNotFoundError(f"scene file {str(path)!r} does not exist")
     try:
@@ -224,15 +236,16 @@ def load(name_or_path) -> Scene:
     except UnicodeDecodeError as err:
         raise SceneError(f"{path}: not a UTF-8 text file (byte {err.start}: {err.reason}); "
                          "TOML scene files are UTF-8: save it as UTF-8") from None
-    return parse(text, source=str(path))
+    return parse(text, source=str(path), overrides=overrides)
 
 
-def parse(text: str, source: str = "<string>") -> Scene:
-    """Validate TOML text as a scene."""
+def parse(text: str, source: str = "<string>", overrides=()) -> Scene:
+    """Validate TOML text, with ``overrides`` applied (see :func:`load`), as a scene."""
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise SceneError(f"{source}: not valid TOML: {err}") from None
+    _apply_overrides(raw, overrides, source)
     unknown = sorted(set(raw) - set(SCHEMA))
     if unknown:
         raise SceneError(f"{source}: unknown section(s) {unknown}; allowed sections are {sorted(SCHEMA)}")
@@ -342,6 +355,27 @@ def _check_marker(values: dict, raw: dict, source: str) -> None:
     if values["sip"]["inverse"] != "gauss-newton":
         raise SceneError(f"{source}: [sip] inverse must be 'gauss-newton' for the marker PDE (its physics is "
                          f"nonlinear in the velocity), got {values['sip']['inverse']!r}")
+
+
+def _apply_overrides(raw: dict, overrides, source: str) -> None:
+    """Set ``raw[section][key] = value`` for each ``"section.key=value"``; the schema checks them after."""
+    if isinstance(overrides, str):
+        overrides = (overrides,)
+    for item in overrides:
+        target, sep, text = str(item).partition("=")
+        section, dot, key = target.strip().partition(".")
+        if not sep or not dot or not section or not key or "." in key:
+            raise SceneError(f"{source}: --set {item!r} must have the form section.key=value, "
+                             "e.g. optimizer.epochs=5")
+        try:
+            value = tomllib.loads(f"value = {text.strip()}")["value"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()            # plain text: a string
+        if section not in raw:
+            raw[section] = {}
+        if not isinstance(raw[section], dict):
+            raise SceneError(f"{source}: --set {item!r}: [{section}] is not a table")
+        raw[section][key] = value
 
 
 def _section(raw: dict, name: str, source: str) -> dict:

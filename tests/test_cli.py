@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import io
 import json
 import math
@@ -434,3 +435,46 @@ def test_tradeoff_csv_splits_each_runs_wall_time(tradeoff_run):
     for row in rows:
         parts = sum(float(v) for k, v in row.items() if k.startswith("time_"))
         assert parts == pytest.approx(float(row["wall_time"]), rel=1e-9)
+
+
+# ------------------------------------------------------------------ --set and scenes --show
+def test_scenes_show_prints_the_bundled_toml(capsys):
+    assert cli.main(["scenes", "--show", "heat-emulator-2d"]) == 0
+    text = capsys.readouterr().out
+    assert text == scene.bundled_text("heat-emulator-2d")
+    shown = scene.parse(text, source="shown")
+    assert dataclasses.replace(shown, source="") == dataclasses.replace(scene.load("heat-emulator-2d"), source="")
+    assert cli.main(["scenes", "--show", "no-such-scene"]) == 2
+    assert capsys.readouterr().err.startswith("fempdl: unknown scene 'no-such-scene'; bundled scenes are")
+
+
+def test_set_values_are_toml_or_plain_strings(tiny):
+    quoted = scene.load(tiny, ['solver.preset="cg"', "optimizer.lr=2e-3", "prdp.k_cap = 9", "network.hidden=8"])
+    plain = scene.load(tiny, ["solver.preset=cg", "optimizer.lr=2e-3", "prdp.k_cap=9", "network.hidden=8"])
+    assert quoted == plain
+    assert (plain.solver["preset"], plain.optimizer["lr"], plain.prdp["k_cap"], plain.network["hidden"]) == \
+        ("cg", 2e-3, 9, 8)
+    assert scene.load(tiny).solver["preset"] == "jacobi"
+
+
+def test_run_with_set_trains_the_overridden_scene(tiny, tmp_path):
+    code, _, stderr = call(["run", tiny, "--k", "2", "--no-baseline", "--out", tmp_path, "--no-progress",
+                            "--set", "optimizer.epochs=2", "--set", "data.train=8"])
+    assert code == 0, stderr
+    rows = metrics(tmp_path / "k2")
+    assert len(rows) == 2 and {row["k"] for row in rows} == {2}
+    # 8 training samples (cumulative counts): one forward solve of K=2 per sample and epoch
+    assert [row["forward_iterations"] for row in rows] == [8 * 2, 8 * 2 * 2]
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["run", "{tiny}", "--set", "optimizer.epochs=five"], "[optimizer] epochs must be of type int, got 'five' (str)"),
+    (["run", "{tiny}", "--set", "optimizer.epoch=5"], "unknown key(s) ['epoch'] in [optimizer]"),
+    (["tradeoff", "{tiny}", "--set", "solver.preset=lu"], "[solver] preset must be one of"),
+    (["compare", "{sip}", "--set", "optimizer=5"], "--set 'optimizer=5' must have the form section.key=value"),
+    (["run", "{tiny}", "--set", "nosuch.x=1"], "unknown section(s) ['nosuch']"),
+])
+def test_set_errors_name_the_key(argv, fragment, tiny, tiny_sip, tmp_path):
+    code, stdout, stderr = call([a.format(sip=tiny_sip, tiny=tiny) for a in argv] + ["--out", tmp_path / "o"])
+    assert code == 2 and fragment in stderr and stdout == ""
+    assert not (tmp_path / "o").exists()
