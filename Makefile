@@ -1,13 +1,24 @@
 # The two commands the README shows. Both set the environment up first
 # (Debian packages, the venv, torch, fempdl) and are safe to run repeatedly.
+# STACK=debian (the default): Debian's DOLFINx 0.5.2 in .venv.
+# STACK=pypi: DOLFINx 0.11 from PyPI on the machine's Python 3.12, in .venv-pypi.
+STACK ?= debian
+ifeq ($(STACK),debian)
 VENV ?= .venv
+SETUP := scripts/setup_env.sh
+else ifeq ($(STACK),pypi)
+VENV ?= .venv-pypi
+SETUP := scripts/setup_env_pypi.sh
+else
+$(error STACK must be debian or pypi, got '$(STACK)')
+endif
 PYTHON := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
 .PHONY: setup run test bench clean
 
 setup:
-	@bash scripts/setup_env.sh $(VENV)
+	@bash $(SETUP) $(VENV)
 
 run: setup
 	$(VENV)/bin/fempdl run --overwrite

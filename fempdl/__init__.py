@@ -6,6 +6,7 @@ Public names::
     from fempdl.ksp_adjoint import KSPOptions, CappedSolver, SolveStats
     from fempdl.bridge_torch import SolveLayer
 """
+import logging
 import os
 
 # OpenMP threads (torch's, the BLAS's) that spin-wait between parallel regions
@@ -19,6 +20,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 from fempdl import _dolfinx  # noqa: F401  isort: skip
 from fempdl import forms, mesh
 from fempdl.problem import Problem
+
+# Library messages (epoch lines, PRDP refinements, K_eps) go to the "fempdl" logger;
+# an application shows them with logging.basicConfig(level=logging.INFO).
+logging.getLogger("fempdl").addHandler(logging.NullHandler())
 
 __version__ = "0.1.0"
 __all__ = ["Problem", "forms", "mesh", "__version__"]

@@ -1,35 +1,92 @@
-"""The one place that touches DOLFINx names that changed after 0.5.
+"""The one place that knows which DOLFINx / PETSc fempdl runs on.
 
-DOLFINx 0.6+ renamed or moved several calls used here (``FunctionSpace`` ->
-``functionspace``, ``gmshio`` return values (and 0.5.2's ``read_from_msh`` is
-broken in Debian's build, so .msh files are read through ``model_to_mesh``), ``create_vector`` / ``assemble_*``
-signatures). Everything else in fempdl goes through this module, so a port to a
-newer DOLFINx touches this file only.
+Two stacks are supported: Debian bookworm's DOLFINx 0.5.2 with PETSc 3.18, and
+DOLFINx >= 0.9 (tested: 0.11 with PETSc 3.25 from PyPI). Between them DOLFINx
+renamed or moved several calls used here (``FunctionSpace`` ->
+``functionspace``, ``ufl.MixedElement`` -> ``basix.ufl.mixed_element``,
+``gmshio`` -> ``gmsh`` and its return value, ``create_vector``'s argument,
+``BoundingBoxTree`` -> ``bb_tree``, adjacency lists -> 2D arrays), and petsc4py
+gained ``KSP.matSolve``. Each difference is decided once here, by what the
+installed package offers; everything else in fempdl calls these functions, so
+no other module asks for a version.
+
+Debian's 0.5.2 ``gmshio.read_from_msh`` is broken, so .msh files are read
+through ``model_to_mesh`` on both stacks.
 """
 from __future__ import annotations
 
+import importlib
+import importlib.util
+import shutil
 import signal
+import sys
 import threading
+from pathlib import Path
+
+# mpi4py's MPI first: PyPI's DOLFINx finds libmpi only once mpi4py has loaded it.
+from mpi4py import MPI
 
 import dolfinx
 import dolfinx.fem
 import dolfinx.fem.petsc
+import dolfinx.geometry
 import dolfinx.mesh
 import numpy as np
+import ufl
 from petsc4py import PETSc
 
-# Importing gmsh (through gmshio) resets SIGINT to the OS default, so Ctrl-C
-# would kill the process without unwinding (no cleanup, no final checkpoint).
-# Put back whatever handler was in place (Python's KeyboardInterrupt by default).
-_sigint = signal.getsignal(signal.SIGINT)
-import dolfinx.io.gmshio  # noqa: E402
+#: (major, minor) of the DOLFINx in use, e.g. (0, 5) or (0, 11); for reports
+#: and for tests that must know the stack. Code branches on the capabilities below.
+DOLFINX_VERSION: tuple[int, int] = tuple(int(p) for p in dolfinx.__version__.split(".")[:2])
+#: (major, minor, patch) of PETSc.
+PETSC_VERSION: tuple[int, int, int] = tuple(PETSc.Sys.getVersion())
+#: The stack's name: "debian" (DOLFINx 0.5) or "current" (DOLFINx >= 0.9).
+STACK = "debian" if DOLFINX_VERSION < (0, 9) else "current"
 
+#: ``KSP.matSolve`` (one call for many right-hand sides) is in petsc4py >= 3.19.
+HAS_MAT_SOLVE = hasattr(PETSc.KSP, "matSolve")
+
+
+
+def mpi_launcher() -> list[str]:
+    """The command (program and flags, before ``-n N``) that starts ranks of this MPI.
+
+    PyPI's mpi4py brings MPICH and its ``mpiexec`` beside the interpreter;
+    Debian's is Open MPI's ``mpirun`` on PATH, which refuses more ranks than
+    cores unless told ``--oversubscribe`` (MPICH oversubscribes by default).
+    """
+    beside = Path(sys.executable).parent / "mpiexec"
+    if "Open MPI" in MPI.Get_library_version():
+        launcher = shutil.which("mpirun")
+        flags = ["--oversubscribe"]
+    else:
+        launcher = str(beside) if beside.exists() else shutil.which("mpiexec")
+        flags = []
+    if launcher is None:
+        raise FileNotFoundError(f"no MPI launcher found for {MPI.Get_library_version().splitlines()[0]!r}; "
+                                "install the MPI that mpi4py was built with (Debian: openmpi-bin; PyPI: mpich)")
+    return [launcher, *flags]
+
+
+# DOLFINx 0.10 moved gmshio to dolfinx.io.gmsh. Importing it imports gmsh, which
+# resets SIGINT to the OS default, so Ctrl-C would kill the process without
+# unwinding (no cleanup, no final checkpoint). Put back whatever handler was in
+# place (Python's KeyboardInterrupt by default).
+_sigint = signal.getsignal(signal.SIGINT)
+_gmsh_io = importlib.import_module("dolfinx.io.gmsh" if importlib.util.find_spec("dolfinx.io.gmsh")
+                                   else "dolfinx.io.gmshio")
 if threading.current_thread() is threading.main_thread() and _sigint is not None:
     signal.signal(signal.SIGINT, _sigint)
+
+_NEW_SPACES = hasattr(dolfinx.fem, "functionspace")       # 0.7+: functionspace and basix.ufl elements
+if _NEW_SPACES:
+    import basix.ufl
 
 
 def function_space(msh, family: str, degree: int, shape: tuple | None = None):
     """A (scalar or vector) Lagrange/DG space on ``msh``."""
+    if _NEW_SPACES:
+        return dolfinx.fem.functionspace(msh, (family, degree) if shape is None else (family, degree, tuple(shape)))
     if shape is None:
         return dolfinx.fem.FunctionSpace(msh, (family, degree))
     return dolfinx.fem.VectorFunctionSpace(msh, (family, degree), dim=shape[0])
@@ -37,8 +94,11 @@ def function_space(msh, family: str, degree: int, shape: tuple | None = None):
 
 def taylor_hood_space(msh, degree: int = 2):
     """The mixed space P_degree (vector) x P_(degree-1) of velocity and pressure."""
-    import ufl
-
+    if _NEW_SPACES:
+        cell = msh.basix_cell()
+        velocity = basix.ufl.element("Lagrange", cell, degree, shape=(msh.geometry.dim,))
+        pressure = basix.ufl.element("Lagrange", cell, degree - 1)
+        return dolfinx.fem.functionspace(msh, basix.ufl.mixed_element([velocity, pressure]))
     velocity = ufl.VectorElement("Lagrange", msh.ufl_cell(), degree)
     pressure = ufl.FiniteElement("Lagrange", msh.ufl_cell(), degree - 1)
     return dolfinx.fem.FunctionSpace(msh, ufl.MixedElement([velocity, pressure]))
@@ -65,7 +125,7 @@ def cell_diameters(msh) -> np.ndarray:
     """Diameter (largest vertex distance) of every local cell of an affine mesh."""
     x = msh.geometry.x
     n_cells = msh.topology.index_map(msh.topology.dim).size_local
-    cells = msh.geometry.dofmap.array.reshape(-1, msh.ufl_cell().num_vertices())[:n_cells]
+    cells = _geometry_dofmap(msh)[:n_cells]
     corners = x[cells]                                                    # (cells, vertices, 3)
     gaps = np.linalg.norm(corners[:, :, None, :] - corners[:, None, :, :], axis=-1)
     return gaps.reshape(n_cells, -1).max(axis=1)
@@ -82,7 +142,8 @@ def model_to_mesh(model, comm, rank: int = 0, gdim: int = 3):
     Returns:
         (mesh, cell_tags, facet_tags)
     """
-    return dolfinx.io.gmshio.model_to_mesh(model, comm, rank, gdim=gdim)
+    # 0.10+ returns a MeshData named tuple that starts with these three.
+    return tuple(_gmsh_io.model_to_mesh(model, comm, rank, gdim=gdim))[:3]
 
 
 def boundary_facets(msh) -> np.ndarray:
@@ -109,15 +170,24 @@ def create_matrix(a_form) -> PETSc.Mat:
 
 
 def create_vector(L_form) -> PETSc.Vec:
-    """A ghosted PETSc vector laid out like the test space of ``L_form``."""
-    return dolfinx.fem.petsc.create_vector(L_form)
+    """A ghosted PETSc vector laid out like the test space of ``L_form``.
+
+    Built from the space's index map (what DOLFINx does inside), because
+    ``fem.petsc.create_vector`` takes a form up to 0.10 and a space from 0.11.
+    """
+    space = L_form.function_spaces[0]
+    imap, bs = space.dofmap.index_map, space.dofmap.index_map_bs
+    return PETSc.Vec().createGhost(np.asarray(imap.ghosts, dtype=PETSc.IntType),
+                                   size=(imap.size_local * bs, imap.size_global * bs), bsize=bs,
+                                   comm=space.mesh.comm)
 
 
 def assemble_matrix_into(A: PETSc.Mat, a_form, bcs=(), diagonal: float = 1.0) -> PETSc.Mat:
     """Zero ``A`` and assemble ``a_form`` into it; BC rows and columns are zeroed
     and ``diagonal`` is put on BC rows (only when ``bcs`` is given)."""
     A.zeroEntries()
-    dolfinx.fem.petsc.assemble_matrix(A, a_form, bcs=list(bcs), diagonal=diagonal)
+    # Positional: the keyword is ``diagonal`` up to 0.9 and ``diag`` from 0.10.
+    dolfinx.fem.petsc.assemble_matrix(A, a_form, list(bcs), diagonal)
     A.assemble()
     return A
 
@@ -138,8 +208,6 @@ def assemble_vector_into(b: PETSc.Vec, L_form, a_form=None, bcs=()) -> PETSc.Vec
 
 def assemble_scalar(M_form, comm) -> float:
     """Assemble a functional and sum it over ``comm``."""
-    from mpi4py import MPI
-
     return comm.allreduce(dolfinx.fem.assemble_scalar(M_form), op=MPI.SUM)
 
 
@@ -152,8 +220,11 @@ def bc_dofs_owned(bcs, n_owned: int) -> np.ndarray:
     return np.unique(np.concatenate(owned)).astype(np.int32)
 
 
+_DIRICHLET_BC = getattr(dolfinx.fem, "DirichletBC", None) or dolfinx.fem.DirichletBCMetaClass
+
+
 def is_dirichlet_bc(obj) -> bool:
-    return isinstance(obj, dolfinx.fem.DirichletBCMetaClass)
+    return isinstance(obj, _DIRICHLET_BC)
 
 
 def bc_on_space(bc, V) -> bool:
@@ -163,17 +234,33 @@ def bc_on_space(bc, V) -> bool:
 
 def cell_dofs(V) -> np.ndarray:
     """(num_cells, dofs_per_cell) local DOF indices of every cell (owned and ghost)."""
-    dofs = V.dofmap.list.array
-    return dofs.reshape(-1, V.dofmap.dof_layout.num_dofs)
+    return _as_2d(V.dofmap.list, V.dofmap.dof_layout.num_dofs)
+
+
+def _geometry_dofmap(msh) -> np.ndarray:
+    """(num_cells, nodes_per_cell) geometry node indices of every local cell."""
+    geometry = msh.geometry
+    if hasattr(geometry, "dofmaps"):                    # 0.10+: one dofmap per cell type
+        dofmaps = geometry.dofmaps
+        return dofmaps(0) if callable(dofmaps) else dofmaps[0]
+    return _as_2d(geometry.dofmap, msh.ufl_cell().num_vertices())
+
+
+def _as_2d(links, width: int) -> np.ndarray:
+    """A fixed-width cell-to-DOF map as a 2D array (0.7+ store it so; 0.5 as an AdjacencyList)."""
+    return links if isinstance(links, np.ndarray) else links.array.reshape(-1, width)
 
 
 def point_evaluator(msh, points: np.ndarray):
     """For points (N, 3): (found indices, their cells) on this process's part of ``msh``.
 
     A point on a facet or vertex is assigned to one of the cells containing it."""
-    import dolfinx.geometry
-    tree = dolfinx.geometry.BoundingBoxTree(msh, msh.topology.dim)
-    candidates = dolfinx.geometry.compute_collisions(tree, points)
+    if hasattr(dolfinx.geometry, "bb_tree"):
+        tree = dolfinx.geometry.bb_tree(msh, msh.topology.dim)
+        candidates = dolfinx.geometry.compute_collisions_points(tree, points)
+    else:
+        tree = dolfinx.geometry.BoundingBoxTree(msh, msh.topology.dim)
+        candidates = dolfinx.geometry.compute_collisions(tree, points)
     colliding = dolfinx.geometry.compute_colliding_cells(msh, candidates, points)
     found, cells = [], []
     for i in range(len(points)):

@@ -6,14 +6,20 @@ import os
 import platform
 from pathlib import Path
 
+# Before anything loads an OpenMP runtime: spinning threads would stall the other
+# process of a paired measurement (fempdl's __init__ sets the same default).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from mpi4py import MPI  # before DOLFINx: PyPI's DOLFINx needs the MPI library mpi4py loads
+
 import dolfinx
 import numpy as np
 import petsc4py
 import torch
-from mpi4py import MPI
 from petsc4py import PETSc
 
 import fempdl
+from fempdl import _dolfinx
 from fempdl.training import write_atomically
 
 
@@ -37,6 +43,8 @@ def machine_info() -> dict:
         "torch": torch.__version__,
         "torch_num_threads": torch.get_num_threads(),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "runtime default"),
+        "load_average_1_5_15_min_at_start": list(os.getloadavg()),
+        "stack": _dolfinx.STACK,
         "dolfinx": dolfinx.__version__,
         "petsc": ".".join(map(str, PETSc.Sys.getVersion())),
         "petsc4py": petsc4py.__version__,

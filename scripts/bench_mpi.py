@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -42,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from bench_common import comma_list, machine_info, write_json_atomically
+from fempdl import _dolfinx
 
 RANKS = (1, 2)
 
@@ -119,7 +119,7 @@ def run_worker(args) -> int:
 
 # ---------------------------------------------------------------- driver
 def launch(ranks: int, worker: str, args, out: Path, scene: str = "") -> dict:
-    command = [shutil.which("mpirun"), "--oversubscribe", "-n", str(ranks), sys.executable, __file__,
+    command = [*_dolfinx.mpi_launcher(), "-n", str(ranks), sys.executable, __file__,
                "--worker", worker, "--worker-out", str(out), "--h", str(args.h), "--layer-k", str(args.layer_k),
                "--repeats", str(args.repeats), "--scene", scene, "--k", str(args.k), "--epochs", str(args.epochs)]
     env = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"}
@@ -148,8 +148,10 @@ def main(argv=None) -> int:
         return run_worker(args)
     if args.quick:
         args.h, args.epochs, args.repeats = 0.02, 2, 2
-    if shutil.which("mpirun") is None:
-        parser.error("mpirun is not installed (Debian: openmpi-bin)")
+    try:
+        _dolfinx.mpi_launcher()
+    except FileNotFoundError as exc:
+        parser.error(str(exc))
 
     results = {"machine": machine_info(), "settings": {k: v for k, v in vars(args).items()
                                                        if k not in ("out", "worker", "worker_out")}}

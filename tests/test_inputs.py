@@ -16,7 +16,7 @@ import torch
 import ufl
 from mpi4py import MPI
 
-from fempdl import Problem, forms, mesh
+from fempdl import Problem, _dolfinx, forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions, SolverFailedError
 
@@ -402,7 +402,7 @@ def test_dirichlet_names_on_untagged_mesh(msh):
 @pytest.fixture(scope="module")
 def raw(msh):
     """UFL pieces for building Problems by hand."""
-    V = dolfinx.fem.FunctionSpace(msh, ("Lagrange", 1))
+    V = _dolfinx.function_space(msh, "Lagrange", 1)
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
     f = dolfinx.fem.Function(V, name="f")
     a = ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx
@@ -418,7 +418,7 @@ def test_control_function_not_in_forms(raw):
 
 def test_control_function_from_another_mesh(raw, msh):
     other = dolfinx.mesh.create_unit_square(COMM, 4, 4)
-    h = dolfinx.fem.Function(dolfinx.fem.FunctionSpace(other, ("Lagrange", 1)))
+    h = dolfinx.fem.Function(_dolfinx.function_space(other, "Lagrange", 1))
     match = r"controls\['h'\] lives on a different mesh than the solution space; create it on the same mesh object"
     # not in the forms at all
     with pytest.raises(ValueError, match=match):

@@ -139,7 +139,11 @@ def test_boundary_pieces_have_the_exact_size(bundled):
 
 def test_generate_at_default_h_reproduces_the_committed_file():
     generated, _, _ = meshgen.generate("lshape", comm=COMM)
-    assert global_cells(generated) == global_cells(mesh.load("lshape", COMM).mesh)
+    committed = global_cells(mesh.load("lshape", COMM).mesh)
+    if tuple(int(p) for p in gmsh.__version__.split(".")[:2]) == meshgen.COMMITTED_WITH_GMSH:
+        assert global_cells(generated) == committed
+    else:   # another gmsh release: the same size, a slightly different mesh
+        assert abs(global_cells(generated) - committed) <= 0.01 * committed
 
 
 def test_larger_h_gives_fewer_cells_at_the_h_squared_rate():

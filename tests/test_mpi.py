@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from fempdl import _dolfinx
 
 SCRIPTS = Path(__file__).parent / "mpi"
 EXAMPLES = Path(__file__).parent.parent / "scripts"
@@ -24,11 +25,10 @@ MPI_ENV = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_
 
 
 def mpirun(ranks: int, script: str, *args: str, timeout: float = TIMEOUT) -> subprocess.CompletedProcess:
-    """``mpirun -n ranks python SCRIPT args`` (a script in tests/mpi, a path, or ``-m module``)."""
-    launcher = shutil.which("mpirun")
-    assert launcher is not None, "mpirun is not installed (Debian: openmpi-bin, pulled in by python3-mpi4py)"
+    """``mpirun -n ranks python SCRIPT args`` (a script in tests/mpi, a path, or ``-m module``),
+    with the launcher of the MPI that mpi4py uses (Open MPI's mpirun, or the venv's MPICH mpiexec)."""
     target = [script] if script == "-m" or os.path.isabs(script) else [str(SCRIPTS / script)]
-    command = [launcher, "--oversubscribe", "-n", str(ranks), sys.executable, *target, *args]
+    command = [*_dolfinx.mpi_launcher(), "-n", str(ranks), sys.executable, *target, *args]
     return subprocess.run(command, env=MPI_ENV, capture_output=True, text=True, timeout=timeout)
 
 
