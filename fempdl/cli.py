@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import sys
 from pathlib import Path
 
@@ -93,6 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
         command.add_argument("--threads", type=_positive_int,
                              help="torch threads per process (default: torch's; under mpirun the node's "
                                   "cores shared among its ranks)")
+        command.add_argument("--log-every", type=_positive_int, metavar="N",
+                             help="log a line every N epochs to stderr (default: every epoch when stderr "
+                                  "is not a terminal, none on a terminal, where the progress bar shows)")
         command.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                              help="override a scene value (repeatable), e.g. --set optimizer.epochs=5 "
                                   "--set solver.preset=cg; VALUE is a TOML value or plain text (a string), "
@@ -106,7 +110,6 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from fempdl import parallel, scene
-    from fempdl.checkpoints import CheckpointError, remove_stale_temporaries
 
     from mpi4py import MPI
 
@@ -130,6 +133,16 @@ def main(argv=None) -> int:
         for name in scene.available():
             print(f"{name:<22} {scene.load(name).description}")
         return 0
+    with _library_log(getattr(args, "log_every", None), MPI.COMM_WORLD.rank):
+        return _load_and_run(args)
+
+
+def _load_and_run(args) -> int:
+    from fempdl import scene
+    from fempdl.checkpoints import CheckpointError, remove_stale_temporaries
+
+    from mpi4py import MPI
+
     try:
         sc = scene.load(args.scene, args.set)
     except (scene.SceneError, FileNotFoundError) as err:
@@ -150,6 +163,29 @@ def main(argv=None) -> int:
             raise      # the other ranks are in a collective call: abort_on_error ends them all
         print(f"fempdl: {err}", file=sys.stderr)
         return 2
+
+
+@contextlib.contextmanager
+def _library_log(every: int | None, rank: int):
+    """Show the "fempdl" logger's messages on stderr while a command runs: its INFO
+    lines (epochs, PRDP refinements, K_eps) when stderr is not a terminal or
+    ``--log-every`` is given, only warnings otherwise and on ranks other than 0.
+    Epoch lines are kept every ``every`` epochs."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("fempdl: %(message)s"))
+    show = rank == 0 and (every is not None or not sys.stderr.isatty())
+    handler.setLevel(logging.INFO if show else logging.WARNING)
+    every = every or 1
+    handler.addFilter(lambda record: getattr(record, "epoch", 0) % every == 0)
+    logger = logging.getLogger("fempdl")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(min(level or logging.WARNING, logging.INFO))
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
 
 
 def _output_directory(args, sc) -> Path:

@@ -29,6 +29,7 @@ A run mode is ``("fixed", K)``, ``("converged", None)`` (fixed K = K_eps) or
 from __future__ import annotations
 
 import dataclasses
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,7 @@ from fempdl.system import assemble_scipy
 from fempdl.training import Trainer, nmse, sample_nmse
 
 __all__ = ["build_task", "k_eps", "run", "run_settings", "RunResult", "MODES"]
+_log = logging.getLogger(__name__)
 
 MODES = ("fixed", "converged", "prdp")
 
@@ -364,9 +366,10 @@ def k_eps(task, options: KSPOptions, shard_over: MPI.Comm = MPI.COMM_SELF, batch
         idx = shard(torch.arange(next(iter(inputs.values())).shape[0]), shard_over)
         for chunk in idx.split(size):
             probe(**{name: value[chunk] for name, value in inputs.items()})
-    most = probe.stats.max_forward_iterations
+    most = shard_over.allreduce(probe.stats.max_forward_iterations, op=MPI.MAX)
     probe.close()
-    return shard_over.allreduce(most, op=MPI.MAX)
+    _log.info("K_eps = %d (%s + %s to rtol %s)", most, options.ksp_type, options.pc_type, options.rtol)
+    return most
 
 
 def run_settings(scene: Scene, **settings) -> dict:

@@ -41,10 +41,12 @@ attribute), or calls a user callback with the new K. Its interface follows
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from typing import Callable, Iterable
 
 __all__ = ["PRDP", "PRDPRecord"]
+_log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,6 +148,8 @@ class PRDP:
             k = max(self.k + self.dk, math.ceil(self.growth * self.k - 1e-9))
             self.k = k if self.k_cap is None else min(k, self.k_cap)
             self._apply(self.k)
+            _log.info("PRDP: K %d -> %d (%s) at step %d, metric %.3e", k_used, self.k, cause,
+                      len(self.history) - 1, metric)
         return refine
 
     def state_dict(self) -> dict:

@@ -53,6 +53,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -71,6 +72,7 @@ __all__ = ["Trainer", "nmse", "sample_nmse", "write_atomically", "CheckpointErro
 # equal-training-time extension (fempdl.compare) move.
 RESUMABLE_CHANGES = ("run.scene.optimizer.epochs", "run.epochs")
 PARALLEL_MODES = ("data", "mesh")
+_log = logging.getLogger(__name__)
 
 # Where the wall time went, cumulative seconds per part (they add up to wall_time).
 TIME_PARTS = ("iterations", "setup", "assembly", "adjoint_operator", "network", "validation", "other")
@@ -206,10 +208,20 @@ class Trainer:
             self.rows.append(self._row(epoch, float(np.mean(losses)), metric, k_used))
             bar.set_postfix(loss=f"{self.rows[-1]['train_loss']:.2e}", val=f"{metric:.2e}", K=k_used)
             self._save(epoch)
+            self._log_epoch(self.rows[-1])
             done += 1
             if self._reached_target() or (self.stop_after is not None and done >= self.stop_after):
                 break
         return self.rows
+
+    def _log_epoch(self, row: dict) -> None:
+        """One INFO line per epoch on the "fempdl.training" logger (rank 0; the record
+        carries ``epoch``, 1-based, so a handler can keep every N-th)."""
+        if self._writer and _log.isEnabledFor(logging.INFO):
+            run = f"{self.out_dir.name}: " if self.out_dir is not None else ""
+            _log.info("%sepoch %d/%d loss %.3e val %.3e K %s iterations %d wall %.1f s", run, row["epoch"] + 1,
+                      self.epochs, row["train_loss"], row["val_metric"], row["k"], row["total_iterations"],
+                      row["wall_time"], extra={"epoch": row["epoch"] + 1})
 
     def _layer_seconds(self) -> dict:
         """The task's layers' time counters, summed over the layers."""

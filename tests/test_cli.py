@@ -478,3 +478,40 @@ def test_set_errors_name_the_key(argv, fragment, tiny, tiny_sip, tmp_path):
     code, stdout, stderr = call([a.format(sip=tiny_sip, tiny=tiny) for a in argv] + ["--out", tmp_path / "o"])
     assert code == 2 and fragment in stderr and stdout == ""
     assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------ logs
+EPOCH_LINE = re.compile(r"^fempdl: (?P<run>\S+): epoch (?P<epoch>\d+)/(?P<epochs>\d+) loss \S+ val (?P<val>\S+) "
+                        r"K (?P<k>\d+) iterations (?P<its>\d+) wall [\d.]+ s$")
+
+
+def _epoch_lines(stderr: str) -> list[dict]:
+    return [m.groupdict() for m in map(EPOCH_LINE.match, stderr.splitlines()) if m]
+
+
+@pytest.mark.parametrize("every, logged", [(None, [1, 2, 3, 4]), ("2", [2, 4]), ("3", [3])])
+def test_epoch_lines_on_a_non_terminal_stderr(tiny, tmp_path, every, logged):
+    code, _, stderr = call(["run", tiny, "--k", "2", "--no-baseline", "--out", tmp_path, "--set", "data.train=8",
+                            "--set", "optimizer.epochs=4"] + (["--log-every", every] if every else []))
+    assert code == 0, stderr
+    lines = _epoch_lines(stderr)
+    rows = metrics(tmp_path / "k2")
+    assert [int(line["epoch"]) for line in lines] == logged
+    for line in lines:
+        row = rows[int(line["epoch"]) - 1]
+        assert (line["run"], line["epochs"], int(line["k"]), int(line["its"])) == \
+            ("k2", "4", 2, row["total_iterations"])
+        assert float(line["val"]) == pytest.approx(row["val_metric"], rel=1e-3)
+
+
+def test_prdp_refinements_and_k_eps_are_logged(default_run):
+    stderr = default_run["stderr"]
+    keps = metrics(default_run["out"] / "converged")[-1]["k"]
+    assert f"fempdl: K_eps = {keps} (richardson + jacobi to rtol " in stderr
+    ks = [row["k"] for row in metrics(default_run["out"] / "prdp")]
+    changes = [(a, b) for a, b in zip(ks, ks[1:]) if a != b]
+    logged = re.findall(r"^fempdl: PRDP: K (\d+) -> (\d+) \((plateau|rise)\) at step \d+, metric \S+$",
+                        stderr, flags=re.M)
+    # the last epoch's refinement (if any) shows in the log but not in a later row's K
+    assert [(int(a), int(b)) for a, b, _ in logged][:len(changes)] == changes
+    assert len(_epoch_lines(stderr)) == 2 * EPOCHS            # PRDP and the baseline, every epoch

@@ -161,3 +161,12 @@ def test_state_without_guard_and_growth_loads_as_plain_algorithm():
     assert fresh.k == ctrl.k and [r.refined for r in fresh.history] == [r.refined for r in ctrl.history]
     with pytest.raises(ValueError, match="guard"):
         PRDP(ema_window=1, guard=2.0).load_state_dict(state)
+
+
+def test_refinements_are_logged(caplog):
+    improving = [0.5 ** i for i in range(10)]
+    with caplog.at_level("INFO", logger="fempdl.prdp"):
+        ctrl, decisions = run(improving + [improving[-1]] * 3, ema_window=1, k0=3, dk=2)
+    step = decisions.index(True)
+    assert [(r.name, r.levelname, r.getMessage()) for r in caplog.records] == [
+        ("fempdl.prdp", "INFO", f"PRDP: K 3 -> 5 (plateau) at step {step}, metric {improving[-1]:.3e}")]
