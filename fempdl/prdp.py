@@ -37,6 +37,10 @@ The controller sets ``max_it`` of the layers it drives (one or several
 attribute), or calls a user callback with the new K. Its interface follows
 ``torch.optim.lr_scheduler.ReduceLROnPlateau``: ``step(metric) -> bool``,
 ``state_dict()`` / ``load_state_dict()``.
+
+:func:`k_eps` measures the converged cap K_eps of a layer on given inputs,
+the usual ``k_cap`` (more iterations than the solver needs to converge buy
+nothing).
 """
 from __future__ import annotations
 
@@ -45,7 +49,11 @@ import logging
 import math
 from typing import Callable, Iterable
 
-__all__ = ["PRDP", "PRDPRecord"]
+import torch
+
+from fempdl.bridge_torch import SolveLayer
+
+__all__ = ["PRDP", "PRDPRecord", "k_eps"]
 _log = logging.getLogger(__name__)
 
 
@@ -179,6 +187,34 @@ class PRDP:
         return (f"PRDP(k={self.k}, k0={self.k0}, dk={self.dk}, tau_step={self.tau_step}, "
                 f"tau_stop={self.tau_stop}, delta={self.delta}, ema_window={self.ema_window}, "
                 f"k_cap={self.k_cap}, guard={self.guard}, growth={self.growth}, steps={len(self.history)})")
+
+
+def k_eps(layer: SolveLayer, *, rtol: float = 1e-8, **controls) -> int:
+    """K_eps: the most iterations ``layer``'s solver needs to reach ``rtol`` on
+    ``controls`` (the layer's keyword inputs, (B, n) or (n,), e.g. validation
+    samples), found by converged solves of a probe layer with the same
+    solver and preconditioner (PETSc; ``layer`` itself and its counters are
+    left as they are). Use it as PRDP's ``k_cap``.
+
+    Example:
+        ``ctrl = PRDP(layer, k0=1, dk=1, k_cap=k_eps(layer, f=f_val, rtol=1e-6))``
+    """
+    if not isinstance(layer, SolveLayer):
+        raise TypeError(f"layer must be a SolveLayer, got {type(layer).__name__}")
+    if not controls:
+        raise ValueError(f"give the inputs to measure K_eps on as keyword arguments, e.g. "
+                         f"{layer.problem.control_names[0] if layer.problem.control_names else 'f'}=tensor")
+    if layer.options.direct:
+        raise ValueError(f"layer solves directly (ksp_type={layer.options.ksp_type!r}): it has no iteration cap")
+    options = dataclasses.replace(layer.options, max_it=None, rtol=rtol, atol=None, divtol=None, adjoint=None,
+                                  engine="petsc", options_prefix=None)
+    probe = SolveLayer(layer.problem, options)
+    try:
+        with torch.no_grad():
+            probe(**controls)
+        return probe.stats.max_forward_iterations
+    finally:
+        probe.close()
 
 
 def _setter(target) -> Callable[[int], None]:
