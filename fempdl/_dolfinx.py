@@ -269,3 +269,46 @@ def point_evaluator(msh, points: np.ndarray):
             found.append(i)
             cells.append(links[0])
     return np.asarray(found, dtype=np.int64), np.asarray(cells, dtype=np.int32)
+
+
+def solve_columns(ksp: PETSc.KSP, B: np.ndarray) -> np.ndarray:
+    """Solve A X = B for every column of B with ``ksp`` (its operator A set up).
+
+    B is (owned rows, k), this rank's rows in the operator's row layout; returns
+    X of the same shape. Where petsc4py has ``KSP.matSolve`` (PETSc >= 3.19)
+    this is one KSPMatSolve: a direct solver then applies its factors to all
+    columns at once (MatMatSolve). Otherwise, one KSPSolve per column. Krylov
+    methods iterate each column either way (PETSc's KSPMatSolve loops them
+    unless the KSP is a block method).
+    """
+    B = np.asarray(B, dtype=PETSc.ScalarType)
+    if B.ndim != 2:
+        raise ValueError(f"B must be (owned rows, columns), got shape {B.shape}")
+    A = ksp.getOperators()[0]
+    (n_local, n_global), _ = A.getSizes()
+    if B.shape[0] != n_local:
+        raise ValueError(f"B must have the operator's {n_local} owned rows on this rank, got {B.shape[0]}")
+    k = B.shape[1]
+    comm = A.getComm()
+    if HAS_MAT_SOLVE and k > 0:
+        # Dense PETSc matrices store their local rows column by column (Fortran order).
+        rhs = PETSc.Mat().createDense(((n_local, n_global), (PETSc.DECIDE, k)),
+                                      array=np.asfortranarray(B).ravel(order="F"), comm=comm)
+        sol = PETSc.Mat().createDense(((n_local, n_global), (PETSc.DECIDE, k)), comm=comm)
+        try:
+            ksp.matSolve(rhs, sol)
+            return sol.getDenseArray(readonly=True).copy(order="C")
+        finally:
+            rhs.destroy()
+            sol.destroy()
+    X = np.empty_like(B)
+    b, x = A.createVecs()
+    try:
+        for j in range(k):
+            b.getArray()[:] = B[:, j]
+            ksp.solve(b, x)
+            X[:, j] = x.getArray(readonly=True)
+    finally:
+        b.destroy()
+        x.destroy()
+    return X

@@ -105,8 +105,11 @@ _FORBIDDEN_OPTIONS = {
 }
 ENGINES = ("auto", "petsc", "batched")
 ADJOINT_OPERATORS = ("auto", "transpose", "assembled")
-# Preconditioners without a correct transpose in PETSc 3.18 (measured).
-_NO_TRUE_TRANSPOSE = frozenset({"fieldsplit", "hypre"})
+# Preconditioners whose transpose is missing or wrong (scripts/bench_pc_transpose.py):
+# PETSc 3.18's fieldsplit transpose falls back silently (error 0.56 on the DFG
+# channel) and its hypre one returns a wrong answer; 3.25 transposes a Schur
+# fieldsplit but not LSC inside it (an error), and neither has one for SOR.
+_NO_TRUE_TRANSPOSE = frozenset({"fieldsplit", "hypre", "sor"})
 # The B B^T solve inside the "schur" preset's LSC: hypre's BoomerAMG where the
 # PETSc build has hypre (Debian's), else MUMPS LU with null-pivot detection
 # (PyPI's PETSc has no hypre; GAMG there breaks down, PETSc's LU fails on the
@@ -178,9 +181,10 @@ class KSPOptions:
             ``"assembled"``: an explicitly assembled A^T (PETSc's MatTranspose,
             refreshed whenever A changes) solved by a normal KSPSolve with the
             adjoint options. ``"auto"`` (default): assembled for preconditioners
-            whose transpose PETSc 3.18 lacks or gets wrong (fieldsplit: no
-            transpose, KSPSolveTranspose silently falls back and needs 230-330
-            iterations; hypre: breaks down at iteration 1), transpose otherwise.
+            whose transpose PETSc lacks or gets wrong (fieldsplit: 3.18 has no
+            transpose and KSPSolveTranspose silently falls back, 3.25 has none
+            for the LSC Schur preconditioner; hypre: wrong in 3.18; SOR: none),
+            transpose otherwise.
         lag_preconditioner: when a call solves several samples with different
             matrices, set the preconditioner up on the first sample's matrix and
             reuse it for the others (forward and adjoint). Set-up (e.g. the LU of

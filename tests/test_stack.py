@@ -1,0 +1,116 @@
+"""The version shim: what it reports about the stack, and the calls that differ between stacks.
+
+The same assertions hold on Debian's DOLFINx 0.5.2 / PETSc 3.18 and on
+DOLFINx 0.11 / PETSc 3.25 from PyPI; where a capability differs, the test asks
+the shim which stack it runs on.
+"""
+from __future__ import annotations
+
+import os
+
+import dolfinx
+import numpy as np
+import pytest
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from fempdl import _dolfinx, forms, mesh
+from fempdl.ksp_adjoint import KSPOptions
+
+COMM = MPI.COMM_WORLD
+
+
+def test_the_shim_names_the_stack_it_runs_on():
+    assert _dolfinx.DOLFINX_VERSION == tuple(int(p) for p in dolfinx.__version__.split(".")[:2])
+    assert _dolfinx.PETSC_VERSION == tuple(PETSc.Sys.getVersion())
+    if _dolfinx.STACK == "debian":
+        assert _dolfinx.DOLFINX_VERSION == (0, 5) and _dolfinx.PETSC_VERSION[:2] == (3, 18)
+        assert not _dolfinx.HAS_MAT_SOLVE
+    else:
+        assert _dolfinx.STACK == "current" and _dolfinx.DOLFINX_VERSION >= (0, 9)
+        assert _dolfinx.HAS_MAT_SOLVE == (_dolfinx.PETSC_VERSION >= (3, 19, 0))
+
+
+def test_the_mpi_launcher_belongs_to_the_mpi_mpi4py_loaded():
+    launcher = _dolfinx.mpi_launcher()
+    assert os.access(launcher[0], os.X_OK)
+    open_mpi = "Open MPI" in MPI.Get_library_version()
+    assert (launcher[1:] == ["--oversubscribe"]) == open_mpi
+
+
+@pytest.fixture(scope="module")
+def poisson():
+    return forms.poisson.problem(mesh.load("lshape", COMM, h=0.1), controls=("f",))
+
+
+@pytest.fixture(scope="module")
+def matrix(poisson):
+    A = _dolfinx.create_matrix(poisson.a_form)
+    _dolfinx.assemble_matrix_into(A, poisson.a_form, poisson.bcs)
+    yield A
+    A.destroy()
+
+
+def test_vectors_have_the_test_space_layout_with_ghosts(poisson, matrix):
+    b = _dolfinx.create_vector(poisson.L_form)
+    imap = poisson.V.dofmap.index_map
+    assert b.getLocalSize() == imap.size_local == matrix.getLocalSize()[0]
+    assert b.getSize() == imap.size_global
+    with b.localForm() as loc:
+        assert loc.getSize() == imap.size_local + imap.num_ghosts
+    _dolfinx.assemble_vector_into(b, poisson.L_form, poisson.a_form, poisson.bcs)
+    assert b.norm() > 0.0       # f = 1 by default: a nonzero load
+    b.destroy()
+
+
+def test_cell_dofs_and_cell_diameters_have_one_row_per_cell(poisson):
+    msh = poisson.V.mesh
+    n_local = msh.topology.index_map(msh.topology.dim).size_local
+    n_ghost = msh.topology.index_map(msh.topology.dim).num_ghosts
+    assert _dolfinx.cell_dofs(poisson.V).shape == (n_local + n_ghost, 3)      # P1 triangles
+    h = _dolfinx.cell_diameters(msh)
+    assert h.shape == (n_local,) and 0.02 < h.min() <= h.max() < 0.3        # mesh size 0.1
+
+
+@pytest.mark.parametrize("factor", ["mumps", "petsc"])
+def test_solve_columns_equals_one_solve_per_column(matrix, factor):
+    if factor == "petsc" and COMM.size > 1:
+        pytest.skip("PETSc's own LU is serial")
+    ksp = PETSc.KSP().create(COMM)
+    ksp.setOperators(matrix)
+    ksp.setType("preonly")
+    ksp.getPC().setType("lu")
+    ksp.getPC().setFactorSolverType(factor)
+    B = np.random.default_rng(COMM.rank).standard_normal((matrix.getLocalSize()[0], 5))
+    X = _dolfinx.solve_columns(ksp, B)
+    b, x = matrix.createVecs()
+    for j in range(B.shape[1]):
+        b.getArray()[:] = B[:, j]
+        ksp.solve(b, x)
+        np.testing.assert_allclose(X[:, j], x.getArray(), rtol=0, atol=1e-13 * np.abs(x.getArray()).max())
+    assert X.shape == B.shape and _dolfinx.solve_columns(ksp, B[:, :0]).shape == (B.shape[0], 0)
+    for obj in (b, x, ksp):
+        obj.destroy()
+
+
+def test_solve_columns_rejects_a_block_with_the_wrong_rows(matrix):
+    ksp = PETSc.KSP().create(COMM)
+    ksp.setOperators(matrix)
+    n = matrix.getLocalSize()[0]
+    with pytest.raises(ValueError, match=f"B must have the operator's {n} owned rows on this rank, got {n + 1}"):
+        _dolfinx.solve_columns(ksp, np.zeros((n + 1, 2)))
+    with pytest.raises(ValueError, match=r"B must be \(owned rows, columns\), got shape \(3,\)"):
+        _dolfinx.solve_columns(ksp, np.zeros(3))
+    ksp.destroy()
+
+
+def test_the_schur_preset_uses_hypre_only_where_petsc_has_it():
+    inner = KSPOptions.preset("schur").petsc_options["fieldsplit_p_lsc_pc_type"]
+    assert inner == ("hypre" if PETSc.Sys.hasExternalPackage("hypre") else "lu")
+
+
+@pytest.mark.parametrize("pc_type", ["fieldsplit", "hypre", "sor"])
+def test_preconditioners_without_a_true_transpose_get_the_assembled_adjoint(pc_type):
+    # Measured by scripts/bench_pc_transpose.py on both stacks.
+    assert KSPOptions(ksp_type="gmres", pc_type=pc_type, max_it=5).assembled_adjoint
+    assert not KSPOptions(ksp_type="gmres", pc_type="ilu", max_it=5).assembled_adjoint
