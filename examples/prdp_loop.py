@@ -1,0 +1,53 @@
+"""PRDP in your own training loop: a capped heat step, K raised on plateaus up to K_eps.
+
+A network maps mode amplitudes a (B, m) to an initial temperature u0; a heat
+step capped at K Richardson-Jacobi iterations advances it, and the loss is
+the nMSE against converged steps of the true initial states. PRDP starts at
+K = 1 and raises K when the validation metric stops improving, never above
+K_eps (the iterations a converged solve needs on the validation inputs).
+"""
+import os
+
+import numpy as np
+import torch
+from fempdl import forms, mesh
+from fempdl.bridge_torch import SolveLayer
+from fempdl.ksp_adjoint import KSPOptions
+from fempdl.prdp import PRDP, k_eps
+
+small = os.environ.get("FEMPDL_EXAMPLE_SMALL") == "1"
+problem = forms.heat.problem(mesh.load("lshape", h=0.2) if small else mesh.load("lshape"), controls=("u0",),
+                             dt=0.01)
+x = problem.dof_coordinates()
+modes = torch.from_numpy(np.stack([np.sin(i * x[:, 0] + 1.0) * np.cos(j * x[:, 1])
+                                   for i in range(1, 4) for j in range(1, 4)], axis=1))   # (n, 9)
+torch.manual_seed(0)
+a_train, a_val = torch.randn(32, 9, dtype=torch.float64), torch.randn(8, 9, dtype=torch.float64)
+reference = SolveLayer(problem, KSPOptions.preset("lu"))
+with torch.no_grad():
+    u_train, u_val = reference(u0=a_train @ modes.T), reference(u0=a_val @ modes.T)
+
+layer = SolveLayer(problem, KSPOptions(ksp_type="richardson", pc_type="jacobi", max_it=1))
+k_cap = k_eps(layer, u0=a_val @ modes.T, rtol=1e-6)
+ctrl = PRDP(layer, k0=1, dk=1, tau_step=0.95, tau_stop=0.9, delta=2, ema_window=2, k_cap=k_cap)
+net = torch.nn.Sequential(torch.nn.Linear(9, 32), torch.nn.Tanh(), torch.nn.Linear(32, problem.output_size)).double()
+optimizer = torch.optim.Adam(net.parameters(), lr=3e-2)
+
+
+def nmse(u, ref):
+    return (((u - ref) ** 2).sum(1) / (ref ** 2).sum(1)).mean()
+
+
+schedule = []
+for epoch in range(30 if small else 100):
+    for batch in torch.randperm(32).split(8):
+        optimizer.zero_grad()
+        loss = nmse(layer(u0=net(a_train[batch])), u_train[batch])
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        metric = nmse(layer(u0=net(a_val)), u_val).item()
+    schedule.append(layer.max_it)
+    ctrl.step(metric)
+print(f"K_eps {k_cap}; K per epoch {schedule}")
+print(f"validation nMSE {metric:.3e}; solver iterations {layer.stats.total_iterations}")

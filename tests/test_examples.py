@@ -1,0 +1,62 @@
+"""The scripts in examples/ run (on small meshes: FEMPDL_EXAMPLE_SMALL=1) and print what they claim."""
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+
+
+def run_example(name: str, *args, cwd: Path) -> str:
+    env = {**os.environ, "FEMPDL_EXAMPLE_SMALL": "1", "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, str(EXAMPLES / name), *map(str, args)], cwd=cwd, env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in EXAMPLES.glob("*.py")))
+def test_examples_are_short(name):
+    assert len((EXAMPLES / name).read_text().splitlines()) <= 60
+
+
+def test_custom_problem_in_a_module_trained_with_adam(tmp_path):
+    stdout = run_example("custom_problem.py", cwd=tmp_path)
+    m = re.fullmatch(r"loss (\S+) -> (\S+); kappa error (\S+); solves (\d+)\n", stdout)
+    assert m, stdout
+    first, last, kappa_error, solves = float(m[1]), float(m[2]), float(m[3]), int(m[4])
+    assert last < first / 50 and kappa_error < 0.1
+    assert solves == 8 + 40 * 8          # the observations, then 40 steps of a batch of 8
+
+
+def test_prdp_loop_raises_k_up_to_k_eps(tmp_path):
+    stdout = run_example("prdp_loop.py", cwd=tmp_path)
+    m = re.fullmatch(r"K_eps (\d+); K per epoch \[([\d, ]+)\]\nvalidation nMSE (\S+); solver iterations (\d+)\n",
+                     stdout)
+    assert m, stdout
+    keps, schedule, iterations = int(m[1]), [int(k) for k in m[2].split(",")], int(m[4])
+    assert len(schedule) == 30 and schedule[0] == 1 and schedule[-1] > 1
+    assert all(0 <= b - a <= 1 for a, b in zip(schedule, schedule[1:])) and max(schedule) <= keps
+    # per epoch: 32 training samples forward and backward, 8 validation samples forward, K iterations each
+    assert iterations == (32 + 32 + 8) * sum(schedule)
+
+
+def test_write_fields_writes_prediction_reference_and_flow(tmp_path):
+    stdout = run_example("write_fields.py", tmp_path / "out", cwd=tmp_path)
+    m = re.search(r"relative error at K = 1 \.\.\. 32: (\S+) \.\.\. (\S+)\n", stdout)
+    assert m and float(m[2]) < float(m[1]) < 1.0, stdout
+    for name, fields, times in (("poisson", {"prediction", "reference", "error", "f"}, [1, 2, 4, 8, 16, 32]),
+                                ("stokes", {"flow_u", "flow_p"}, [0])):
+        xdmf = tmp_path / "out" / f"{name}.xdmf"
+        assert (tmp_path / "out" / f"{name}.h5").read_bytes()[:8] == b"\x89HDF\r\n\x1a\n"
+        root = ET.parse(xdmf).getroot()
+        written = {(a.get("Name"), float(g.find("Time").get("Value")))
+                   for g in root.iter("Grid") if g.find("Time") is not None for a in g.findall("Attribute")}
+        assert written == {(field, float(t)) for field in fields for t in times}
+    assert float(re.search(r"\|u\|_max (\S+)", stdout)[1]) > 1e-3
