@@ -115,12 +115,12 @@ class LinearSystem:
         with _ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             b_base = self._base_rhs(names, ctl) if affine else None
-            rhs_mats = {name: self._rhs_matrix(name) for name in sorted(names)} if affine else {}
             if affine and use_batched:
                 # All right-hand sides at once: b_i = b_base + sum_m C_m m_i (no per-sample PETSc calls).
                 with self._assembling():
                     R = self._affine_rhs_block(b_base, controls, batch)
                 return self._batched_solve(R, "forward", initial_guess)
+            rhs_mats = {name: self._rhs_matrix(name) for name in sorted(names)} if affine else {}
             many = self._direct_many(batch, per_sample_matrix)
             for i in range(batch):
                 if affine:
@@ -190,7 +190,6 @@ class LinearSystem:
             if use_batched and not per_sample_matrix and not by_form:
                 for name in rhs_mats:       # C_m^T lam_i for the whole batch in one product
                     grads[name] = np.asarray((self._rhs_matrix_scipy(name).T @ Lam.T).T)
-                self._lag_preconditioner(False)
                 return grads
             for i in range(batch):
                 if per_sample_matrix or by_form:
@@ -420,12 +419,13 @@ class LinearSystem:
 
     def _affine_rhs_block(self, b_base: PETSc.Vec, controls, batch: int) -> np.ndarray:
         """(batch, n) right-hand sides b_base + sum_m C_m m_i, BC rows of the control part zeroed."""
-        R = np.zeros((p_size := self.problem.output_size, batch))
+        n = self.problem.output_size
+        R = np.zeros((n, batch))
         for name in sorted(controls):
             R += self._rhs_matrix_scipy(name) @ np.asarray(controls[name]).T
         if len(self.problem.bc_dofs):
             R[self.problem.bc_dofs] = 0.0
-        R += b_base.getArray(readonly=True)[:p_size, None]
+        R += b_base.getArray(readonly=True)[:n, None]
         return np.ascontiguousarray(R.T)
 
     def _rhs_matrix_scipy(self, name: str):
