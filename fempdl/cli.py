@@ -13,7 +13,8 @@ backpropagation side by side, at equal iterations and at equal training time,
 and writes the ratios and plots of the error against both. ``fempdl scenes``
 lists the bundled scenes; ``fempdl scenes --show NAME`` prints one's TOML.
 ``--set section.key=value`` (repeatable) overrides a scene value, checked
-like the file.
+like the file. ``fempdl run --save-fields`` writes each run's validation
+predictions, references and errors (``fields.xdmf``, ``fields.png``).
 
 A command locks its output directory while it runs (a second command on it
 is refused) and refuses a directory that holds an earlier run unless told
@@ -69,6 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--no-progress", action="store_true", help="hide progress bars")
     run.add_argument("--seed", type=int, help="network initialisation and minibatch order (default: the "
                                               "scene's data seed; the data stay the scene's)")
+    run.add_argument("--save-fields", action="store_true",
+                     help="after training, write validation predictions, references and errors to "
+                          "fields.xdmf (ParaView) and fields.png in each run's directory")
     run.add_argument("--parallel", choices=("data", "mesh"),
                      help="under mpirun: spread every batch over the ranks (data) or distribute the mesh (mesh)")
 
@@ -231,9 +235,14 @@ def _command(args, sc, out: Path) -> int:
     except ValueError as err:
         print(f"fempdl: {err}", file=sys.stderr)
         return 2
+    if args.save_fields and (sc.task not in experiments.FIELD_TASKS or args.parallel == "mesh"):
+        print(f"fempdl: --save-fields writes the fields of {' and '.join(experiments.FIELD_TASKS)} scenes, "
+              f"serial or with --parallel data; {sc.name!r} is of task {sc.task!r}"
+              + (" on a distributed mesh" if args.parallel == "mesh" else ""), file=sys.stderr)
+        return 2
     runs = {}
     baseline = None
-    common = {"progress": progress, "parallel": args.parallel, "seed": args.seed}
+    common = {"progress": progress, "parallel": args.parallel, "seed": args.seed, "save": args.save_fields}
     if not args.no_baseline or args.converged:
         baseline = experiments.run(sc, "converged", out_dir=out / "converged",
                                    resume=_can_resume(args, out / "converged"), **common)
@@ -262,6 +271,10 @@ def _methods(args, sc, progress: bool, out: Path) -> int:
     from fempdl import compare, inversion
 
     if args.command == "run":
+        if args.save_fields:
+            print(f"fempdl: --save-fields writes the fields of PRDP scenes; the {sc.task} scene {sc.name!r} "
+                  "reports its errors in metrics.json", file=sys.stderr)
+            return 2
         if args.k or args.prdp or args.converged or args.parallel:
             print(f"fempdl: --k, --prdp, --converged and --parallel choose solver caps and ranks for PRDP scenes; "
                   f"the {sc.task} scene {sc.name!r} solves with LU on one process", file=sys.stderr)

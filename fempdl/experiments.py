@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from mpi4py import MPI
 
-from fempdl import forms, mesh
+from fempdl import forms, io, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 from fempdl.networks import GraphConvNet, ResidualMLP, normalised_adjacency
@@ -46,10 +46,12 @@ from fempdl.scene import Scene
 from fempdl.system import assemble_scipy
 from fempdl.training import Trainer, nmse, sample_nmse
 
-__all__ = ["build_task", "k_eps", "run", "run_settings", "RunResult", "MODES"]
+__all__ = ["build_task", "k_eps", "run", "run_settings", "save_fields", "RunResult", "MODES", "FIELD_TASKS"]
 _log = logging.getLogger(__name__)
 
 MODES = ("fixed", "converged", "prdp")
+#: Tasks whose validation predictions and references :func:`save_fields` writes.
+FIELD_TASKS = ("emulator", "inverse")
 
 
 @dataclasses.dataclass
@@ -233,6 +235,14 @@ class EmulatorTask(Task):
             errors.append(sample_nmse(u, target[idx]))
         return torch.stack(errors).mean(0)
 
+    def validation_fields(self, idx) -> tuple:
+        """(space name, prediction, reference): the network's state after one
+        (network, converged step) pair from the validation states ``idx``, and
+        the converged trajectory's state there, (len(idx), n) in the solution space."""
+        with torch.no_grad():
+            u = self.physics(self.reference, self.model(self.val_u0[idx]))
+        return None, u.double(), self.val_targets[0][idx].double()
+
     def close(self) -> None:
         self.layer.close()
         self.reference.close()
@@ -289,6 +299,11 @@ class InverseTask(Task):
 
     def k_eps_rhs(self) -> dict:
         return {"f": self.modes @ self.theta_ref}
+
+    def validation_fields(self, idx) -> tuple:
+        """("f", prediction, reference): the learned source against the true one, (1, n)."""
+        with torch.no_grad():
+            return "f", (self.modes @ self.model.theta)[None], (self.modes @ self.theta_ref)[None]
 
     def close(self) -> None:
         self.layer.close()
@@ -372,6 +387,22 @@ def k_eps(task, options: KSPOptions, shard_over: MPI.Comm = MPI.COMM_SELF, batch
     return most
 
 
+def save_fields(task, out_dir: Path, samples: int = 4, title: str | None = None) -> list[Path]:
+    """Write the task's validation predictions against their references
+    (``task.validation_fields``) into ``out_dir``: ``fields.xdmf`` with the
+    prediction, reference and error of the first ``samples`` validation samples
+    (one XDMF time step per sample), and on a 2D mesh ``fields.png``
+    (prediction, reference and error of the first sample). One process."""
+    idx = torch.arange(min(samples, task.val_size))
+    name, prediction, reference = task.validation_fields(idx)
+    fields = {"prediction": (name, prediction), "reference": (name, reference), "error": (name, prediction - reference)}
+    paths = [io.write_fields(Path(out_dir) / "fields.xdmf", task.problem, fields, times=range(len(prediction)))]
+    if task.problem.V.mesh.topology.dim == 2:
+        paths.append(io.plot_fields(Path(out_dir) / "fields.png", task.problem,
+                                    {label: (n, v[0]) for label, (n, v) in fields.items()}, title=title))
+    return paths
+
+
 def run_settings(scene: Scene, **settings) -> dict:
     """What defines a run of ``scene``, for the checkpoint's fingerprint: the parsed
     scene (not its file's location or description) and ``settings`` (mode, K, ...)."""
@@ -382,15 +413,21 @@ def run_settings(scene: Scene, **settings) -> dict:
 def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None = None, resume: bool = False,
         epochs: int | None = None, progress: bool = False, k_eps_value: int | None = None,
         stop_after: int | None = None, parallel: str | None = None,
-        comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None) -> RunResult:
+        comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None, save: bool = False) -> RunResult:
     """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp").
 
     ``parallel`` ("data" or "mesh") trains on the ranks of ``comm`` together
     (:mod:`fempdl.parallel`); every rank returns the same result. ``seed``
     sets the network initialisation and the minibatch order (default: the
-    scene's data seed); the data are the scene's either way."""
+    scene's data seed); the data are the scene's either way. ``save`` writes
+    the validation fields after training (:func:`save_fields`, into
+    ``out_dir``; rank 0; not with ``parallel="mesh"``)."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
+    if save and (out_dir is None or scene.task not in FIELD_TASKS or parallel == "mesh"):
+        raise ValueError(f"save=True writes validation fields of {list(FIELD_TASKS)} scenes into out_dir, serial "
+                         f"or with parallel='data'; got task {scene.task!r}, out_dir={out_dir!r}, "
+                         f"parallel={parallel!r}")
     if (mode == "fixed") != (k is not None):
         raise ValueError("give k exactly when mode='fixed'")
     task = build_task(scene, solver_options(scene, k or 1), parallel, comm, seed)
@@ -412,6 +449,8 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
                       settings=run_settings(scene, mode=mode, k=k, seed=seed))
     try:
         rows = trainer.run(resume=resume)
+        if save and comm.rank == 0:
+            save_fields(task, out_dir, title=f"{scene.name}, {mode}" + (f" K={k}" if k else ""))
     finally:
         task.close()
     return RunResult(scene=scene.name, mode=mode, k_eps=keps, rows=rows,

@@ -24,7 +24,7 @@ import numpy as np
 
 from fempdl import _dolfinx
 
-__all__ = ["write_xdmf", "write_fields", "nodal_field"]
+__all__ = ["write_xdmf", "write_fields", "nodal_field", "plot_fields"]
 
 _ENCODINGS = {"hdf5": dolfinx.io.XDMFFile.Encoding.HDF5, "ascii": dolfinx.io.XDMFFile.Encoding.ASCII}
 
@@ -105,6 +105,53 @@ def write_fields(path, problem, values: Mapping, *, times: Sequence[float] | Non
     return write_xdmf(path, series, times=times, encoding=encoding)
 
 
+def plot_fields(path, problem, values: Mapping, *, title: str | None = None) -> Path:
+    """A PNG of one sample of several fields of a 2D triangle mesh side by side
+    (matplotlib ``tripcolor``: P1 nodal values, shaded; DG0 per cell; a vector
+    field's magnitude); returns its path. One process only.
+
+    Args:
+        values: ``{label: tensor (n,)}`` or ``{label: (name, tensor)}``, the
+            spaces picked as in :func:`write_fields` (a mixed solution shows
+            its first field, e.g. the velocity).
+    """
+    if problem.V.mesh.topology.dim != 2 or problem.V.mesh.comm.size != 1:
+        raise ValueError("plot_fields draws 2D meshes on one process; write XDMF (write_fields) for others")
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(values), figsize=(4.2 * len(values), 3.8), squeeze=False)
+    for ax, (label, value) in zip(axes[0], values.items()):
+        name, value = value if isinstance(value, tuple) else (
+            label if label in set(problem.control_names) | set(problem.fields) else None, value)
+        if name is None and problem.fields:
+            name = next(iter(problem.fields))
+        fn = nodal_field(problem.to_function(value, name), label)
+        space = fn.function_space
+        bs = space.dofmap.index_map_bs
+        data = np.linalg.norm(fn.x.array.reshape(-1, bs), axis=1)
+        if _is_cellwise(space):
+            p1 = _dolfinx.function_space(space.mesh, "Lagrange", 1)
+            xy = p1.tabulate_dof_coordinates()
+            art = ax.tripcolor(xy[:, 0], xy[:, 1], _dolfinx.cell_dofs(p1),
+                               facecolors=data[_dolfinx.cell_dofs(space)[:, 0]])
+        else:
+            xy = space.tabulate_dof_coordinates()
+            art = ax.tripcolor(xy[:, 0], xy[:, 1], _dolfinx.cell_dofs(space), data, shading="gouraud")
+        fig.colorbar(art, ax=ax)
+        ax.set_title(label + (" (magnitude)" if bs > 1 else ""))
+        ax.set_aspect("equal")
+        ax.set_axis_off()
+    if title:
+        fig.suptitle(title)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
 def nodal_field(fn: dolfinx.fem.Function, name: str, spaces: dict | None = None) -> dolfinx.fem.Function:
     """``fn`` as XDMF can store it, named ``name``: itself if it is cell-wise
     constant (DG0) or first-order Lagrange, else its interpolant in the mesh's
@@ -137,7 +184,7 @@ def _is_cellwise(space) -> bool:
 def _is_vertexwise(space) -> bool:
     """One value (block) per vertex, shared by the cells around it: P1 on an affine mesh."""
     msh = space.mesh
-    return (space.dofmap.dof_layout.num_dofs == msh.ufl_domain().ufl_cell().num_vertices()
+    return (space.dofmap.dof_layout.num_dofs == _dolfinx.vertices_per_cell(msh)
             and space.dofmap.index_map.size_global == msh.topology.index_map(0).size_global)
 
 

@@ -515,3 +515,45 @@ def test_prdp_refinements_and_k_eps_are_logged(default_run):
     # the last epoch's refinement (if any) shows in the log but not in a later row's K
     assert [(int(a), int(b)) for a, b, _ in logged][:len(changes)] == changes
     assert len(_epoch_lines(stderr)) == 2 * EPOCHS            # PRDP and the baseline, every epoch
+
+
+# ------------------------------------------------------------------ --save-fields
+def test_save_fields_writes_predictions_references_and_a_png(tiny, tmp_path):
+    code, stdout, stderr = call(["run", tiny, "--k", "2", "--no-baseline", "--out", tmp_path, "--set",
+                                 "optimizer.epochs=2", "--save-fields"])
+    assert code == 0, stderr
+    run_dir = tmp_path / "k2"
+    assert (run_dir / "fields.png").read_bytes()[:8] == PNG_SIGNATURE
+    assert (run_dir / "fields.h5").read_bytes()[:8] == b"\x89HDF\r\n\x1a\n"
+    import xml.etree.ElementTree as ET
+    root = ET.parse(run_dir / "fields.xdmf").getroot()
+    written = {(a.get("Name"), float(g.find("Time").get("Value")))
+               for g in root.iter("Grid") if g.find("Time") is not None for a in g.findall("Attribute")}
+    assert written == {(name, float(i)) for name in ("prediction", "reference", "error") for i in range(4)}
+
+
+def test_validation_fields_are_what_the_metric_measures(tiny):
+    import torch
+    from fempdl import experiments
+    from fempdl.ksp_adjoint import KSPOptions
+    from fempdl.training import sample_nmse
+    sc = scene.load(tiny)
+    assert sc.data["rollout"] == 1
+    task = experiments.build_task(sc, KSPOptions(max_it=2))
+    try:
+        name, prediction, reference = task.validation_fields(torch.arange(task.val_size))
+        assert name is None and prediction.shape == reference.shape == (task.val_size, task.problem.output_size)
+        assert float(sample_nmse(prediction, reference).mean()) == pytest.approx(task.validate(), rel=1e-5)
+    finally:
+        task.close()
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["run", "{sip}", "--save-fields"], "--save-fields writes the fields of PRDP scenes; the sip scene 'tiny-sip'"),
+    (["run", "poisson-inverse", "--save-fields", "--parallel", "mesh"],
+     "--save-fields writes the fields of emulator and inverse scenes, serial or with --parallel data; "
+     "'poisson-inverse' is of task 'inverse' on a distributed mesh"),
+])
+def test_save_fields_refusals(argv, fragment, tiny, tiny_sip, tmp_path):
+    code, _, stderr = call([a.format(sip=tiny_sip, tiny=tiny) for a in argv] + ["--out", tmp_path / "o"])
+    assert code == 2 and fragment in stderr
