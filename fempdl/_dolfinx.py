@@ -108,6 +108,8 @@ def collapsed_subspace(W, index: int):
     """(space, owned_dofs): subspace ``index`` of the mixed space W collapsed,
     and the owned local DOF indices in W of its owned DOFs, in its own order."""
     space, dofs = W.sub(index).collapse()
+    if len(dofs) and isinstance(dofs[0], np.ndarray):   # 0.10+: one array per cell type
+        dofs = dofs[0]
     n_owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
     return space, np.asarray(dofs[:n_owned], dtype=np.int32)
 
@@ -237,13 +239,19 @@ def cell_dofs(V) -> np.ndarray:
     return _as_2d(V.dofmap.list, V.dofmap.dof_layout.num_dofs)
 
 
+def vertices_per_cell(msh) -> int:
+    """Vertices of one cell of ``msh`` (3 for a triangle); a method in UFL 2022, a property in 2026."""
+    count = msh.ufl_cell().num_vertices
+    return count() if callable(count) else count
+
+
 def _geometry_dofmap(msh) -> np.ndarray:
     """(num_cells, nodes_per_cell) geometry node indices of every local cell."""
     geometry = msh.geometry
     if hasattr(geometry, "dofmaps"):                    # 0.10+: one dofmap per cell type
         dofmaps = geometry.dofmaps
         return dofmaps(0) if callable(dofmaps) else dofmaps[0]
-    return _as_2d(geometry.dofmap, msh.ufl_cell().num_vertices())
+    return _as_2d(geometry.dofmap, vertices_per_cell(msh))
 
 
 def _as_2d(links, width: int) -> np.ndarray:

@@ -680,7 +680,14 @@ class CappedSolver:
         t0 = time.perf_counter()
         _set_up(ksp, self._reuse)      # the preconditioner's set-up, timed apart from the iterations
         t1 = time.perf_counter()
-        (ksp.solveTranspose if transpose else ksp.solve)(b, x)
+        try:
+            (ksp.solveTranspose if transpose else ksp.solve)(b, x)
+        except PETSc.Error as err:
+            # petsc4py >= 3.19 wraps an exception raised in a Python monitor
+            # (Ctrl-C's KeyboardInterrupt) in a PETSc.Error; 3.18 lets it through.
+            if isinstance(err.__cause__, KeyboardInterrupt):
+                raise err.__cause__ from None
+            raise
         elapsed = time.perf_counter() - t1
         if nsp is not None:
             nsp.remove(x)

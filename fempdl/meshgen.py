@@ -60,6 +60,8 @@ import contextlib
 import ctypes
 import math
 import numbers
+import signal
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
@@ -265,6 +267,10 @@ def gmsh_session(active: bool = True) -> Iterator[None]:
     # would run on one thread.
     openmp = _openmp_runtime()
     threads = openmp.omp_get_max_threads() if openmp is not None else None
+    # gmsh >= 4.9 sets SIGINT to the OS default in initialize() and fails to
+    # restore it in finalize(), so Ctrl-C would then kill the process without
+    # unwinding: put back the handler in place before.
+    sigint = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
     # Ignoring gmshrc / gmsh-options keeps meshes reproducible across users.
     gmsh.initialize(readConfigFiles=False)
     try:
@@ -273,6 +279,8 @@ def gmsh_session(active: bool = True) -> Iterator[None]:
         yield
     finally:
         gmsh.finalize()
+        if sigint is not None:
+            signal.signal(signal.SIGINT, sigint)
         if threads is not None:
             openmp.omp_set_num_threads(threads)
 
