@@ -7,8 +7,8 @@ observations made with a true kappa (converged solves: exact gradients).
 """
 import os
 
+from mpi4py import MPI  # noqa: F401  (first: PyPI's DOLFINx finds libmpi once mpi4py has loaded it)
 import dolfinx
-import numpy as np
 import torch
 import ufl
 from petsc4py import PETSc
