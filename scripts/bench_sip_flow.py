@@ -17,6 +17,10 @@ Two parts, both on the scene's physics (:class:`fempdl.marker_flow.MarkerFlow`):
   equal training time, whether SIP's error still falls over its last 20% of
   iterations, the seconds per iteration of both.
 
+With ``--baseline-lr`` only the baseline runs, for ``--iterations`` at each
+learning rate given (the check that the comparison's Adam rate is not a weak
+one); ``--sip-lr`` does the same for SIP.
+
 Torch runs on one thread; OpenMP threads wait passively. Output:
 ``bench-results/bench_sip_flow.json`` (``--out``), with the machine record
 (load averages at start and end).
@@ -25,6 +29,7 @@ Run: ``python scripts/bench_sip_flow.py`` (about 30 minutes on 2 cores).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import sys
@@ -175,6 +180,10 @@ def main(argv=None) -> int:
     parser.add_argument("--gd-every", type=int, default=10)
     parser.add_argument("--targets", type=comma_list(float), default=[0.05, 0.02])
     parser.add_argument("--skip-training", action="store_true")
+    parser.add_argument("--baseline-lr", type=comma_list(float), default=None,
+                        help="only train the baseline, at each of these Adam learning rates")
+    parser.add_argument("--sip-lr", type=comma_list(float), default=None,
+                        help="only train SIP, at each of these Adam learning rates")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", type=Path, default=Path("bench-results/bench_sip_flow.json"))
     args = parser.parse_args(argv)
@@ -183,6 +192,17 @@ def main(argv=None) -> int:
     steps = math.ceil(sc.data["train"] / sc.optimizer["batch"])
     iterations = args.iterations or sc.optimizer["epochs"] * steps
     result = {"machine": machine_info(), "scene": sc.as_dict(), "command": " ".join(sys.argv)}
+    sweeps = {"backprop": ("baseline", args.baseline_lr), "sip": ("optimizer", args.sip_lr)}
+    if any(rates for _, rates in sweeps.values()):
+        result["learning_rate_sweep"] = {}
+        for method, (section, rates) in sweeps.items():
+            for lr in rates or []:
+                swept = dataclasses.replace(sc, **{section: {**getattr(sc, section), "lr": lr}})
+                result["learning_rate_sweep"][f"{method} {lr:g}"] = train(swept, method, iterations, args.every)
+                write_json_atomically(result, args.out)
+        result["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
+        write_json_atomically(result, args.out)
+        return 0
     task = MarkerInversionTask(sc, "backprop")
     result["sizes"] = {"velocity_dofs": task.physics.velocity_size, "marker_dofs": task.physics.marker_size}
     result["single_problems"] = single_problems(task, args)
