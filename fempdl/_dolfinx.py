@@ -239,6 +239,18 @@ def cell_dofs(V) -> np.ndarray:
     return _as_2d(V.dofmap.list, V.dofmap.dof_layout.num_dofs)
 
 
+def element_degree(space) -> int:
+    """The polynomial degree of ``space``'s element (UFL 2022: a method; basix.ufl: a property)."""
+    degree = space.ufl_element().degree
+    return degree() if callable(degree) else degree
+
+
+def element_family(space) -> str:
+    """The family name of ``space``'s element ("Lagrange" in UFL 2022, "P" in basix.ufl)."""
+    element = space.ufl_element()
+    return element.family() if callable(getattr(element, "family", None)) else element.family_name
+
+
 def vertices_per_cell(msh) -> int:
     """Vertices of one cell of ``msh`` (3 for a triangle); a method in UFL 2022, a property in 2026."""
     count = msh.ufl_cell().num_vertices

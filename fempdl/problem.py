@@ -294,7 +294,7 @@ class Problem:
             raise ValueError(f"unknown control {name!r}; this problem's controls are {list(self.control_names)}")
 
     def __repr__(self) -> str:
-        return (f"Problem(V={self.V.ufl_element().family()} {self.V.ufl_element().degree()}, n={self.output_size}, "
+        return (f"Problem(V={_dolfinx.element_family(self.V)} {_dolfinx.element_degree(self.V)}, n={self.output_size}, "
                 f"controls={list(self.control_names)}, matrix_controls={sorted(self.matrix_controls)})")
 
 

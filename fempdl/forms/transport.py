@@ -102,7 +102,7 @@ def problem(msh, controls=("w", "m_prev"), *, kappa: float = 1e-3, dt: float = 0
     if supg:
         tau = supg_tau(msh_, w_fn, kappa_c, dt_c)
         streamline = ufl.dot(w_fn, ufl.grad(v))
-        w_degree = velocity_space.ufl_element().degree()
+        w_degree = _dolfinx.element_degree(velocity_space)
         supg_dx = ufl.dx(metadata={"quadrature_degree": max(2 * w_degree + 2 * degree - 2, w_degree + 2 * degree - 1)})
         residual = m / dt_c + ufl.div(m * w_fn) - kappa_c * ufl.div(ufl.grad(m))
         a = a + tau * streamline * residual * supg_dx
