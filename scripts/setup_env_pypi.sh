@@ -13,18 +13,22 @@ cd "$(dirname "$0")/.."
 venv="${1:-.venv-pypi}"
 pkgs=("dolfinx-solver-real==0.11.*" "gmsh==4.15.*" "torch==2.13.0")
 
+is_python312() {
+    [ -n "$1" ] && "$1" -c "import sys; assert sys.version_info[:2] == (3, 12)" >/dev/null 2>&1
+}
+
+# The first of $PYTHON312, python3.12 on PATH (pyenv's shim fails unless a 3.12
+# is selected) and pyenv's installed 3.12 versions that runs and is 3.12.
 find_python312() {
-    if [ -n "${PYTHON312:-}" ]; then echo "$PYTHON312"; return; fi
-    if command -v python3.12 >/dev/null 2>&1; then command -v python3.12; return; fi
     local root="${PYENV_ROOT:-$HOME/.pyenv}" candidate
-    for candidate in "$root"/versions/3.12*/bin/python3.12; do
-        [ -x "$candidate" ] && { echo "$candidate"; return; }
+    for candidate in "${PYTHON312:-}" "$(command -v python3.12 || true)" "$root"/versions/3.12*/bin/python3.12; do
+        if is_python312 "$candidate"; then echo "$candidate"; return; fi
     done
 }
 
 if [ ! -x "$venv/bin/python" ]; then
     python312="$(find_python312)"
-    if [ -z "$python312" ] || ! "$python312" -c "import sys; assert sys.version_info[:2] == (3, 12)" 2>/dev/null; then
+    if [ -z "$python312" ]; then
         echo "[setup] no Python 3.12 found (looked for \$PYTHON312, python3.12 on PATH, pyenv's versions);" \
              "install one (e.g. pyenv install 3.12) or set PYTHON312=/path/to/python3.12" >&2
         exit 1
