@@ -141,3 +141,15 @@ def test_write_xdmf_errors(tmp_path, poisson_p2, stokes):
         io.write_xdmf(tmp_path / "x", {"w": stokes.to_function(np.zeros(stokes.output_size))})
     with pytest.raises(ValueError, match=r"encoding must be one of \['hdf5', 'ascii'\], got 'vtk'"):
         io.write_xdmf(tmp_path / "x", fn, encoding="vtk")
+
+
+def test_plot_fields_png_and_its_refusal(tmp_path, poisson_p2, stokes):
+    u = poisson_p2.interpolate(_linear)
+    png = io.plot_fields(tmp_path / "p.png", poisson_p2, {"u": u, "kappa": poisson_p2.interpolate(smooth, "kappa"),
+                                                          "flow": ("f", np.ones(poisson_p2.control_size("f")))})
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert io.plot_fields(tmp_path / "s.png", stokes, {"w": np.ones(stokes.output_size)}).stat().st_size > 1000
+    box = forms.poisson.problem(mesh.load("box", h=0.5), controls=("f",))
+    with pytest.raises(ValueError, match="plot_fields draws 2D meshes on one process; write XDMF"):
+        io.plot_fields(tmp_path / "b.png", box, {"u": np.zeros(box.output_size)})
+    assert not (tmp_path / "b.png").exists()
