@@ -302,13 +302,15 @@ class KSPOptions:
         runs to ``ksp_rtol`` (default 1e-10) and not reaching it is an error,
         as PETSc would report; with it the solve is capped there. Keyword
         arguments set any other field (``options_prefix=``, ``adjoint=``, ...).
+        Missing types default to PETSc's: GMRES with block Jacobi.
 
         Example:
             ``KSPOptions.from_petsc_options({"ksp_type": "cg", "pc_type": "jacobi", "ksp_rtol": 1e-8})``
         """
         if not isinstance(options, Mapping):
             raise TypeError(f"options must be a mapping of PETSc option name to value, got {type(options).__name__}")
-        values = {"ksp_type": "gmres", "pc_type": "ilu", "max_it": None}   # PETSc's defaults
+        # PETSc's defaults: GMRES, block Jacobi with ILU(0) blocks (one block, i.e. ILU(0), on one process)
+        values = {"ksp_type": "gmres", "pc_type": "bjacobi", "max_it": None}
         rest = {}
         for key, value in options.items():
             name = key[1:] if isinstance(key, str) and key.startswith("-") else key

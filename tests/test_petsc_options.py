@@ -52,6 +52,7 @@ def test_dolfinx_style_dict_maps_onto_fields():
     assert direct.max_it is None and direct.direct
     assert dict(direct.petsc_options) == {"pc_factor_mat_solver_type": "mumps"}
     assert not KSPOptions.from_petsc_options({"ksp_type": "cg", "pc_type": "jacobi"}).capped
+    assert KSPOptions.from_petsc_options({}) == KSPOptions(ksp_type="gmres", pc_type="bjacobi", max_it=None)
 
 
 def test_dict_errors_name_the_key():
@@ -80,6 +81,18 @@ def test_dict_options_solve_to_rtol(laplacian):
     exact = spla.spsolve(sp.csr_matrix((data, indices, indptr)).tocsc(), b.getArray())
     assert stats.ok and not stats.capped and stats.iterations <= 25      # CG: at most n/2 on this spectrum
     np.testing.assert_allclose(x.getArray(), exact, rtol=0, atol=1e-10 * np.abs(exact).max())
+
+
+def test_petsc_default_types_solve_and_transpose(laplacian):
+    opts = KSPOptions.from_petsc_options({"ksp_rtol": "1e-12"})
+    b, x, y = laplacian.createVecLeft(), laplacian.createVecRight(), laplacian.createVecRight()
+    b.setArray(np.cos(np.arange(50.0)))
+    with CappedSolver(laplacian, opts) as solver:
+        assert solver.solve(b, x).ok and solver.solve_transpose(b, y).ok
+    indptr, indices, data = laplacian.getValuesCSR()
+    exact = spla.spsolve(sp.csr_matrix((data, indices, indptr)).tocsc(), b.getArray())
+    np.testing.assert_allclose(x.getArray(), exact, rtol=0, atol=1e-9 * np.abs(exact).max())
+    np.testing.assert_allclose(y.getArray(), exact, rtol=0, atol=1e-9 * np.abs(exact).max())   # A symmetric
 
 
 def test_user_prefix_reads_the_database_and_keeps_user_options(laplacian):
