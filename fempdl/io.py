@@ -3,8 +3,8 @@
 XDMF stores a field at the mesh's nodes (first-order Lagrange) or per cell
 (DG0). Any other field (P2, a Taylor-Hood velocity, a vector P3) is
 interpolated into the mesh's first-order Lagrange space of the same value
-shape before it is written; interpolation is exact for the P1 part of it and
-keeps its nodal values. A mixed (velocity, pressure) Function has no single
+shape before it is written: its values at the mesh's vertices are kept, what
+it does between them is not. A mixed (velocity, pressure) Function has no single
 node layout: write its fields (``problem.to_function(x, "u")``, ``"p"``).
 
 Every call writes the mesh once and each field at each time step, under the
