@@ -219,6 +219,11 @@ class Problem:
             fn = target
         return np.array(fn.x.array[:_owned_size(space)], dtype=np.float64)
 
+    def function_space(self, name: str | None = None):
+        """The DOLFINx space a tensor for ``name`` lives in: a control's space, a
+        field's collapsed subspace, or (``None``/``"u"``) the solution space."""
+        return self._space_of(name)[0]
+
     def _space_of(self, name: str | None):
         """(space, kind) of ``name``: a control, a field of a mixed solution, or the output."""
         if name is not None and name in self._controls:

@@ -40,7 +40,7 @@ def test_round_trip_is_exact_for_every_space(poisson_p2, stokes):
     rng = np.random.default_rng(0)
     for prob, names in ((poisson_p2, (None, "u", "f", "kappa")), (stokes, (None, "u", "p", "f"))):
         for name in names:
-            space, _ = prob._space_of(name)
+            space = prob.function_space(name)
             n = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
             x = torch.from_numpy(rng.standard_normal(n))
             fn = prob.to_function(x, name)
@@ -54,6 +54,8 @@ def test_mixed_field_from_whole_solution(stokes):
     x = np.random.default_rng(1).standard_normal(stokes.output_size)
     whole = stokes.to_function(x)
     assert whole.function_space == stokes.V
+    assert stokes.function_space() is stokes.V and stokes.function_space("p") is stokes.field_space("p")
+    assert stokes.function_space("f") is stokes.control("f").function_space
     for field, dofs in stokes.fields.items():
         np.testing.assert_array_equal(stokes.from_function(stokes.to_function(x, field), field), x[dofs])
     # the velocity control f lives on an equal but distinct space: interpolated, same values

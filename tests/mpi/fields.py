@@ -29,7 +29,7 @@ def linear(x):
 
 for label, prob, names in (("poisson", poisson, (None, "f")), ("stokes", stokes, (None, "u", "p"))):
     for name in names:
-        space, _ = prob._space_of(name)
+        space = prob.function_space(name)
         n = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
         x = rng.standard_normal(n)
         errors[f"{label}/{name}/round_trip"] = float(np.abs(prob.from_function(prob.to_function(x, name), name) - x)
