@@ -399,7 +399,8 @@ def save_fields(task, out_dir: Path, samples: int = 4, title: str | None = None)
     paths = [io.write_fields(Path(out_dir) / "fields.xdmf", task.problem, fields, times=range(len(prediction)))]
     if task.problem.V.mesh.topology.dim == 2:
         paths.append(io.plot_fields(Path(out_dir) / "fields.png", task.problem,
-                                    {label: (n, v[0]) for label, (n, v) in fields.items()}, title=title))
+                                    {label: (n, v[0]) for label, (n, v) in fields.items()}, title=title,
+                                    same_scale=("prediction", "reference")))
     return paths
 
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from fempdl import _dolfinx
 
-__all__ = ["write_xdmf", "write_fields", "nodal_field", "plot_fields"]
+__all__ = ["write_xdmf", "write_fields", "nodal_field", "plot_fields", "plot_data"]
 
 _ENCODINGS = {"hdf5": dolfinx.io.XDMFFile.Encoding.HDF5, "ascii": dolfinx.io.XDMFFile.Encoding.ASCII}
 
@@ -105,7 +105,7 @@ def write_fields(path, problem, values: Mapping, *, times: Sequence[float] | Non
     return write_xdmf(path, series, times=times, encoding=encoding)
 
 
-def plot_fields(path, problem, values: Mapping, *, title: str | None = None) -> Path:
+def plot_fields(path, problem, values: Mapping, *, title: str | None = None, same_scale=()) -> Path:
     """A PNG of one sample of several fields of a 2D triangle mesh side by side
     (matplotlib ``tripcolor``: P1 nodal values, shaded; DG0 per cell; a vector
     field's magnitude); returns its path. One process only.
@@ -114,33 +114,30 @@ def plot_fields(path, problem, values: Mapping, *, title: str | None = None) -> 
         values: ``{label: tensor (n,)}`` or ``{label: (name, tensor)}``, the
             spaces picked as in :func:`write_fields` (a mixed solution shows
             its first field, e.g. the velocity).
+        same_scale: labels whose panels share one colour range (e.g. a
+            prediction and its reference).
     """
     if problem.V.mesh.topology.dim != 2 or problem.V.mesh.comm.size != 1:
         raise ValueError("plot_fields draws 2D meshes on one process; write XDMF (write_fields) for others")
+    unknown = sorted(set(same_scale) - set(values))
+    if unknown:
+        raise ValueError(f"same_scale names {unknown}, which are not labels of values {list(values)}")
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    panels = {label: plot_data(problem, label, value) for label, value in values.items()}
+    shared = [panels[label][2] for label in same_scale]
+    limits = (min(d.min() for d in shared), max(d.max() for d in shared)) if shared else (None, None)
     fig, axes = plt.subplots(1, len(values), figsize=(4.2 * len(values), 3.8), squeeze=False)
-    for ax, (label, value) in zip(axes[0], values.items()):
-        name, value = value if isinstance(value, tuple) else (
-            label if label in set(problem.control_names) | set(problem.fields) else None, value)
-        if name is None and problem.fields:
-            name = next(iter(problem.fields))
-        fn = nodal_field(problem.to_function(value, name), label)
-        space = fn.function_space
-        bs = space.dofmap.index_map_bs
-        data = np.linalg.norm(fn.x.array.reshape(-1, bs), axis=1)
-        if _is_cellwise(space):
-            p1 = _dolfinx.function_space(space.mesh, "Lagrange", 1)
-            xy = p1.tabulate_dof_coordinates()
-            art = ax.tripcolor(xy[:, 0], xy[:, 1], _dolfinx.cell_dofs(p1),
-                               facecolors=data[_dolfinx.cell_dofs(space)[:, 0]])
+    for ax, (label, (xy, triangles, data, per_cell, vector)) in zip(axes[0], panels.items()):
+        vmin, vmax = limits if label in same_scale else (None, None)
+        if per_cell:
+            art = ax.tripcolor(xy[:, 0], xy[:, 1], triangles, facecolors=data, vmin=vmin, vmax=vmax)
         else:
-            xy = space.tabulate_dof_coordinates()
-            art = ax.tripcolor(xy[:, 0], xy[:, 1], _dolfinx.cell_dofs(space), data, shading="gouraud")
+            art = ax.tripcolor(xy[:, 0], xy[:, 1], triangles, data, shading="gouraud", vmin=vmin, vmax=vmax)
         fig.colorbar(art, ax=ax)
-        ax.set_title(label + (" (magnitude)" if bs > 1 else ""))
+        ax.set_title(label + (" (magnitude)" if vector else ""))
         ax.set_aspect("equal")
         ax.set_axis_off()
     if title:
@@ -150,6 +147,25 @@ def plot_fields(path, problem, values: Mapping, *, title: str | None = None) -> 
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
+
+
+def plot_data(problem, label: str, value) -> tuple:
+    """What :func:`plot_fields` draws for one field: (xy (N, 3), triangles (T, 3),
+    data, per_cell, vector): P1 node values (signed; a vector field's magnitude)
+    or, for DG0, one value per triangle."""
+    name, value = value if isinstance(value, tuple) else (
+        label if label in set(problem.control_names) | set(problem.fields) else None, value)
+    if name is None and problem.fields:
+        name = next(iter(problem.fields))
+    fn = nodal_field(problem.to_function(value, name), label)
+    space = fn.function_space
+    bs = space.dofmap.index_map_bs
+    data = fn.x.array.copy() if bs == 1 else np.linalg.norm(fn.x.array.reshape(-1, bs), axis=1)
+    if _is_cellwise(space):
+        p1 = _dolfinx.function_space(space.mesh, "Lagrange", 1)
+        return (p1.tabulate_dof_coordinates(), _dolfinx.cell_dofs(p1), data[_dolfinx.cell_dofs(space)[:, 0]],
+                True, bs > 1)
+    return space.tabulate_dof_coordinates(), _dolfinx.cell_dofs(space), data, False, bs > 1
 
 
 def nodal_field(fn: dolfinx.fem.Function, name: str, spaces: dict | None = None) -> dolfinx.fem.Function:

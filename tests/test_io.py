@@ -151,7 +151,23 @@ def test_plot_fields_png_and_its_refusal(tmp_path, poisson_p2, stokes):
                                                           "flow": ("f", np.ones(poisson_p2.control_size("f")))})
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert io.plot_fields(tmp_path / "s.png", stokes, {"w": np.ones(stokes.output_size)}).stat().st_size > 1000
+    with pytest.raises(ValueError, match=r"same_scale names \['v'\], which are not labels of values \['u'\]"):
+        io.plot_fields(tmp_path / "x.png", poisson_p2, {"u": u}, same_scale=("u", "v"))
     box = forms.poisson.problem(mesh.load("box", h=0.5), controls=("f",))
     with pytest.raises(ValueError, match="plot_fields draws 2D meshes on one process; write XDMF"):
         io.plot_fields(tmp_path / "b.png", box, {"u": np.zeros(box.output_size)})
     assert not (tmp_path / "b.png").exists()
+
+
+def test_plot_data_is_signed_nodal_or_per_cell(poisson_p2, stokes, coarse):
+    xy, triangles, data, per_cell, vector = io.plot_data(poisson_p2, "u", -poisson_p2.interpolate(_linear))
+    assert not per_cell and not vector and triangles.shape[1] == 3 and data.min() < 0
+    np.testing.assert_allclose(data, -_linear(xy.T), atol=1e-12)          # signed values at the P1 nodes
+    _, triangles, kappa, per_cell, _ = io.plot_data(poisson_p2, "kappa", poisson_p2.interpolate(smooth, "kappa"))
+    assert per_cell and kappa.shape == (len(triangles),)
+    np.testing.assert_allclose(kappa, poisson_p2.interpolate(smooth, "kappa"), rtol=1e-15)
+    w = np.zeros(stokes.output_size)
+    w[stokes.fields["u"][0::2]], w[stokes.fields["u"][1::2]] = 3.0, -4.0
+    _, _, speed, _, vector = io.plot_data(stokes, "flow", w)
+    assert vector
+    np.testing.assert_allclose(speed, 5.0, rtol=1e-14)
