@@ -12,9 +12,13 @@
 #
 # A resumed run needs the same number of ranks. As root, Open MPI also wants
 # OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 in the environment.
+# VENV=.venv-pypi runs the PyPI stack (its MPICH mpiexec); the default is .venv.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+venv="${VENV:-.venv}"
 ranks=${1:-2}
 scene=${2:-burgers-emulator}
 shift $(( $# < 2 ? $# : 2 ))
-exec mpirun -n "$ranks" .venv/bin/fempdl run "$scene" --parallel data --no-progress "$@"
+# The launcher of the MPI the venv's mpi4py uses (Open MPI's mpirun or MPICH's mpiexec).
+read -r -a launcher < <("$venv/bin/python" -c "from fempdl import _dolfinx; print(*_dolfinx.mpi_launcher())")
+exec "${launcher[@]}" -n "$ranks" "$venv/bin/fempdl" run "$scene" --parallel data --no-progress "$@"

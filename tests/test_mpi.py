@@ -195,7 +195,8 @@ def test_the_data_parallel_example_script_trains_a_scene(tmp_path):
     assert venv_fempdl.exists(), "the example runs the venv's fempdl command"
     done = subprocess.run(["bash", str(EXAMPLES / "mpi_data_parallel.sh"), "2", str(path), "--k", "2",
                            "--no-baseline", "--out", str(tmp_path / "out")],
-                          env=MPI_ENV, capture_output=True, text=True, timeout=TIMEOUT)
+                          env={**MPI_ENV, "VENV": str(venv_fempdl.parent.parent)},
+                          capture_output=True, text=True, timeout=TIMEOUT)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "on 2 ranks (data)" in done.stdout
     assert (tmp_path / "out" / "k2" / "metrics.csv").exists()
