@@ -233,9 +233,9 @@ class Trainer:
         training steps (network forward/backward, optimizer), validation, and what
         remains (the layers' conversions, PRDP, scheduler, agreement checks)."""
         spent = {part: after[key] - before[key] for part, key in _LAYER_PARTS.items()}
-        spent["network"] = max(train - (after["layer_time"] - before["layer_time"]), 0.0)
+        spent["network"] = train - (after["layer_time"] - before["layer_time"])
         spent["validation"] = validation
-        spent["other"] = max(epoch - sum(spent.values()), 0.0)
+        spent["other"] = epoch - sum(spent.values())     # the parts add up to the epoch exactly
         for part, seconds in spent.items():
             self._times[part] += seconds
 
