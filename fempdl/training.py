@@ -194,6 +194,7 @@ class Trainer:
             before = self._layer_seconds()
             losses = [self._train_step(idx) for idx in self._batches()]
             train_seconds = time.perf_counter() - t0
+            trained = self._layer_seconds()     # what validation solves belongs to validation
             self._train_time += train_seconds
             metric = self._validate()
             validation_seconds = time.perf_counter() - t0 - train_seconds
@@ -204,7 +205,7 @@ class Trainer:
             parallel.check_identical(self.comm, k=self.k, val_metric=metric, parameters=self._fingerprint())
             epoch_seconds = time.perf_counter() - t0
             self._elapsed += epoch_seconds
-            self._split_time(epoch_seconds, train_seconds, validation_seconds, before, self._layer_seconds())
+            self._split_time(epoch_seconds, train_seconds, validation_seconds, before, trained)
             self.rows.append(self._row(epoch, float(np.mean(losses)), metric, k_used))
             bar.set_postfix(loss=f"{self.rows[-1]['train_loss']:.2e}", val=f"{metric:.2e}", K=k_used)
             self._save(epoch)
