@@ -558,9 +558,12 @@ class CappedSolver:
     def max_it(self, value: int | None) -> None:
         """Move the cap of the forward solve (and of a coupled adjoint)."""
         new = self._options.with_max_it(value)  # validates
-        if new.skips_residual_norm() != self._options.skips_residual_norm():
-            _set_norm_type(self._ksp, new)
-        self._ksp.setTolerances(**new.petsc_tolerances())
+        # A coupled adjoint on its own KSP (the one on an assembled A^T) moves with the forward cap.
+        coupled = [self._ksp] + ([self._ksp_adjoint] if new.adjoint is None and self._ksp_adjoint else [])
+        for ksp in coupled:
+            if new.skips_residual_norm() != self._options.skips_residual_norm():
+                _set_norm_type(ksp, new)
+            ksp.setTolerances(**new.petsc_tolerances())
         self._options = new
 
     @property
