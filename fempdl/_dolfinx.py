@@ -47,7 +47,6 @@ STACK = "debian" if DOLFINX_VERSION < (0, 9) else "current"
 HAS_MAT_SOLVE = hasattr(PETSc.KSP, "matSolve")
 
 
-
 def mpi_launcher() -> list[str]:
     """The command (program and flags, before ``-n N``) that starts ranks of this MPI.
 
