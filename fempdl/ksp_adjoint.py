@@ -823,16 +823,22 @@ def _create_ksp(A: PETSc.Mat, options: KSPOptions, prefix: str, fields=None) -> 
     _set_norm_type(ksp, options)
     ksp.setTolerances(**options.petsc_tolerances())
     ksp.setInitialGuessNonzero(False)
+    petsc_options = dict(options.petsc_options)
+    if options.pc_type in ("lu", "cholesky") and A.getNullSpace() is not None and (
+            petsc_options.get("pc_factor_mat_solver_type") == "mumps" or A.getComm().getSize() > 1):
+        # A singular operator (an enclosed flow's pressure constant): without null-pivot
+        # detection MUMPS factorises it as if regular and returns a wrong solution.
+        petsc_options.setdefault("mat_mumps_icntl_24", 1)
     db = PETSc.Options()
     if prefix.startswith(_PRIVATE_PREFIX):
-        for key, value in options.petsc_options.items():
+        for key, value in petsc_options.items():
             db[prefix + key] = "" if value is None else value
         ksp.setAttr(_ADDED_KEYS, None)           # destroy removes everything under the prefix
     else:
         # A user's prefix: options already in the database (the command line's, or
         # another solver's under the same prefix) win and are not this solver's to remove.
         added = []
-        for key, value in options.petsc_options.items():
+        for key, value in petsc_options.items():
             name = prefix + key
             if name in _ADDED_OPTIONS:
                 _ADDED_OPTIONS[name] += 1

@@ -289,3 +289,18 @@ def test_flow_errors_are_clear(coarse_lshape_mesh, oseen_enclosed, oseen_open):
         poisson.split(np.zeros(poisson.output_size))
     with pytest.raises(ValueError, match="output_size"):
         oseen_open.split(np.zeros(3))
+
+
+def test_lu_on_an_enclosed_flow_detects_the_null_pivot(oseen_enclosed):
+    """The "lu" preset on a singular operator (pressure constant) equals the converged Schur
+    solve and its adjoint passes the dot-product test: MUMPS gets null-pivot detection."""
+    w = velocity_batch(oseen_enclosed, "w", 1, 0)[0]
+    b = velocity_batch(oseen_enclosed, "u_prev", 1, 1)[0].requires_grad_()
+    lu = SolveLayer(oseen_enclosed, "lu")
+    out = lu(w=w, u_prev=b)
+    reference = SolveLayer(oseen_enclosed, CONVERGED_SCHUR)(w=w, u_prev=b.detach())
+    assert float((out.detach() - reference).abs().max()) <= 1e-8 * float(reference.abs().max())
+    g = torch.randn(oseen_enclosed.output_size, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    (out * g).sum().backward()
+    lhs, rhs = float((out.detach() * g).sum()), float((b.detach() * b.grad).sum())
+    assert abs(lhs - rhs) <= 1e-9 * abs(lhs)
