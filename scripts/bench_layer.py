@@ -67,6 +67,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from mpi4py import MPI  # before DOLFINx: PyPI's DOLFINx needs the MPI library mpi4py loads
+
 import dolfinx
 import dolfinx.fem
 import dolfinx.fem.petsc
@@ -74,7 +76,6 @@ import dolfinx.mesh
 import numpy as np
 import torch
 import ufl
-from mpi4py import MPI
 from petsc4py import PETSc
 
 import fempdl
