@@ -170,8 +170,9 @@ def test_fempdl_run_parallel_data_under_mpirun(tmp_path):
     (["run", "heat-emulator-2d", "--parallel", "mesh"], "use --parallel data"),
     (["run", "heat-emulator-2d"], "needs `fempdl run SCENE --parallel data|mesh`"),
 ])
-def test_fempdl_refuses_parallel_modes_that_do_not_fit(args, message):
-    done = mpirun(2, "-m", "fempdl.cli", *args, timeout=120)
+def test_fempdl_refuses_parallel_modes_that_do_not_fit(args, message, tmp_path):
+    # A fresh --out: a run left in ./runs by `make run` would be refused first.
+    done = mpirun(2, "-m", "fempdl.cli", *args, "--out", str(tmp_path / "out"), timeout=120)
     assert done.returncode == 2
     assert message in done.stderr
 
