@@ -259,6 +259,20 @@ class SolveLayer(torch.nn.Module):
         else:
             raise OverflowError(message)
 
+    def get_extra_state(self) -> dict:
+        """The cap travels with ``state_dict()``: a saved model reloads at the K it was trained at."""
+        return {"max_it": self.max_it}
+
+    def set_extra_state(self, state: dict) -> None:
+        if not isinstance(state, dict) or "max_it" not in state:
+            raise ValueError(f"SolveLayer state must be a dict with 'max_it', got {state!r}")
+        self.max_it = state["max_it"]
+
+    def __getstate__(self):
+        raise TypeError("a SolveLayer holds DOLFINx and PETSc objects, which cannot be pickled or deep-copied "
+                        "(torch.save(model), copy.deepcopy, AveragedModel); save model.state_dict() instead (it "
+                        "carries each layer's max_it) and rebuild the model, with its layers, from its Problem")
+
     def close(self) -> None:
         """Free the PETSc objects now (otherwise on garbage collection)."""
         if getattr(self, "_system", None) is not None:

@@ -148,3 +148,26 @@ def test_fit_threads():
             fit_threads(0)
     finally:
         torch.set_num_threads(before)
+
+
+def test_state_dict_carries_the_cap_and_pickling_says_what_to_do(heat, tmp_path):
+    """A model holding a layer saves its K in state_dict (and loads it with weights_only);
+    torch.save(model) and deepcopy fail with one message that says how to save instead."""
+    import copy
+
+    trained = _ModelWithLayer(heat)
+    trained.layer.max_it = 11
+    torch.save(trained.state_dict(), tmp_path / "model.pt")
+    fresh = _ModelWithLayer(heat)
+    fresh.load_state_dict(torch.load(tmp_path / "model.pt", weights_only=True))
+    assert fresh.layer.max_it == 11
+    for attempt in (lambda: torch.save(trained, tmp_path / "whole.pt"), lambda: copy.deepcopy(trained)):
+        with pytest.raises(TypeError, match=r"save model.state_dict\(\) instead"):
+            attempt()
+
+
+class _ModelWithLayer(torch.nn.Module):
+    def __init__(self, problem):
+        super().__init__()
+        self.scale = torch.nn.Parameter(torch.ones(1, dtype=torch.float64))
+        self.layer = SolveLayer(problem, KSPOptions(max_it=3))
