@@ -145,6 +145,7 @@ from fempdl import unrolled
 from fempdl.bridge_torch import SolveLayer
 from bench_common import apply_defaults, comma_list, machine_info, write_json_atomically
 from fempdl.ksp_adjoint import KSPOptions
+from fempdl.resources import available_memory
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.meshgen)
 SOLVERS = ("jacobi", "cg")                      # Richardson+Jacobi, CG+Jacobi
@@ -232,18 +233,6 @@ def _status_kib(key: str) -> int | None:
             for line in fh:
                 if line.startswith(key + ":"):
                     return int(line.split()[1])
-    except OSError:
-        pass
-    return None
-
-
-def available_bytes() -> int | None:
-    """MemAvailable of /proc/meminfo, in bytes (None where it cannot be read)."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
     except OSError:
         pass
     return None
@@ -491,8 +480,8 @@ def bench_size(size: str, args: argparse.Namespace, skipped: list) -> tuple[dict
         for K in args.ks:
             release_free_memory()
             stored = stored_bytes(solver, K, n, args.batch)
-            available = available_bytes()
-            if available is not None and UNROLLED_MEMORY_BOUND * stored > available:
+            available = available_memory()
+            if UNROLLED_MEMORY_BOUND * stored > available:
                 need = UNROLLED_MEMORY_BOUND * stored / 2 ** 30
                 reason = (f"the unrolled call would need up to {need:.1f} GiB, {available / 2 ** 30:.1f} GiB "
                           "available; use a smaller --batch or --ks")
