@@ -36,24 +36,18 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 import torch
-from torch.autograd.function import once_differentiable
 
-from fempdl import unrolled
-from fempdl.batched import BatchedEngine
-from fempdl.ksp_adjoint import CumulativeStats, KSPOptions, capped_solve_stats, warn_at_caller
+from fempdl.implicit import ImplicitSolve, count_on_all_ranks
+from fempdl.iterative.batched import BatchedEngine
+from fempdl.iterative.unrolled_path import UnrolledPath, unrolled_method
+from fempdl.ksp_adjoint import CumulativeStats, KSPOptions, warn_at_caller
 from fempdl.problem import Problem
-from fempdl.sparse import SparseOperator
 from fempdl.system import INITIAL_GUESS, LinearSystem
 
 __all__ = ["SolveLayer", "DIFF_MODES"]
 
 DIFF_MODES = ("implicit", "unrolled")
-# KSP/PC combinations whose K-step iterate fempdl.unrolled reproduces.
-_UNROLLED_METHODS = {("richardson", "jacobi"): "jacobi", ("richardson", "none"): "jacobi",
-                     ("cg", "jacobi"): "cg", ("cg", "none"): "cg",
-                     ("gmres", "jacobi"): "gmres", ("gmres", "none"): "gmres"}
 _FLOAT_DTYPES = (torch.float32, torch.float64)
 
 
@@ -105,7 +99,7 @@ class SolveLayer(torch.nn.Module):
         if diff not in DIFF_MODES:
             raise ValueError(f"diff must be one of {list(DIFF_MODES)}, got {diff!r}")
         if diff == "unrolled":
-            _unrolled_method(options)  # validates
+            unrolled_method(options)  # validates
             if problem.V.mesh.comm.size > 1:
                 raise ValueError("diff='unrolled' runs on one process; use diff='implicit' under MPI")
             if len(problem.nullspace):
@@ -113,10 +107,7 @@ class SolveLayer(torch.nn.Module):
                                  "flow's pressure constant); use diff='implicit'")
         self.problem = problem
         self.diff = diff
-        self.max_unrolled_values = max_unrolled_values
-        self.memory_budget = memory_budget
-        self._unrolled_cache = None
-        self._unrolled_jacobians: dict = {}
+        self._unrolled = UnrolledPath(max_unrolled_values, memory_budget) if diff == "unrolled" else None
         self._system = LinearSystem(problem, options, batched_engine=BatchedEngine())
 
     @property
@@ -140,6 +131,17 @@ class SolveLayer(torch.nn.Module):
         self.system.max_it = value
 
     @property
+    def max_unrolled_values(self) -> int | None:
+        """In unrolled mode, the floats the stored iterates may take before checkpointing (assignable)."""
+        return None if self._unrolled is None else self._unrolled.max_values
+
+    @max_unrolled_values.setter
+    def max_unrolled_values(self, value: int | None) -> None:
+        if self._unrolled is None:
+            raise ValueError("max_unrolled_values applies to diff='unrolled' layers")
+        self._unrolled.max_values = value
+
+    @property
     def stats(self) -> CumulativeStats:
         return self.system.stats
 
@@ -159,97 +161,17 @@ class SolveLayer(torch.nn.Module):
         if any(t.dtype != dtype for t in tensors):
             dtype = torch.float64
         device = tensors[0].device if tensors else torch.device("cpu")
-        if self.diff == "unrolled":
-            out = self._unrolled(names, tensors, batch)
+        if self._unrolled is not None:
+            t0 = time.perf_counter()
+            out = self._unrolled.solve(self.system, {n: t.to(device="cpu", dtype=torch.float64)
+                                                     for n, t in zip(names, tensors)}, batch)
+            self.stats.layer_time += time.perf_counter() - t0
         else:
-            out = _SolveFunction.apply(self, names, batch, *tensors)
+            out = ImplicitSolve.apply(self, names, batch, *tensors)
         out = out.to(device=device, dtype=dtype)
-        if dtype != torch.float64 and _count_on_all_ranks(~torch.isfinite(out), self.problem):
+        if dtype != torch.float64 and count_on_all_ranks(~torch.isfinite(out), self.problem):
             self._report_overflow(dtype)
         return out if batched else out[0]
-
-    def _unrolled(self, names: tuple, tensors: list, batch: int) -> torch.Tensor:
-        """u = X_K^T, X_K the K-step iterate on A(m) X = R, R = b_base + sum_m C_m m^T, all in torch."""
-        t0 = time.perf_counter()
-        options = self.options
-        if not options.capped:
-            raise ValueError("diff='unrolled' differentiates a capped iteration: set max_it")
-        given = dict(zip(names, (t.to(device="cpu", dtype=torch.float64) for t in tensors)))
-        guess = given.pop(INITIAL_GUESS, None)
-        names = tuple(n for n in names if n != INITIAL_GUESS)
-        matrix_names = [n for n in names if n in self.problem.matrix_controls]
-        rhs_names = frozenset(names) - set(matrix_names)
-        A, P, b_base, mats = self._unrolled_operators(rhs_names)
-        if matrix_names:
-            A, P = self._unrolled_matrix(matrix_names, given)
-        R = b_base.expand(-1, batch)
-        for name in sorted(rhs_names):
-            m = given[name]
-            R = R + mats[name] @ (m.unsqueeze(1) if m.dim() == 1 else m.T)
-        method = _unrolled_method(options)
-        omega = float(options.petsc_options.get("ksp_richardson_scale", 1.0))
-        t_solve = time.perf_counter()
-        X0 = None if guess is None else (guess.unsqueeze(1) if guess.dim() == 1 else guess.T).expand(-1, batch)
-        X = unrolled.solve(method, A, P if options.pc_type == "jacobi" else None, R, options.max_it,
-                           omega=omega, restart=options.gmres_restart or 30, max_values=self.max_unrolled_values,
-                           X0=X0, memory_budget=self.memory_budget)
-        seconds = time.perf_counter() - t_solve
-        finite = torch.isfinite(X).all(0)
-        stats = self.system.stats
-        for ok in finite.tolist():
-            stats.record("forward", capped_solve_stats(options, seconds / batch, ok, "unrolled"))
-        if not bool(finite.all()):
-            self.system._solver.report_failure("forward", stats.last, finite=False,
-                                               samples=int((~finite).sum()))
-        out = X.T
-        if out.requires_grad:
-            out.register_hook(self._count_unrolled_backward(batch, options))
-        stats.layer_time += time.perf_counter() - t0
-        return out
-
-    def _unrolled_matrix(self, matrix_names: list, given: dict):
-        """A(m) and its inverse diagonal as differentiable functions of the matrix control."""
-        if len(matrix_names) > 1:
-            raise NotImplementedError(f"diff='unrolled' takes one matrix control at a time, got {matrix_names}")
-        name = matrix_names[0]
-        p = self.problem
-        if name in p.rhs_controls or not p.homogeneous_bcs():
-            raise NotImplementedError(
-                f"diff='unrolled' with respect to {name!r} needs zero Dirichlet values and {name!r} absent "
-                "from the right-hand side (else b depends on it); use diff='implicit'")
-        key = ("jacobian", name)
-        if key not in self._unrolled_jacobians:
-            pattern, v0, J = self.system.matrix_jacobian(name)
-            rows = torch.from_numpy(np.repeat(np.arange(pattern.shape[0]), np.diff(pattern.indptr)))
-            cols = torch.from_numpy(pattern.indices.astype(np.int64))
-            diagonal = torch.from_numpy(np.flatnonzero(pattern.indices == rows.numpy()))
-            self._unrolled_jacobians[key] = (rows, cols, diagonal, torch.from_numpy(v0)[:, None],
-                                             SparseOperator.from_scipy(J))
-        rows, cols, diagonal, v0, J = self._unrolled_jacobians[key]
-        m = given[name]
-        values = v0 + J @ (m.unsqueeze(1) if m.dim() == 1 else m.T)       # (nnz, B or 1)
-        d = values[diagonal]
-        P = 1.0 / torch.where(d == 0, torch.ones_like(d), d)                  # PCJACOBI: zero -> 1
-        return _EntryMatrix(rows, cols, values, len(d)), P
-
-    def _count_unrolled_backward(self, batch: int, options: KSPOptions):
-        def hook(grad):
-            for _ in range(batch):
-                self.stats.record("backward", capped_solve_stats(options, 0.0, True, "unrolled"))
-            return grad
-        return hook
-
-    def _unrolled_operators(self, names: frozenset):
-        """Torch copies of A, D^{-1}, b_base and C_m, rebuilt when the matrix or the names change."""
-        key = (names, self.system.matrix_version)
-        if self._unrolled_cache is None or self._unrolled_cache[0] != key:
-            A, b_base, mats = self.system.affine_operators(names)
-            key = (names, self.system.matrix_version)
-            d = A.diagonal()
-            P = torch.from_numpy(1.0 / np.where(d != 0.0, d, 1.0))[:, None]  # as PCJACOBI
-            self._unrolled_cache = (key, (SparseOperator.from_scipy(A), P, torch.from_numpy(b_base)[:, None],
-                                          {n: SparseOperator.from_scipy(C) for n, C in mats.items()}))
-        return self._unrolled_cache[1]
 
     def _report_overflow(self, dtype) -> None:
         message = (f"the solution is finite in float64 but overflows {dtype}; pass float64 controls "
@@ -317,7 +239,7 @@ class SolveLayer(torch.nn.Module):
                 if t.shape[0] == 0:
                     raise ValueError(f"control {name!r} has an empty batch (shape {tuple(t.shape)})")
                 batch_sizes[name] = t.shape[0]
-            bad = _count_on_all_ranks(~torch.isfinite(t.detach()), p)
+            bad = count_on_all_ranks(~torch.isfinite(t.detach()), p)
             if bad:
                 raise ValueError(f"control {name!r} contains {bad} NaN/inf value(s); "
                                  "check the upstream network or data")
@@ -329,123 +251,3 @@ class SolveLayer(torch.nn.Module):
             raise ValueError(f"controls are on different devices {sorted(map(str, devices))}; move them to one")
         batch = next(iter(batch_sizes.values()), 1)
         return names, tensors, batch, bool(batch_sizes)
-
-
-class _SolveFunction(torch.autograd.Function):
-    """autograd.Function around LinearSystem; all non-tensor state lives in the layer."""
-
-    @staticmethod
-    def forward(ctx, layer: SolveLayer, names: tuple, batch: int, *tensors):
-        t0 = time.perf_counter()
-        shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
-        arrays = _batched_arrays(names, tensors, batch)
-        guess = arrays.pop(INITIAL_GUESS, None)
-        U = layer.system.solve(arrays, batch, shared, initial_guess=guess,
-                               keep_matrices=any(ctx.needs_input_grad[3:]))
-        out = torch.from_numpy(U)
-        # Saved through autograd so that an in-place change of an input or of the
-        # output before backward raises autograd's error instead of corrupting
-        # the gradient (backward re-assembles with the controls and u).
-        ctx.save_for_backward(*tensors, out)
-        ctx.layer, ctx.names, ctx.batch, ctx.shared = layer, names, batch, shared
-        ctx.inputs = [(t.shape, t.dtype, t.device) for t in tensors]
-        layer.stats.layer_time += time.perf_counter() - t0
-        return out
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad_out):
-        t0 = time.perf_counter()
-        layer, names = ctx.layer, ctx.names
-        wanted = [n for n, need in zip(names, ctx.needs_input_grad[3:]) if need]
-        grads = {}
-        if wanted:
-            G = _to_numpy(grad_out)
-            bad = _count_on_all_ranks(~np.isfinite(G), layer.problem)
-            if bad:
-                raise ValueError(f"the gradient flowing back into SolveLayer contains {bad} NaN/inf "
-                                 "value(s); the loss or the layers after this one produced them")
-            *tensors, out = ctx.saved_tensors
-            arrays = _batched_arrays(names, tensors, ctx.batch)
-            arrays.pop(INITIAL_GUESS, None)
-            grads = layer.system.adjoint(arrays, out.numpy(), G, [n for n in wanted if n != INITIAL_GUESS],
-                                         ctx.shared, initial_guess=INITIAL_GUESS in wanted)
-        out = []
-        for name, (shape, dtype, device) in zip(names, ctx.inputs):
-            g = grads.get(name)
-            if g is None:
-                out.append(None)
-                continue
-            g = torch.from_numpy(g)
-            g = g.sum(0) if len(shape) == 1 else g  # a shared (n,) control collects all samples
-            out.append(g.to(device=device, dtype=dtype))
-        layer.stats.layer_time += time.perf_counter() - t0
-        return (None, None, None, *out)
-
-
-class _EntryMatrix:
-    """A sparse matrix per column of X, from differentiable entry values (nnz, B)
-    on a fixed pattern: (A @ X)[:, b] = A_b X[:, b]."""
-
-    def __init__(self, rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, n: int):
-        self.rows, self.cols, self.values, self.n = rows, cols, values, n
-
-    @property
-    def requires_grad(self) -> bool:
-        return self.values.requires_grad
-
-    def __matmul__(self, X: torch.Tensor) -> torch.Tensor:
-        return _EntryMatMul.apply(self.values, X, self.rows, self.cols, self.n)
-
-
-class _EntryMatMul(torch.autograd.Function):
-    """(A_b X[:, b])_b from entries (nnz, B or 1); keeps values and X (n, B),
-    not the (nnz, B) products autograd would keep through index_add."""
-
-    @staticmethod
-    def forward(ctx, values, X, rows, cols, n):
-        ctx.save_for_backward(values, X)
-        ctx.rows, ctx.cols, ctx.n = rows, cols, n
-        return torch.zeros(n, X.shape[1], dtype=X.dtype).index_add_(0, rows, values * X[cols])
-
-    @staticmethod
-    def backward(ctx, grad):
-        values, X = ctx.saved_tensors
-        rows, cols = ctx.rows, ctx.cols
-        grad_values = grad_X = None
-        if ctx.needs_input_grad[0]:
-            grad_values = grad[rows] * X[cols]                              # d(A_b x_b)/d a_ij = x_j
-            if values.shape[1] == 1 and grad_values.shape[1] > 1:
-                grad_values = grad_values.sum(1, keepdim=True)              # shared matrix
-        if ctx.needs_input_grad[1]:
-            grad_X = torch.zeros_like(grad).index_add_(0, cols, values * grad[rows])  # A_b^T g_b
-            if X.shape[1] == 1 and grad.shape[1] > 1:
-                grad_X = grad_X.sum(1, keepdim=True)
-        return grad_values, grad_X, None, None, None
-
-
-def _unrolled_method(options: KSPOptions) -> str:
-    method = _UNROLLED_METHODS.get((options.ksp_type, options.pc_type))
-    if method is None:
-        raise ValueError(f"diff='unrolled' supports {sorted(f'{k}+{p}' for k, p in _UNROLLED_METHODS)}, "
-                         f"got {options.ksp_type}+{options.pc_type}; use diff='implicit' for it")
-    extra = set(options.petsc_options) - {"ksp_richardson_scale"}
-    if extra or any(v is not None for v in (options.rtol, options.atol, options.divtol)):
-        raise ValueError("diff='unrolled' runs a pure cap: no rtol/atol/divtol and no petsc_options "
-                         f"other than ksp_richardson_scale (got {sorted(extra) or 'a tolerance'})")
-    return method
-
-
-def _count_on_all_ranks(mask, problem: Problem) -> int:
-    """Number of True entries over all ranks: every rank must take the same branch
-    (raise, or go on into collective solves)."""
-    return problem.V.mesh.comm.allreduce(int(mask.sum()))
-
-
-def _batched_arrays(names, tensors, batch: int) -> dict:
-    """float64 arrays (batch, n_m) per control; shared (n_m,) controls as broadcast views."""
-    return {n: np.broadcast_to(_to_numpy(t), (batch, t.shape[-1])) for n, t in zip(names, tensors)}
-
-
-def _to_numpy(t: torch.Tensor) -> np.ndarray:
-    return t.detach().to(device="cpu", dtype=torch.float64).numpy()

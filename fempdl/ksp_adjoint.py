@@ -171,7 +171,7 @@ class KSPOptions:
         engine: who runs the iterations of a layer's batch. ``"petsc"``: one KSP
             solve per sample (any KSP/PC, MPI). ``"batched"``: all samples at
             once, one sparse-times-dense product per iteration
-            (:mod:`fempdl.batched`; capped Richardson or CG with Jacobi or no
+            (:mod:`fempdl.iterative.batched`; capped Richardson or CG with Jacobi or no
             preconditioner, serial; used whenever the call's matrix is shared
             by the batch). ``"auto"`` (default): batched for Richardson where
             faster (B >= 2, and two or more torch threads or n * B <= 2^20),

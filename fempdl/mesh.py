@@ -1,6 +1,6 @@
 """Load the bundled meshes, or any gmsh ``.msh`` file, as DOLFINx meshes with tags.
 
-Bundled meshes (``fempdl/meshes/*.msh``, built by :mod:`fempdl.meshgen`):
+Bundled meshes (``meshes/*.msh``, built by :mod:`fempdl.meshgen`):
 
 ==========  ====  ====  ==============  =====================================
 name        tdim  gdim  cells / P1 DOF  facet tags
@@ -43,7 +43,7 @@ import numpy as np
 from mpi4py import MPI
 
 from fempdl import _dolfinx
-from fempdl.resources import DEFAULT_MAX_CELLS, GEOMETRIES, estimated_cells
+from fempdl.resources import DEFAULT_MAX_CELLS, GEOMETRIES, bundled_meshes, estimated_cells
 
 __all__ = ["TaggedMesh", "as_tagged", "available", "load"]
 
@@ -191,7 +191,7 @@ def _load_bundled(name: str, comm, h, rank, gdim, max_cells: int = DEFAULT_MAX_C
         check_size(name, h, max_cells)
         mesh, cell_tags, facet_tags = meshgen.generate(name, h, comm, rank)
     else:
-        resource = importlib.resources.files("fempdl") / "meshes" / f"{name}.msh"
+        resource = bundled_meshes() / f"{name}.msh"
         # as_file gives a real path even when the package is imported from a zip.
         with importlib.resources.as_file(resource) as path:
             if not path.is_file():

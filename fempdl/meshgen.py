@@ -1,6 +1,6 @@
 """Gmsh geometry of the bundled meshes, and the script that regenerates them.
 
-Three unstructured meshes ship with fempdl (in ``fempdl/meshes/``); each is
+Three unstructured meshes ship with fempdl (in the top-level ``meshes/``); each is
 built here from a gmsh (OpenCASCADE) geometry for a target mesh size ``h``.
 
 ``"lshape"``
@@ -82,7 +82,7 @@ FACET_TAGS: dict[str, dict[str, int]] = {
     "box": {"bottom": 1, "top": 2, "sides": 3},
 }
 
-BUNDLED_DIR = Path(__file__).resolve().parent / "meshes"
+BUNDLED_DIR = Path(__file__).resolve().parent.parent / "meshes"   # the checkout's top-level folder
 
 # Tolerance for classifying boundary pieces by their bounding box: OpenCASCADE
 # enlarges every bounding box by its 1e-7 confusion tolerance.

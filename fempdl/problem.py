@@ -28,6 +28,7 @@ The module knows DOLFINx and UFL but nothing of torch or of solvers.
 from __future__ import annotations
 
 import keyword
+from types import MappingProxyType
 from typing import Callable, Mapping
 
 import dolfinx.fem
@@ -75,10 +76,13 @@ class Problem:
         fields: ``{name: subspace index}`` of a mixed solution space.
         nullspace: vectors (owned DOF values, any basis) spanning the common
             null space of A and A^T.
+        constants: ``{name: dolfinx.fem.Constant}`` of the forms (a time step,
+            a viscosity) that the user may change between solves through
+            ``problem.constants[name].value``; a change is seen at the next solve.
     """
 
     def __init__(self, a: ufl.Form, L: ufl.Form, bcs=(), controls: Mapping | None = None, *,
-                 fields: Mapping[str, int] | None = None, nullspace=()):
+                 fields: Mapping[str, int] | None = None, nullspace=(), constants: Mapping | None = None):
         if not isinstance(a, ufl.Form) or len(a.arguments()) != 2:
             raise TypeError(f"a must be a bilinear UFL form (two arguments), got {_describe_form(a)}")
         if not isinstance(L, ufl.Form) or len(L.arguments()) != 1:
@@ -130,6 +134,12 @@ class Problem:
             self._field_spaces[name] = space
             self.fields[name] = dofs
         self.nullspace = _orthonormal(nullspace, self._n_owned, self.V.mesh.comm)
+        self.constants = MappingProxyType(_validated_constants(constants or {}))
+
+    @property
+    def enclosed(self) -> bool:
+        """Whether A has a null space (an enclosed flow's pressure constant) that solves project out."""
+        return len(self.nullspace) > 0
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -301,6 +311,16 @@ class Problem:
     def __repr__(self) -> str:
         return (f"Problem(V={_dolfinx.element_family(self.V)} {_dolfinx.element_degree(self.V)}, n={self.output_size}, "
                 f"controls={list(self.control_names)}, matrix_controls={sorted(self.matrix_controls)})")
+
+
+def _validated_constants(constants: Mapping) -> dict:
+    if not isinstance(constants, Mapping):
+        raise TypeError(f"constants must be a mapping name -> dolfinx.fem.Constant, got {type(constants).__name__}")
+    for name, value in constants.items():
+        if not isinstance(name, str) or not isinstance(value, dolfinx.fem.Constant):
+            raise TypeError(f"constants[{name!r}] must be a dolfinx.fem.Constant under a str name, "
+                            f"got {type(value).__name__}")
+    return dict(constants)
 
 
 def _validated_controls(controls: Mapping, a: ufl.Form, L: ufl.Form, msh) -> dict:

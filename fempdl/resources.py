@@ -16,12 +16,22 @@ This module imports nothing heavy, so the scene parser can use it.
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 import os
+from pathlib import Path
 
-__all__ = ["DEFAULT_MEMORY_FRACTION", "DEFAULT_MAX_CELLS", "GEOMETRIES", "available_memory", "memory_budget",
+__all__ = ["bundled_meshes", "DEFAULT_MEMORY_FRACTION", "DEFAULT_MAX_CELLS", "GEOMETRIES", "available_memory", "memory_budget",
            "format_bytes", "estimated_cells", "estimated_dofs", "Geometry"]
 
 DEFAULT_MEMORY_FRACTION = 0.5
+
+
+def bundled_meshes():
+    """The folder of the bundled ``.msh`` files: ``meshes/`` beside the package in a
+    checkout (or an editable install), ``fempdl/meshes/`` inside an installed wheel."""
+    checkout = Path(__file__).resolve().parent.parent / "meshes"
+    return checkout if checkout.is_dir() else importlib.resources.files("fempdl") / "meshes"
+
 # About 1M P1 DOFs in 2D; gmsh takes about a minute and a few GB for it.
 DEFAULT_MAX_CELLS = 2_000_000
 

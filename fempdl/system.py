@@ -45,7 +45,7 @@ class LinearSystem:
         problem: the variational problem.
         options: solver options (the cap can be moved later via ``max_it``).
         batched_engine: an engine that solves all samples of a call at once
-            (:class:`fempdl.batched.BatchedEngine`), used where ``options.engine``
+            (:class:`fempdl.iterative.batched.BatchedEngine`), used where ``options.engine``
             and the call allow it; ``None`` runs every solve through PETSc.
     """
 
@@ -72,7 +72,6 @@ class LinearSystem:
         self._b_base: dict = {}                                # frozenset(names) -> (Vec, fingerprint)
         self._rhs_mats: dict = {}                              # name -> (Mat, vec on m, vec on V, fingerprint)
         self._grad_vecs: dict = {}                             # name -> ghosted Vec on M
-        self._jacobians: dict = {}                             # name -> (pattern, v0, J)
         self._kept_matrices = _KeptMatrices(problem.matrix_controls)
         self._rhs_scipy: dict = {}                             # name -> (fingerprint, scipy C_m)
 
@@ -219,92 +218,50 @@ class LinearSystem:
             self._lag_preconditioner(False)
         return grads
 
-    def affine_operators(self, names: frozenset) -> tuple:
-        """The pieces of b(m) = b_base + sum_m C_m m for affine RHS controls ``names``,
-        with the (constant) matrix: (A, b_base (n,), {name: C_m}) as scipy CSR /
-        numpy; the BC rows of each C_m are zeroed. Used by unrolled differentiation."""
+    def affine_rhs(self, names: frozenset) -> tuple:
+        """The pieces of b(m) = b_base + sum_m C_m m for affine right-hand-side controls
+        ``names``: (b_base (n,), {name: C_m scipy CSR (n, n_m)}), BC rows of each C_m zeroed."""
         p = self.problem
         names = frozenset(names)
         not_affine = sorted(names - p.affine_rhs_controls)
         if not_affine:
             raise NotImplementedError(
-                f"unrolled differentiation with respect to {not_affine} is not available: they enter the "
-                f"matrix or the right-hand side non-affinely; use diff='implicit' for them "
+                f"controls {not_affine} enter the matrix or the right-hand side non-affinely "
                 f"(affine controls of this problem: {sorted(p.affine_rhs_controls)})")
         with _ControlValues(p, dict.fromkeys(names)) as ctl:
-            self._ensure_constant_matrix()
             b_base = self._base_rhs(names, ctl).getArray(readonly=True).copy()
         keep = np.ones(p.output_size)
         keep[p.bc_dofs] = 0.0  # BC rows of b come from the boundary data alone
-        mats = {name: (sp.diags(keep) @ petsc_to_scipy(self._rhs_matrix(name)[0])).tocsr() for name in sorted(names)}
-        return petsc_to_scipy(self._A), b_base, mats
+        return b_base, {name: (sp.diags(keep) @ self._rhs_matrix_scipy(name)).tocsr() for name in sorted(names)}
 
-    def matrix_jacobian(self, name: str) -> tuple:
-        """The matrix as an affine function of control ``name``: values(m) = v0 + J m.
+    def constant_matrix(self) -> sp.csr_matrix:
+        """A as scipy CSR, for a problem whose matrix depends on no control passed in a call."""
+        self._ensure_constant_matrix()
+        return petsc_to_scipy(self._A)
 
-        Returns (A_pattern, v0, J): A_pattern a scipy CSR matrix whose indptr /
-        indices fix the entry order, v0 (nnz,) the entries at m = 0 (Dirichlet
-        rows and columns as assembled: identity), J (nnz, n_m) scipy CSR.
-
-        J is built with a few assemblies instead of one per DOF of m: the DOFs of
-        m are coloured so that no two of one colour share a cell with a common
-        matrix entry; assembling with m = the indicator of a colour then yields,
-        for each entry, the contribution of the single DOF of that colour which
-        touches it. Exact for forms affine in m. Serial only.
-        """
+    def matrix_with(self, name: str, values: np.ndarray, bc_diagonal: float = 1.0) -> sp.csr_matrix:
+        """A assembled with control ``name`` set to ``values`` (owned DOFs) and
+        ``bc_diagonal`` on the Dirichlet rows, as scipy CSR; the control keeps its value."""
         p = self.problem
-        if name not in p.matrix_controls:
-            raise ValueError(f"control {name!r} does not enter the matrix")
-        if name not in p.affine_matrix_controls:
-            raise NotImplementedError(f"the matrix is not affine in control {name!r}; "
-                                      "its unrolled derivative is not available (use diff='implicit')")
-        if self._comm.size > 1:
-            raise NotImplementedError("the matrix Jacobian is built on one process only")
-        m = p.control(name)
-        cached = self._jacobians.get(name)
-        if cached is not None:
-            return cached
-        m_cells = _dolfinx.cell_dofs(m.function_space)
-        v_cells = _dolfinx.cell_dofs(p.V)
-        n_m = p.control_size(name)
-        colors = _distance_two_colors(m_cells, v_cells, n_m)
-        saved = m.x.array.copy()
-        try:
-            m.x.array[:] = 0.0
-            self._assemble_matrix()
-            A0 = petsc_to_scipy(self._A).tocsr()
-            # The part that does not depend on m (e.g. a mass matrix), without the BC diagonal.
-            _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs, diagonal=0.0)
-            fixed = petsc_to_scipy(self._A).data.copy()
-            per_color = []
-            for color in range(colors.max() + 1):
-                m.x.array[:] = (colors == color).astype(float)
-                _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs, diagonal=0.0)
-                Ac = petsc_to_scipy(self._A)
-                if not (np.array_equal(Ac.indptr, A0.indptr) and np.array_equal(Ac.indices, A0.indices)):
-                    raise RuntimeError("the matrix pattern changed between assemblies")
-                per_color.append(Ac.data - fixed)
-        finally:
-            m.x.array[:] = saved
+        with _ControlValues(p, {name: np.asarray(values)[None]}) as ctl:
+            ctl.set_sample(0)
+            with self._assembling():
+                _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs, diagonal=bc_diagonal)
             self._A_version += 1
-            self._A_inputs = None          # A holds a colour indicator now: reassemble next time
-        # Every (entry, m-DOF) pair that can be nonzero: both entry DOFs and the m-DOF in one cell.
-        n = A0.shape[0]
-        rows = np.repeat(v_cells, v_cells.shape[1], axis=1)          # (cells, d*d): i
-        cols = np.tile(v_cells, (1, v_cells.shape[1]))               # (cells, d*d): j
-        keys = (rows.astype(np.int64) * n + cols).ravel()
-        csr_keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(A0.indptr)) * n + A0.indices
-        entry = np.searchsorted(csr_keys, keys).reshape(rows.shape)  # CSR position of (i, j)
-        pairs_e = np.repeat(entry, m_cells.shape[1], axis=1).ravel()
-        pairs_k = np.tile(m_cells, (1, entry.shape[1])).ravel()
-        pairs = np.unique(np.stack([pairs_e, pairs_k]), axis=1)
-        pairs = pairs[:, pairs[1] < n_m]
-        values = np.stack(per_color)[colors[pairs[1]], pairs[0]]
-        J = sp.csr_matrix((values, (pairs[0], pairs[1])), shape=(A0.nnz, n_m))
-        J.eliminate_zeros()
-        result = (A0, A0.data.copy(), J)
-        self._jacobians[name] = result
-        return result
+            self._A_inputs = None          # A holds these values now: reassemble when next needed
+            return petsc_to_scipy(self._A)
+
+    def record_batch(self, direction: str, options: KSPOptions, seconds: float, finite: np.ndarray,
+                     engine: str) -> None:
+        """Count one capped solve per sample of a batch solved outside PETSc (``finite``
+        (B,) bool: the sample's iterate is finite), then raise or warn per ``options``
+        if any is not."""
+        per_sample = [capped_solve_stats(options, seconds / len(finite), bool(ok), engine) for ok in finite]
+        for stats in per_sample:
+            self.stats.record(direction, stats)
+        if not finite.all():
+            failed = next(st for st in per_sample if not st.ok)
+            self._solver.report_failure(direction, failed, finite=False, samples=int((~finite).sum()))
 
     @property
     def matrix_version(self) -> int:
@@ -332,13 +289,7 @@ class LinearSystem:
             self._batched_version = self._A_version
         opts = self.options if direction == "forward" else self.options.adjoint_options
         X, seconds = self._batched.solve(R, opts, transpose=direction == "backward", X0=initial_guess)
-        finite = np.isfinite(X).all(axis=1)
-        per_sample = [capped_solve_stats(opts, seconds / len(X), bool(ok), "batched") for ok in finite]
-        for stats in per_sample:
-            self.stats.record(direction, stats)
-        if not finite.all():
-            failed = next(st for st in per_sample if not st.ok)
-            self._solver.report_failure(direction, failed, finite=False, samples=int((~finite).sum()))
+        self.record_batch(direction, opts, seconds, np.isfinite(X).all(axis=1), "batched")
         return X
 
     def destroy(self) -> None:
@@ -603,26 +554,6 @@ def _attach_nullspace(A: PETSc.Mat, basis: np.ndarray):
     for vec in vectors:
         vec.destroy()
     return nsp
-
-
-def _distance_two_colors(m_cells: np.ndarray, v_cells: np.ndarray, n_m: int) -> np.ndarray:
-    """Greedy colouring of the DOFs of m: two DOFs get different colours when cells
-    containing them share a DOF of the solution space (so they may touch a common
-    matrix entry)."""
-    n_cells = m_cells.shape[0]
-    n_v = int(v_cells.max()) + 1
-    cells_of_m = sp.csr_matrix((np.ones(m_cells.size), (m_cells.ravel(), np.repeat(np.arange(n_cells),
-                               m_cells.shape[1]))), shape=(int(m_cells.max()) + 1, n_cells))
-    v_of_cell = sp.csr_matrix((np.ones(v_cells.size), (np.repeat(np.arange(n_cells), v_cells.shape[1]),
-                              v_cells.ravel())), shape=(n_cells, n_v))
-    touch = (cells_of_m @ v_of_cell).tocsr()
-    graph = (touch @ touch.T).tocsr()
-    colors = np.full(graph.shape[0], -1, dtype=np.int64)
-    for k in range(graph.shape[0]):
-        used = colors[graph.indices[graph.indptr[k]:graph.indptr[k + 1]]]
-        free = np.setdiff1d(np.arange(len(used) + 1), used[used >= 0])
-        colors[k] = free[0]
-    return colors
 
 
 def _set_owned(fn, values: np.ndarray, n_owned: int) -> None:

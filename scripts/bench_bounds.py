@@ -4,7 +4,7 @@
     on the bundled L-shape (1481 DOFs), B = 8, for each K of ``--ks``, each
     in a child process: the RSS increase over the forward pass (what the
     graph keeps) and the peak RSS increase over forward + backward, against
-    ``fempdl.unrolled.checkpointed_values * 8`` (the bound) and
+    ``fempdl.iterative.unrolled.checkpointed_values * 8`` (the bound) and
     ``stored_values * 8`` (what the unbounded solve keeps). ``--unbounded-k``
     adds one run without the bound, for contrast.
 (2) Richardson + Jacobi capped at ``--monitor-k`` iterations on the L-shape at
@@ -31,7 +31,8 @@ import torch
 from mpi4py import MPI
 
 from bench_common import comma_list, machine_info, write_json_atomically
-from fempdl import forms, ksp_adjoint, mesh, unrolled
+from fempdl import forms, ksp_adjoint, mesh
+from fempdl.iterative import unrolled
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 

@@ -20,7 +20,7 @@ from petsc4py import PETSc
 
 import fempdl
 from fempdl import _dolfinx
-from fempdl.training import write_atomically
+from fempdl.app.training import write_atomically
 
 
 def machine_info() -> dict:

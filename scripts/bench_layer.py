@@ -26,7 +26,7 @@ Measured per (size, solver, K):
     divided by the time of one call with the (B, n) tensor (forward and
     backward, the same total work), both with the default ``engine="auto"``,
     which runs a batch of Jacobi solves on the batched engine
-    (:mod:`fempdl.batched`) and single samples through PETSc. Target: >= 1.5.
+    (:mod:`fempdl.iterative.batched`) and single samples through PETSc. Target: >= 1.5.
     Also reported: engine speed-up = the ``engine="petsc"`` batched call over
     the ``engine="auto"`` one.
 

@@ -87,11 +87,12 @@ def layer_worker(args) -> dict:
 def training_worker(args) -> dict:
     from mpi4py import MPI
 
-    from fempdl import experiments, scene
+    from fempdl.app import runner
+    from fempdl.app import scene
 
     comm = MPI.COMM_WORLD
     sc = scene.load(args.scene)
-    run = experiments.run(sc, "fixed", args.k, epochs=args.epochs, parallel="data", k_eps_value=args.k)
+    run = runner.run(sc, "fixed", args.k, epochs=args.epochs, parallel="data", k_eps_value=args.k)
     wall = run.wall_time - run.rows[0]["wall_time"]
     samples = sc.data["train"] * (len(run.rows) - 1)
     return {"scene": sc.name, "k": args.k, "epochs": len(run.rows), "timed_samples": samples, "wall_time": wall,

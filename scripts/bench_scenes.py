@@ -8,7 +8,7 @@ cumulative forward + backward inner iterations, wall time and where it went
 (solver iterations, set-up, assembly, adjoint operator, network, validation,
 other), and the K schedule. Per scene: PRDP / baseline ratios of the seeds'
 means (metric, iterations, wall time) and each seed's ratios (the spread);
-with ``--sweep`` also the fixed-K sweep of :mod:`fempdl.tradeoff` (seed 0)
+with ``--sweep`` also the fixed-K sweep of :mod:`fempdl.app.tradeoff` (seed 0)
 and PRDP's saving split into incomplete-convergence and progressive-refinement
 parts. The summary averages the savings over the scenes.
 
@@ -28,7 +28,9 @@ from bench_common import comma_list, machine_info, write_json_atomically
 
 import torch
 
-from fempdl import experiments, scene, tradeoff
+from fempdl.app import runner
+from fempdl.app import scene
+from fempdl.app import tradeoff
 
 PRDP_SCENES = ["heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
                "burgers-emulator", "ns-hybrid"]
@@ -48,9 +50,9 @@ def bench_scene(name: str, seeds: list[int], sweep: bool) -> dict:
     sc = scene.load(name)
     base, prdp, k_eps = [], [], None
     for seed in seeds:
-        b = experiments.run(sc, "converged", seed=seed, k_eps_value=k_eps)
+        b = runner.run(sc, "converged", seed=seed, k_eps_value=k_eps)
         k_eps = b.k_eps
-        p = experiments.run(sc, "prdp", seed=seed, k_eps_value=k_eps)
+        p = runner.run(sc, "prdp", seed=seed, k_eps_value=k_eps)
         base.append(summary(b))
         prdp.append(summary(p))
     out = {"k_eps": k_eps, "seeds": seeds, "converged": base, "prdp": prdp,

@@ -1,6 +1,6 @@
 """Benchmark: SIP and HIG against Adam with backpropagation, on the bundled sip and hig scenes.
 
-For every scene, :func:`fempdl.compare.compare` trains the scene's method and
+For every scene, :func:`fempdl.app.compare.compare` trains the scene's method and
 then the baseline (Adam, gradients backpropagated through the LU solve) from
 the same initial network, for the scene's epochs; the baseline then goes on
 until it has used the method's training time (at most 20x the iterations).
@@ -29,8 +29,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")    # before torch starts its
 
 import torch  # noqa: E402
 
-from fempdl import compare, scene  # noqa: E402
-from fempdl.cli import _positive_int  # noqa: E402
+from fempdl.app import compare
+from fempdl.app import scene  # noqa: E402
+from fempdl.app.cli import positive_int  # noqa: E402
 
 from bench_common import comma_list, machine_info, write_json_atomically  # noqa: E402
 
@@ -40,7 +41,7 @@ SCENES = ["sip-poisson", "sip-heat", "hig-poisson"]
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scenes", type=comma_list(str), default=SCENES)
-    parser.add_argument("--epochs", type=_positive_int, help="override every scene's epochs")
+    parser.add_argument("--epochs", type=positive_int, help="override every scene's epochs")
     parser.add_argument("--out", type=Path, default=Path("bench-results/bench_sip.json"))
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads for both methods (default 1: faster at these sizes, see above)")

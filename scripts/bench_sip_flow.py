@@ -38,11 +38,10 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")    # before torch starts its threads
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from fempdl import scene  # noqa: E402
-from fempdl.marker_inversion import MarkerInversionTask  # noqa: E402
+from fempdl.app import scene  # noqa: E402
+from fempdl.app.tasks.marker import MarkerInversionTask  # noqa: E402
 from fempdl.sip import LinearisedGaussNewton  # noqa: E402
 
 from bench_common import comma_list, machine_info, write_json_atomically  # noqa: E402

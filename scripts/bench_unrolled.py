@@ -13,7 +13,7 @@ backward, is what every variant below times.
 Measured per (size, solver, K):
 
 (1) ``diff="unrolled"`` (autograd through the K iterations in torch,
-    :mod:`fempdl.unrolled`) against ``diff="implicit"`` (one capped adjoint
+    :mod:`fempdl.iterative.unrolled`) against ``diff="implicit"`` (one capped adjoint
     solve), both with the default ``engine="auto"``: wall time and peak
     memory, and their ratios unrolled / implicit. Peak memory is the increase
     of the process's peak resident set size (RSS) during the call, measured
@@ -34,7 +34,7 @@ Measured per (size, solver, K):
     vectors, memory the allocator keeps after a free), which torch's own
     allocation tracking or tracemalloc would each see only in part.
     For comparison: the theoretical size of the stored iterates,
-    ``fempdl.unrolled.stored_values(method, K, n, B) * 8`` bytes. A
+    ``fempdl.iterative.unrolled.stored_values(method, K, n, B) * 8`` bytes. A
     configuration is skipped (``skipped`` in the JSON) when 2.5 times that
     does not fit in the memory available: the largest, CG with K=100 on 66k
     DOFs at B=32, stores 7.8 GiB and took 14.7 GiB (the full run needs a
@@ -141,7 +141,7 @@ from mpi4py import MPI
 
 import fempdl
 import fempdl.meshgen
-from fempdl import unrolled
+from fempdl.iterative import unrolled
 from fempdl.bridge_torch import SolveLayer
 from bench_common import apply_defaults, comma_list, machine_info, write_json_atomically
 from fempdl.ksp_adjoint import KSPOptions
@@ -149,7 +149,7 @@ from fempdl.resources import available_memory
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.meshgen)
 SOLVERS = ("jacobi", "cg")                      # Richardson+Jacobi, CG+Jacobi
-UNROLLED_METHOD = {"jacobi": "jacobi", "cg": "cg"}  # their fempdl.unrolled method names
+UNROLLED_METHOD = {"jacobi": "jacobi", "cg": "cg"}  # their fempdl.iterative.unrolled method names
 CHECKPOINT_FRACTION = 10        # checkpointed: max_unrolled_values = stored values / 10
 AGREEMENT_TOL = 1e-12           # relative; forward always, gradients for Jacobi
 ROUND_OFF = 1e-15               # relative perturbation of F that measures the output's round-off sensitivity

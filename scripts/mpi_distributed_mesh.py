@@ -28,9 +28,9 @@ from mpi4py import MPI
 
 from fempdl import forms, mesh, parallel
 from fempdl.bridge_torch import SolveLayer
-from fempdl.experiments import source_modes
+from fempdl.app.tasks.data import source_modes
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.training import nmse
+from fempdl.app.training import nmse
 
 
 def main() -> None:

@@ -1,7 +1,6 @@
 """The batched engine: same iterates and gradients as PETSc's KSP, and when it runs."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from fempdl import cli, scene
+from fempdl.app import cli
+from fempdl.app import scene
 
 TRAIN, BATCH, EPOCHS = 16, 8, 6
 TINY = f"""
@@ -535,12 +536,12 @@ def test_save_fields_writes_predictions_references_and_a_png(tiny, tmp_path):
 
 def test_validation_fields_are_what_the_metric_measures(tiny):
     import torch
-    from fempdl import experiments
+    from fempdl.app import runner
     from fempdl.ksp_adjoint import KSPOptions
-    from fempdl.training import sample_nmse
+    from fempdl.app.training import sample_nmse
     sc = scene.load(tiny)
     assert sc.data["rollout"] == 1
-    task = experiments.build_task(sc, KSPOptions(max_it=2))
+    task = runner.build_task(sc, KSPOptions(max_it=2))
     try:
         name, prediction, reference = task.validation_fields(torch.arange(task.val_size))
         assert name is None and prediction.shape == reference.shape == (task.val_size, task.problem.output_size)

@@ -12,11 +12,13 @@ import pytest
 import torch
 from mpi4py import MPI
 
-from fempdl import experiments, mesh, scene
-from fempdl.experiments import smooth_fields
-from fempdl.hybrid import HybridTask, VelocityTransfer, channel_problem
+from fempdl import mesh
+from fempdl.app import runner
+from fempdl.app import scene
+from fempdl.app.tasks.data import smooth_fields
+from fempdl.app.tasks.hybrid import HybridTask, VelocityTransfer, channel_problem
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.networks import ResidualMLP
+from fempdl.app.networks import ResidualMLP
 
 BURGERS = """
 [scene]
@@ -188,11 +190,11 @@ def test_transfer_between_different_domains_is_an_error():
 
 # ------------------------------------------------------------------ Burgers emulator
 def test_burgers_chain_gradient_matches_finite_differences(burgers):
-    task = experiments.build_task(burgers, KSPOptions.preset("lu"))
+    task = runner.build_task(burgers, KSPOptions.preset("lu"))
     try:
         task.model.double()
         u0, u2 = task.train_u0[:3].double(), task.train_u2[:3].double()
-        from fempdl.training import nmse
+        from fempdl.app.training import nmse
         exact, fd = _directional_check(task, lambda: nmse(task.physics(task.layer, task.model(u0)), u2))
         assert abs(exact - fd) <= 1e-6 * abs(fd) and abs(fd) > 1e-6
     finally:
@@ -200,23 +202,23 @@ def test_burgers_chain_gradient_matches_finite_differences(burgers):
 
 
 def test_burgers_validation_rolls_out_and_capped_chain_counts_iterations(burgers):
-    task = experiments.build_task(burgers, experiments.solver_options(burgers, 4))
+    task = runner.build_task(burgers, runner.solver_options(burgers, 4))
     try:
         assert len(task.val_targets) == burgers.data["rollout"] == 2
         assert task.layer.problem.matrix_controls == {"w"}
         task.train_step(torch.arange(4))
         # Four samples, forward and adjoint, each exactly K = 4 GMRES iterations.
         assert task.layer.stats.forward_iterations == task.layer.stats.backward_iterations == 16
-        keps = experiments.k_eps(task, experiments.solver_options(burgers, None, burgers.data["k_eps_rtol"]))
+        keps = runner.k_eps(task, runner.solver_options(burgers, None, burgers.data["k_eps_rtol"]))
         assert keps > 8
     finally:
         task.close()
 
 
 def test_burgers_prdp_trains_below_the_untrained_metric_with_fewer_iterations(burgers):
-    base = experiments.run(burgers, "converged")
-    prdp = experiments.run(burgers, "prdp", k_eps_value=base.k_eps)
-    task = experiments.build_task(burgers, experiments.solver_options(burgers, 1))
+    base = runner.run(burgers, "converged")
+    prdp = runner.run(burgers, "prdp", k_eps_value=base.k_eps)
+    task = runner.build_task(burgers, runner.solver_options(burgers, 1))
     untrained = task.validate()
     task.close()
     assert base.final_metric < 0.7 * untrained
@@ -252,7 +254,7 @@ def test_hybrid_two_step_gradient_matches_finite_differences(hybrid_lu):
     task = hybrid_lu
     task.model.double()
     states = task.train_states[:, :2].double()
-    from fempdl.training import nmse
+    from fempdl.app.training import nmse
     # Move off the zero output layer so both steps' network terms are active.
     with torch.no_grad():
         task.model.net[-1].weight.normal_(0.0, 1e-3, generator=torch.Generator().manual_seed(1))
@@ -270,7 +272,7 @@ def test_hybrid_two_step_gradient_matches_finite_differences(hybrid_lu):
 
 
 def test_hybrid_capped_steps_count_and_training_beats_the_coarse_solver(hybrid):
-    task = experiments.build_task(hybrid, experiments.solver_options(hybrid, 3))
+    task = runner.build_task(hybrid, runner.solver_options(hybrid, 3))
     try:
         task.train_step(torch.arange(3))
         # Three samples, two unrolled steps, exactly K = 3 each. The first step's inputs
@@ -279,13 +281,13 @@ def test_hybrid_capped_steps_count_and_training_beats_the_coarse_solver(hybrid):
         assert task.layer.stats.backward_iterations == 9
     finally:
         task.close()
-    run = experiments.run(hybrid, "converged")
+    run = runner.run(hybrid, "converged")
     assert 4 <= run.k_eps <= 60
     assert run.final_metric < 0.9 * task.uncorrected_metric
 
 
 def test_cli_runs_a_flow_scene_file_with_prdp_and_the_baseline(tmp_path, capsys):
-    from fempdl import cli
+    from fempdl.app import cli
     path = tmp_path / "tiny-hybrid.toml"
     path.write_text(HYBRID)
     assert cli.main(["run", str(path), "--epochs", "2", "--out", str(tmp_path / "out"), "--no-progress"]) == 0
@@ -299,8 +301,8 @@ def test_hybrid_warm_start_begins_at_the_state(hybrid):
     """The capped Oseen step starts from (u_t, 0 pressure): after one iteration its velocity is
     closer to the converged step's than from zero, and the warm-started chain trains."""
     warm_scene = scene.parse(HYBRID.replace('preset = "schur"', 'preset = "schur"\nwarm_start = true'))
-    cold = experiments.build_task(hybrid, experiments.solver_options(hybrid, 1))
-    warm = experiments.build_task(warm_scene, experiments.solver_options(warm_scene, 1))
+    cold = runner.build_task(hybrid, runner.solver_options(hybrid, 1))
+    warm = runner.build_task(warm_scene, runner.solver_options(warm_scene, 1))
     try:
         u = warm.val_states[0].double()
         start = warm._start(warm.layer, u, None)["initial_guess"]

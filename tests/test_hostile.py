@@ -17,8 +17,13 @@ import pytest
 import torch
 from mpi4py import MPI
 
-from fempdl import checkpoints, cli, experiments, forms, mesh, rundir, scene
-from fempdl.checkpoints import CheckpointError
+from fempdl import forms, mesh
+from fempdl.app import checkpoints
+from fempdl.app import cli
+from fempdl.app import runner
+from fempdl.app import rundir
+from fempdl.app import scene
+from fempdl.app.checkpoints import CheckpointError
 from fempdl.ksp_adjoint import KSPOptions
 
 INVERSE = """
@@ -45,7 +50,7 @@ def inverse(text: str = INVERSE) -> scene.Scene:
 
 
 def train(out: Path, sc: scene.Scene | None = None, **kwargs):
-    return experiments.run(sc or inverse(), "fixed", 4, out_dir=out, k_eps_value=20, **kwargs)
+    return runner.run(sc or inverse(), "fixed", 4, out_dir=out, k_eps_value=20, **kwargs)
 
 
 def call(argv) -> tuple[int, str]:
@@ -158,7 +163,7 @@ def test_resume_refuses_a_changed_scene_and_names_the_keys(tmp_path):
     assert "run.scene.inverse.theta_ref: [0.6, 1.9] -> [0.5, 1.9]" in message
     assert "run.scene.optimizer.lr: 1.0 -> 0.5" in message and "--overwrite" in message
     with pytest.raises(rundir.ResumeError, match=r"run.k: 4 -> 5"):
-        experiments.run(inverse(), "fixed", 5, out_dir=tmp_path, k_eps_value=20, resume=True)
+        runner.run(inverse(), "fixed", 5, out_dir=tmp_path, k_eps_value=20, resume=True)
 
 
 def test_resume_may_change_the_number_of_epochs(tmp_path):
@@ -314,7 +319,7 @@ def _graph_nodes(tensor: torch.Tensor) -> int:
 def test_max_unrolled_values_bounds_what_the_forward_pass_keeps(coarse_problems, control):
     """Checkpointed segments keep one autograd node (and one starting state) per segment, not a graph
     of every iteration (measured RSS: scripts/bench_bounds.py); the gradient is unchanged."""
-    from fempdl import unrolled
+    from fempdl.iterative import unrolled
     from fempdl.bridge_torch import SolveLayer
     prob = coarse_problems["poisson"]
     K, batch = 400, 2
@@ -335,7 +340,7 @@ def test_max_unrolled_values_bounds_what_the_forward_pass_keeps(coarse_problems,
 
 
 def test_an_unrolled_solve_beyond_the_memory_budget_is_refused_up_front(coarse_problems):
-    from fempdl import unrolled
+    from fempdl.iterative import unrolled
     from fempdl.bridge_torch import SolveLayer
     prob = coarse_problems["poisson"]
     f = torch.ones(2, prob.control_size("f"), dtype=torch.float64, requires_grad=True)
@@ -376,7 +381,7 @@ def test_a_second_command_on_the_same_output_directory_is_refused_while_the_firs
     path.write_text(INVERSE.replace("epochs = 6", "epochs = 100000"))
     out = tmp_path / "out"
     argv = ["run", str(path), "--k", "4", "--out", str(out), "--no-progress", "--no-baseline"]
-    first = subprocess.Popen([sys.executable, "-m", "fempdl.cli", *argv], stdout=subprocess.DEVNULL,
+    first = subprocess.Popen([sys.executable, "-m", "fempdl.app.cli", *argv], stdout=subprocess.DEVNULL,
                              stderr=subprocess.PIPE, env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
     try:
         deadline = time.monotonic() + 120

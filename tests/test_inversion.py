@@ -8,9 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from fempdl import compare, experiments, inversion, scene
-from fempdl.inversion import InversionTask, rectangle_fields
-from fempdl.training import Trainer
+from fempdl.app import compare
+from fempdl.app import runner
+from fempdl.app import tasks
+from fempdl.app import scene
+from fempdl.app.tasks.data import rectangle_fields
+from fempdl.app.tasks.inversion import InversionTask
+from fempdl.app.training import Trainer
 
 SIP = """
 [scene]
@@ -185,7 +189,7 @@ def test_validation_metrics_are_the_x_error_and_the_observation_nmse():
 
 def test_sip_infers_the_source_better_than_adam_with_backprop_at_equal_iterations():
     sc = sip_scene(epochs=100)
-    sip, adam = inversion.run(sc, "sip"), inversion.run(sc, "backprop")
+    sip, adam = runner.run_method(sc, "sip"), runner.run_method(sc, "backprop")
     start = sip.rows[0]["val_metric"]
     # Measured, on the free DOFs: 0.63 against 0.72 after 100 iterations (63 DOFs, linear network, lr 3e-2
     # both); the gap widens with iterations (0.78x at 300).
@@ -201,7 +205,7 @@ def test_the_damped_gauss_newton_sip_scene_trains():
         assert task.inverse.max_it == 5 and task.inverse.damping == 1e-2
     finally:
         task.close()
-    result = inversion.run(sc, "sip")
+    result = runner.run_method(sc, "sip")
     assert result.final_metric < 0.9 * result.rows[0]["val_metric"]
 
 
@@ -214,14 +218,14 @@ def test_the_tikhonov_sip_heat_scene_beats_adam_and_the_baseline_follows_its_sch
     finally:
         task.close()
     sc.baseline["decay"] = 1.0
-    sip, adam = inversion.run(sc, "sip"), inversion.run(sc, "backprop")
+    sip, adam = runner.run_method(sc, "sip"), runner.run_method(sc, "backprop")
     # Measured after 40 iterations (63 DOFs, 1% noise, linear network): 0.46 against 0.53 (0.86x at 100).
     assert sip.final_metric < 0.93 * adam.final_metric
 
 
 def test_hig_steps_lower_the_loss_and_beat_adam_at_equal_iterations():
     sc = hig_scene(epochs=30)
-    hig, adam = inversion.run(sc, "hig"), inversion.run(sc, "backprop")
+    hig, adam = runner.run_method(sc, "hig"), runner.run_method(sc, "backprop")
     # Measured after 30 steps: HIG's training loss 0.37x its first; held-out nMSE 0.69 against Adam's 1.30.
     assert hig.rows[-1]["train_loss"] < 0.5 * hig.rows[0]["train_loss"]
     assert hig.final_metric < 0.7 * adam.final_metric
@@ -231,11 +235,11 @@ def test_the_wrong_method_or_task_is_refused():
     with pytest.raises(ValueError, match="a sip scene trains with method 'sip' or its baseline 'backprop', got 'hig'"):
         InversionTask(sip_scene(), "hig")
     with pytest.raises(ValueError, match="compares training methods, not solver caps"):
-        experiments.build_task(sip_scene(), None)
+        runner.build_task(sip_scene(), None)
     with pytest.raises(ValueError, match="sip scenes train on one process"):
-        experiments.check_parallel(sip_scene(), "data")
+        runner.check_parallel(sip_scene(), "data")
     with pytest.raises(ValueError, match="methods are compared on sip and hig scenes"):
-        inversion.method_of(scene.load("heat-emulator-2d"))
+        tasks.method_of(scene.load("heat-emulator-2d"))
 
 
 # ------------------------------------------------------------------ comparison and files
@@ -279,9 +283,9 @@ def test_equal_iterations_only_keeps_the_baseline_at_the_methods_count(tmp_path)
 @pytest.mark.parametrize("method", ["sip", "hig"])
 def test_an_interrupted_run_resumes_to_the_same_metrics(tmp_path, method):
     sc = sip_scene(resample=True, epochs=6, batch=8) if method == "sip" else hig_scene(epochs=6)
-    whole = inversion.run(sc, method)
-    inversion.run(sc, method, out_dir=tmp_path, stop_after=2)
-    resumed = inversion.run(sc, method, out_dir=tmp_path, resume=True)
+    whole = runner.run_method(sc, method)
+    runner.run_method(sc, method, out_dir=tmp_path, stop_after=2)
+    resumed = runner.run_method(sc, method, out_dir=tmp_path, resume=True)
     assert len(resumed.rows) == 6
     for a, b in zip(whole.rows, resumed.rows):
         assert a["val_metric"] == pytest.approx(b["val_metric"], rel=1e-12, abs=0)
@@ -302,12 +306,12 @@ def test_the_trainer_stops_at_a_training_time():
 
 def test_a_checkpoint_without_a_training_clock_is_not_extended_to_a_training_time(tmp_path):
     sc = sip_scene(epochs=2)
-    inversion.run(sc, "sip", out_dir=tmp_path)
+    runner.run_method(sc, "sip", out_dir=tmp_path)
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
     del state["train_time"]
     for row in state["rows"]:
         del row["train_time"]
     torch.save(state, tmp_path / "checkpoint.pt")
     with pytest.raises(ValueError, match="written before fempdl timed training steps.*rerun it without resume"):
-        inversion.run(sc, "sip", out_dir=tmp_path, resume=True, epochs=4, stop_at_time=10.0)
-    assert len(inversion.run(sc, "sip", out_dir=tmp_path, resume=True, epochs=3).rows) == 3
+        runner.run_method(sc, "sip", out_dir=tmp_path, resume=True, epochs=4, stop_at_time=10.0)
+    assert len(runner.run_method(sc, "sip", out_dir=tmp_path, resume=True, epochs=3).rows) == 3

@@ -168,7 +168,7 @@ def test_write_msh_round_trips_through_load(tmp_path):
 
 
 def test_load_by_path_of_a_bundled_file_matches_load_by_name():
-    by_path = mesh.load(str(Path(meshgen.__file__).parent / "meshes" / "box.msh"), COMM)
+    by_path = mesh.load(str(meshgen.BUNDLED_DIR / "box.msh"), COMM)
     assert (by_path.tdim, by_path.gdim) == (3, 3)
     assert global_cells(by_path.mesh) == global_cells(mesh.load("box", COMM).mesh)
 
@@ -271,7 +271,8 @@ def wheel(tmp_path_factory) -> Path:
     for item in PROJECT_ROOT.iterdir():
         if item.is_file():
             shutil.copy2(item, src)
-    shutil.copytree(PROJECT_ROOT / "fempdl", src / "fempdl", ignore=shutil.ignore_patterns("__pycache__"))
+    for folder in ("fempdl", "meshes"):
+        shutil.copytree(PROJECT_ROOT / folder, src / folder, ignore=shutil.ignore_patterns("__pycache__"))
     out = tmp_path_factory.mktemp("wheel")
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
                     "-w", str(out), str(src)], check=True)

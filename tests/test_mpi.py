@@ -155,7 +155,7 @@ batch = 4
 def test_fempdl_run_parallel_data_under_mpirun(tmp_path):
     path = tmp_path / "tiny.toml"
     path.write_text(TINY_SCENE)
-    done = mpirun(2, "-m", "fempdl.cli", "run", str(path), "--parallel", "data", "--k", "3", "--no-baseline",
+    done = mpirun(2, "-m", "fempdl.app.cli", "run", str(path), "--parallel", "data", "--k", "3", "--no-baseline",
                   "--out", str(tmp_path / "out"))
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.count("scene tiny-cli-parallel") == 1   # rank 0 prints
@@ -172,7 +172,7 @@ def test_fempdl_run_parallel_data_under_mpirun(tmp_path):
 ])
 def test_fempdl_refuses_parallel_modes_that_do_not_fit(args, message, tmp_path):
     # A fresh --out: a run left in ./runs by `make run` would be refused first.
-    done = mpirun(2, "-m", "fempdl.cli", *args, "--out", str(tmp_path / "out"), timeout=120)
+    done = mpirun(2, "-m", "fempdl.app.cli", *args, "--out", str(tmp_path / "out"), timeout=120)
     assert done.returncode == 2
     assert message in done.stderr
 

@@ -16,7 +16,7 @@ MPI_ENV = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_
 def test_epoch_lines_under_mpirun(tmp_path):
     scene = tmp_path / "tiny.toml"
     scene.write_text(TINY)
-    done = subprocess.run([*_dolfinx.mpi_launcher(), "-n", "2", sys.executable, "-m", "fempdl.cli", "run", str(scene),
+    done = subprocess.run([*_dolfinx.mpi_launcher(), "-n", "2", sys.executable, "-m", "fempdl.app.cli", "run", str(scene),
                            "--k", "2", "--no-baseline", "--parallel", "data", "--out", str(tmp_path / "out"),
                            "--set", "optimizer.epochs=3"], env=MPI_ENV, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]

@@ -5,7 +5,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from fempdl.networks import GraphConvNet, normalised_adjacency
+from fempdl.app.networks import GraphConvNet, normalised_adjacency
 
 
 def _dense_reference(net: GraphConvNet, A: torch.Tensor, u: torch.Tensor) -> torch.Tensor:

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from fempdl import scene
-from fempdl.scene import SCHEMA, SceneError
+from fempdl.app import scene
+from fempdl.app.scene import SCHEMA, SceneError
 
 EXPECTED_BUNDLED = {"heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
                     "burgers-emulator", "ns-hybrid", "sip-poisson", "sip-heat", "hig-poisson", "sip-flow",
@@ -49,7 +49,7 @@ def test_available_lists_the_bundled_files():
     names = scene.available()
     assert names == sorted(names)
     assert EXPECTED_BUNDLED <= set(names)
-    files = {p.name[:-5] for p in resources.files("fempdl.scenes").iterdir() if p.name.endswith(".toml")}
+    files = {p.name[:-5] for p in resources.files("fempdl.app.scenes").iterdir() if p.name.endswith(".toml")}
     assert set(names) == files
 
 
@@ -100,7 +100,7 @@ def test_bundled_scene_loads_with_its_tasks_sections(name):
 
 @pytest.mark.parametrize("name", scene.available())
 def test_bundled_scene_by_path_equals_by_name(name):
-    path = Path(str(resources.files("fempdl.scenes").joinpath(f"{name}.toml")))
+    path = Path(str(resources.files("fempdl.app.scenes").joinpath(f"{name}.toml")))
     by_path, by_name = scene.load(path), scene.load(name)
     assert by_path.source == str(path)
     assert {**by_path.as_dict(), "source": ""} == {**by_name.as_dict(), "source": ""}

@@ -8,7 +8,7 @@ from mpi4py import MPI
 
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
-from fempdl.experiments import smooth_fields
+from fempdl.app.tasks.data import smooth_fields
 from fempdl.ksp_adjoint import KSPOptions
 from fempdl.sip import ExactLinearInverse, GaussNewtonInverse, GradientStep, TikhonovInverse, proxy_loss, sip_step
 

@@ -8,11 +8,13 @@ import ufl
 from mpi4py import MPI
 
 import dolfinx.fem
-from fempdl import _dolfinx, compare, mesh, scene
-from fempdl.experiments import smooth_fields
+from fempdl import _dolfinx, mesh
+from fempdl.app import compare
+from fempdl.app import scene
+from fempdl.app.tasks.data import smooth_fields
 from fempdl.ksp_adjoint import KSPOptions
 from fempdl.marker_flow import ENCLOSED_LU, MarkerFlow
-from fempdl.marker_inversion import MarkerInversionTask
+from fempdl.app.tasks.marker import MarkerInversionTask
 from fempdl.sip import LinearisedGaussNewton, batched_cg
 
 

@@ -5,7 +5,8 @@ import json
 
 import pytest
 
-from fempdl import experiments, scene
+from fempdl.app import runner
+from fempdl.app import scene
 
 TINY = """
 [scene]
@@ -49,11 +50,11 @@ def tiny():
 
 @pytest.fixture(scope="module")
 def baseline(tiny):
-    return experiments.run(tiny, "converged")
+    return runner.run(tiny, "converged")
 
 
 def test_prdp_uses_fewer_iterations_than_k_eps_at_a_bounded_error(tiny, baseline):
-    prdp = experiments.run(tiny, "prdp", k_eps_value=baseline.k_eps)
+    prdp = runner.run(tiny, "prdp", k_eps_value=baseline.k_eps)
     assert baseline.k_eps > 4
     assert all(row["k"] == baseline.k_eps for row in baseline.rows)
     # Each epoch passes the 16 training samples once through the layer, forward and backward.
@@ -67,12 +68,12 @@ def test_prdp_uses_fewer_iterations_than_k_eps_at_a_bounded_error(tiny, baseline
 
 
 def test_resume_after_an_interruption_gives_the_same_metrics(tiny, baseline, tmp_path):
-    whole = experiments.run(tiny, "prdp", out_dir=tmp_path / "whole", k_eps_value=baseline.k_eps)
-    first = experiments.run(tiny, "prdp", out_dir=tmp_path / "split", k_eps_value=baseline.k_eps, stop_after=5)
+    whole = runner.run(tiny, "prdp", out_dir=tmp_path / "whole", k_eps_value=baseline.k_eps)
+    first = runner.run(tiny, "prdp", out_dir=tmp_path / "split", k_eps_value=baseline.k_eps, stop_after=5)
     assert len(first.rows) == 5
     saved = json.loads((tmp_path / "split" / "metrics.json").read_text())
     assert [row["epoch"] for row in saved] == list(range(5))
-    resumed = experiments.run(tiny, "prdp", out_dir=tmp_path / "split", k_eps_value=baseline.k_eps, resume=True)
+    resumed = runner.run(tiny, "prdp", out_dir=tmp_path / "split", k_eps_value=baseline.k_eps, resume=True)
     keys = ("epoch", "train_loss", "val_metric", "k", "forward_iterations", "backward_iterations")
     assert [[row[k] for k in keys] for row in resumed.rows] == [[row[k] for k in keys] for row in whole.rows]
     assert (tmp_path / "split" / "metrics.csv").read_text().count("\n") == len(whole.rows) + 1
@@ -80,7 +81,7 @@ def test_resume_after_an_interruption_gives_the_same_metrics(tiny, baseline, tmp
 
 def test_resume_without_a_checkpoint_is_an_error(tiny, tmp_path):
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
-        experiments.run(tiny, "fixed", 2, out_dir=tmp_path / "empty", k_eps_value=10, resume=True)
+        runner.run(tiny, "fixed", 2, out_dir=tmp_path / "empty", k_eps_value=10, resume=True)
 
 
 def test_stop_at_ends_training_at_the_target():
@@ -90,7 +91,7 @@ def test_stop_at_ends_training_at_the_target():
     text += "\n[inverse]\ntheta_ref = [2.0]\ntheta_init = [5.0]\n"
     text = text.replace("lr = 1e-2\nepochs = 30\nbatch = 8", 'type = "sgd"\nlr = 1.5\nepochs = 500\nstop_at = 1e-6')
     inverse = scene.parse(text)
-    run = experiments.run(inverse, "converged")
+    run = runner.run(inverse, "converged")
     assert run.final_metric <= 1e-6 < run.rows[-2]["val_metric"]
     assert len(run.rows) < 500
 
@@ -118,8 +119,8 @@ epochs = 15
 def test_unrolled_and_implicit_jacobi_train_identically():
     """For Richardson+Jacobi and a source control both diff modes give the exact
     gradient of the capped map: the whole optimisation must coincide."""
-    implicit = experiments.run(inverse_scene(), "fixed", 6, k_eps_value=50)
-    unrolled = experiments.run(inverse_scene('[solver]\ndiff = "unrolled"\n'), "fixed", 6, k_eps_value=50)
+    implicit = runner.run(inverse_scene(), "fixed", 6, k_eps_value=50)
+    unrolled = runner.run(inverse_scene('[solver]\ndiff = "unrolled"\n'), "fixed", 6, k_eps_value=50)
     for a, b in zip(implicit.rows, unrolled.rows):
         assert a["val_metric"] == pytest.approx(b["val_metric"], rel=1e-10, abs=1e-14)
         assert a["total_iterations"] == b["total_iterations"]
@@ -129,7 +130,7 @@ def test_unrolled_and_implicit_jacobi_train_identically():
 def test_metrics_split_the_wall_time(tiny, baseline):
     """The time parts add up to the wall time, the iterations part is the layers' solve time,
     and the cheap parts are not lost in 'other'."""
-    from fempdl.training import TIME_FIELDS
+    from fempdl.app.training import TIME_FIELDS
     for row in baseline.rows:
         parts = [row[f] for f in TIME_FIELDS]
         assert all(p >= -1e-3 for p in parts)        # differences of clock readings: no real part is negative

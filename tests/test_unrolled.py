@@ -6,8 +6,9 @@ import pytest
 import scipy.sparse as sp
 import torch
 
-from fempdl import unrolled
-from fempdl.sparse import sparse_to_torch
+from fempdl.iterative import unrolled
+from fempdl.iterative.sparse import sparse_to_torch
+from fempdl.iterative.unrolled_path import matrix_jacobian
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 
@@ -130,7 +131,7 @@ def test_stored_values_bounds_what_autograd_keeps(method, matrix_grad):
     """stored_values is the memory statement users size max_unrolled_values by:
     count the distinct storages autograd saves (saved-tensor hooks) at two K and
     check the per-iteration growth against it; Jacobi on a constant operator keeps none."""
-    from fempdl.bridge_torch import _EntryMatrix
+    from fempdl.iterative.unrolled_path import _EntryMatrix
     n, batch = 300, 3
     S = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n)).tocoo()
     rows, cols = torch.from_numpy(S.row.astype(np.int64)), torch.from_numpy(S.col.astype(np.int64))
@@ -140,7 +141,7 @@ def test_stored_values_bounds_what_autograd_keeps(method, matrix_grad):
         if matrix_grad:
             A = _EntryMatrix(rows, cols, values, n)
         else:
-            from fempdl.sparse import SparseOperator
+            from fempdl.iterative.sparse import SparseOperator
             A = SparseOperator.from_scipy(S)
         P = 1.0 / values[rows == cols]
         R = torch.randn(n, batch, dtype=torch.float64, generator=torch.Generator().manual_seed(0)).requires_grad_()
@@ -210,7 +211,7 @@ def test_matrix_jacobian_reproduces_the_assembled_matrix(coarse_lshape, form):
     from fempdl.ksp_adjoint import petsc_to_scipy
     prob = build(form, coarse_lshape)
     layer = SolveLayer(prob, KSPOptions(max_it=3))
-    pattern, v0, J = layer.system.matrix_jacobian("kappa")
+    pattern, v0, J = matrix_jacobian(layer.system, "kappa")
     kappa = control_values(prob, "kappa", batch=1)[0].numpy()
     fn = prob.control("kappa")
     fn.x.array[: len(kappa)] = kappa

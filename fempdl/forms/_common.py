@@ -2,14 +2,13 @@
 from __future__ import annotations
 
 import math
-from typing import Callable, Iterable
 
 import dolfinx.fem
 import numpy as np
 from mpi4py import MPI
 
 from fempdl import _dolfinx
-from fempdl.mesh import TaggedMesh, as_tagged
+from fempdl.mesh import TaggedMesh
 
 # Spaces a coefficient (kappa) may live in.
 COEFFICIENT_SPACES = {"P1": ("Lagrange", 1), "DG0": ("DG", 0)}

@@ -127,16 +127,12 @@ def taylor_hood(tagged: TaggedMesh, degree, nu, velocity):
     return W, V, nu_c, bcs, enclosed
 
 
-def flow_problem(W, a, L, bcs, enclosed, fns, controls, **attributes) -> Problem:
+def flow_problem(W, a, L, bcs, enclosed, fns, controls, constants) -> Problem:
     """The Problem with fields u, p and, for an enclosed flow, the pressure null space."""
     nullspace = ()
     if enclosed:
         _, p_dofs = _dolfinx.collapsed_subspace(W, 1)
         n_owned = W.dofmap.index_map.size_local * W.dofmap.index_map_bs
         nullspace = pressure_nullspace(p_dofs, n_owned)
-    prob = Problem(a, L, bcs, controls={name: fns[name] for name in controls},
-                   fields={"u": 0, "p": 1}, nullspace=nullspace)
-    prob.enclosed = enclosed
-    for name, value in attributes.items():
-        setattr(prob, name, value)
-    return prob
+    return Problem(a, L, bcs, controls={name: fns[name] for name in controls},
+                   fields={"u": 0, "p": 1}, nullspace=nullspace, constants=constants)

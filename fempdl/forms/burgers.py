@@ -64,6 +64,4 @@ def problem(msh, controls=("w", "u_prev"), *, nu: float = 1e-2, dt: float = 0.1,
         residual = u / dt_c + ufl.dot(ufl.grad(u), w_fn) - nu_c * ufl.div(ufl.grad(u))
         a = a + tau * ufl.inner(streamline, residual) * supg_dx
         L = L + tau * ufl.inner(streamline, source) * supg_dx
-    prob = Problem(a, L, bcs, controls={name: fns[name] for name in controls})
-    prob.nu, prob.dt = nu_c, dt_c
-    return prob
+    return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, constants={"nu": nu_c, "dt": dt_c})

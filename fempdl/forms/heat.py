@@ -15,7 +15,7 @@ feeds the next step's ``u0``) and ``"kappa"`` (P1 or DG0). f always enters the
 right-hand side affinely (one sparse product per sample), and so does u0
 unless kappa is a control and theta < 1 (then the u0 term depends on kappa).
 kappa enters the matrix for theta > 0 and the right-hand side for theta < 1.
-``dt`` is a ``fem.Constant`` (``problem.dt.value``) so it can change without
+``dt`` is a ``fem.Constant`` (``problem.constants["dt"].value``) so it can change without
 recompiling.
 """
 from __future__ import annotations
@@ -75,6 +75,4 @@ def problem(msh, controls=("u0",), *, dt: float = 0.01, theta: float = 1.0, degr
     if theta < 1:
         L = L - (1.0 - theta) * dt_c * kappa_fn * ufl.inner(ufl.grad(u0_fn), ufl.grad(v)) * ufl.dx
     fns = {"u0": u0_fn, "f": f_fn, "kappa": kappa_fn}
-    prob = Problem(a, L, bcs, controls={name: fns[name] for name in controls})
-    prob.dt = dt_c
-    return prob
+    return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, constants={"dt": dt_c})

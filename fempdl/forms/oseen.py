@@ -81,4 +81,4 @@ def problem(msh, controls=("w", "u_prev"), *, nu: float = 1e-2, dt: float = 0.1,
         residual = u / dt_c + ufl.dot(ufl.grad(u), w_fn) - nu_c * ufl.div(ufl.grad(u)) + ufl.grad(p)
         a = a + tau * ufl.inner(streamline, residual) * supg_dx
         L = L + tau * ufl.inner(streamline, source) * supg_dx
-    return flow_problem(W, a, L, bcs, enclosed, fns, controls, nu=nu_c, dt=dt_c, grad_div=gamma)
+    return flow_problem(W, a, L, bcs, enclosed, fns, controls, {"nu": nu_c, "dt": dt_c, "grad_div": gamma})

@@ -54,4 +54,4 @@ def problem(msh, controls=("f",), *, nu: float = 1.0, degree: int = 2, f=0.0, ve
     (u, p), (v, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
     a = (nu_c * ufl.inner(ufl.grad(u), ufl.grad(v)) - p * ufl.div(v) - q * ufl.div(u)) * ufl.dx
     L = ufl.inner(f_fn, v) * ufl.dx
-    return flow_problem(W, a, L, bcs, enclosed, {"f": f_fn}, controls, nu=nu_c)
+    return flow_problem(W, a, L, bcs, enclosed, {"f": f_fn}, controls, {"nu": nu_c})

@@ -107,6 +107,5 @@ def problem(msh, controls=("w", "m_prev"), *, kappa: float = 1e-3, dt: float = 0
         residual = m / dt_c + ufl.div(m * w_fn) - kappa_c * ufl.div(ufl.grad(m))
         a = a + tau * streamline * residual * supg_dx
         L = L + tau * streamline * source * supg_dx
-    prob = Problem(a, L, bcs, controls={name: fns[name] for name in controls})
-    prob.kappa, prob.dt = kappa_c, dt_c
-    return prob
+    return Problem(a, L, bcs, controls={name: fns[name] for name in controls},
+                   constants={"kappa": kappa_c, "dt": dt_c})

@@ -12,7 +12,9 @@ from pathlib import Path
 
 from mpi4py import MPI
 
-from fempdl import experiments, parallel, scene
+from fempdl import parallel
+from fempdl.app import runner
+from fempdl.app import scene
 
 parallel.abort_on_error()
 
@@ -73,9 +75,9 @@ comm = MPI.COMM_WORLD
 sc = scene.parse(EMULATOR if mode == "data" else INVERSE)
 with tempfile.TemporaryDirectory() as tmp:
     run_dir = Path(comm.bcast(tmp if comm.rank == 0 else None))   # one directory, seen by every rank
-    full = experiments.run(sc, "prdp", parallel=mode)
-    experiments.run(sc, "prdp", parallel=mode, out_dir=run_dir, stop_after=3, k_eps_value=full.k_eps)
-    resumed = experiments.run(sc, "prdp", parallel=mode, out_dir=run_dir, resume=True, k_eps_value=full.k_eps)
+    full = runner.run(sc, "prdp", parallel=mode)
+    runner.run(sc, "prdp", parallel=mode, out_dir=run_dir, stop_after=3, k_eps_value=full.k_eps)
+    resumed = runner.run(sc, "prdp", parallel=mode, out_dir=run_dir, resume=True, k_eps_value=full.k_eps)
     written = json.loads((run_dir / "metrics.json").read_text()) if comm.rank == 0 else None
     comm.barrier()   # every rank is done with the directory before rank 0 removes it
 try:

@@ -39,12 +39,13 @@ from mpi4py import MPI
 from scipy.spatial import cKDTree
 
 from fempdl import _dolfinx, forms, mesh
+from fempdl.app.networks import ResidualMLP
+from fempdl.app.scene import Scene
+from fempdl.app.tasks.base import Task, make_optimizer
+from fempdl.app.tasks.data import smooth_fields
+from fempdl.app.training import sample_nmse
 from fempdl.bridge_torch import SolveLayer
-from fempdl.experiments import Task, make_optimizer, smooth_fields
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.networks import ResidualMLP
-from fempdl.scene import Scene
-from fempdl.training import sample_nmse
 
 __all__ = ["HybridTask", "channel_problem", "VelocityTransfer"]
 
@@ -140,7 +141,8 @@ def _fine_reference(mesh_name: str, coarse_h, fine_h: float, pde_items: tuple, c
 class HybridTask(Task):
     """Coarse Oseen stepper + network correction, trained over unrolled steps (module docstring)."""
 
-    def __init__(self, scene: Scene, options: KSPOptions, seed: int | None = None):
+    def __init__(self, scene: Scene, options: KSPOptions, *, comm: MPI.Comm = MPI.COMM_SELF,
+                 seed: int | None = None):
         pde, hyb, data = scene.pde, scene.hybrid, scene.data
         self.steps, self.rollout = hyb["steps"], data["rollout"]
         n_train, n_val = data["train"], data["validation"]

@@ -1,7 +1,7 @@
 """A training method against Adam with backpropagation, at equal iterations and at equal training time.
 
 :func:`compare` trains a sip or hig scene twice from the same initial network
-(:mod:`fempdl.inversion`): with the scene's method for its epochs, then with
+(:mod:`fempdl.app.tasks.inversion`): with the scene's method for its epochs, then with
 the baseline for as many; if the baseline used less training time (time in
 optimizer steps, validation excluded), it is resumed and goes on until it has
 used the method's time, at most ``max_factor`` times the iterations.
@@ -22,10 +22,10 @@ import json
 import math
 from pathlib import Path
 
-from fempdl import inversion
-from fempdl.experiments import RunResult
-from fempdl.scene import Scene
-from fempdl.training import write_atomically
+from fempdl.app import runner, tasks
+from fempdl.app.runner import RunResult
+from fempdl.app.scene import Scene
+from fempdl.app.training import write_atomically
 
 __all__ = ["compare", "compare_and_report", "summary", "summary_lines", "table", "write_report"]
 
@@ -39,11 +39,11 @@ def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_tim
     Each run keeps its metrics and checkpoint under ``out_dir``/<method>;
     ``resume`` continues runs that have a checkpoint."""
     out_dir = Path(out_dir)
-    method = inversion.method_of(scene)
+    method = tasks.method_of(scene)
 
     def train(name: str, **kwargs) -> RunResult:
         sub = out_dir / name
-        return inversion.run(scene, name, out_dir=sub, progress=progress,
+        return runner.run_method(scene, name, out_dir=sub, progress=progress,
                              resume=resume and (sub / "checkpoint.pt").exists(), **kwargs)
 
     runs = {method: train(method, epochs=epochs)}
@@ -52,7 +52,7 @@ def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_tim
     budget = runs[method].rows[-1]["train_time"]
     if equal_time and runs[BASELINE].rows[-1]["train_time"] < budget:
         sub = out_dir / BASELINE
-        runs[BASELINE] = inversion.run(scene, BASELINE, out_dir=sub, progress=progress, resume=True,
+        runs[BASELINE] = runner.run_method(scene, BASELINE, out_dir=sub, progress=progress, resume=True,
                                        epochs=max_factor * n, stop_at_time=budget)
     return runs
 
@@ -76,7 +76,7 @@ def summary(scene: Scene, runs: dict[str, RunResult], equal_time: bool = True) -
     extended) or when the baseline's first epoch already took longer than the
     method's whole run; ``baseline_reached_time`` is False when the baseline
     stopped at its iteration cap before using the method's time."""
-    method = inversion.method_of(scene)
+    method = tasks.method_of(scene)
     ours, base = runs[method].rows, runs[BASELINE].rows
     n = min(len(ours), len(base))
     budget = ours[-1]["train_time"]

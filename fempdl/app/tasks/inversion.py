@@ -10,8 +10,8 @@ the converged (LU) solutions, plus Gaussian noise when ``[data] noise`` > 0.
 With ``[data] resample`` the training truths are drawn anew every epoch
 (seeded by the epoch, so a resumed run draws the same ones).
 The marker PDE (an initial velocity from the marker it moved, a rollout of
-flow and marker steps) has its own task, :mod:`fempdl.marker_inversion`
-(``TASKS``); :func:`run` and :mod:`fempdl.compare` treat it alike.
+flow and marker steps) has its own task, :mod:`fempdl.app.tasks.marker`
+(``TASKS``); :func:`run` and :mod:`fempdl.app.compare` treat it alike.
 
 Three ways to train the same network (``method``):
 
@@ -34,50 +34,29 @@ tensors are float64: the comparison is about conditioning, not precision.
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import torch
 from mpi4py import MPI
 
 from fempdl import forms, mesh
+from fempdl.app.networks import mlp
+from fempdl.app.scene import Scene
+from fempdl.app.tasks.base import Task, make_optimizer
+from fempdl.app.tasks.data import rectangle_fields, smooth_fields
+from fempdl.app.training import sample_nmse
 from fempdl.bridge_torch import SolveLayer
-from fempdl.experiments import RunResult, Task, make_optimizer, run_settings, smooth_fields
 from fempdl.hig import HIG
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.marker_inversion import MarkerInversionTask
-from fempdl.networks import mlp
-from fempdl.scene import Scene
 from fempdl.sip import ExactLinearInverse, GaussNewtonInverse, TikhonovInverse, proxy_loss
-from fempdl.training import Trainer, sample_nmse
 
-__all__ = ["InversionTask", "method_of", "rectangle_fields", "run"]
+__all__ = ["InversionTask", "method_of"]
+
 
 def method_of(scene: Scene) -> str:
     """The method a sip or hig scene is about (its baseline is always "backprop")."""
     if scene.task not in ("sip", "hig"):
         raise ValueError(f"scene {scene.name!r} is a {scene.task} scene; methods are compared on sip and hig scenes")
     return scene.task
-
-
-def rectangle_fields(coords: np.ndarray, count: int, boxes: int, rng: np.random.Generator) -> np.ndarray:
-    """(count, n) sums of ``boxes`` indicator functions of random axis-aligned boxes, amplitudes ~ N(0, 1).
-
-    Each box spans 10% to 50% of the bounding box along every axis; ``coords``
-    (n, 3) are the DOF coordinates."""
-    lo, hi = coords.min(axis=0), coords.max(axis=0)
-    dims = [d for d in range(coords.shape[1]) if hi[d] > lo[d]]
-    unit = (coords[:, dims] - lo[dims]) / (hi[dims] - lo[dims])
-    out = np.zeros((count, len(coords)))
-    for sample in out:
-        for _ in range(boxes):
-            inside = np.zeros(len(coords), dtype=bool)
-            while not inside.any():             # a box between the nodes would leave the truth zero
-                width = rng.uniform(0.1, 0.5, len(dims))
-                start = rng.uniform(0.0, 1.0 - width)
-                inside = np.all((unit >= start) & (unit <= start + width), axis=1)
-            sample[inside] += rng.standard_normal()
-    return out
 
 
 class InversionTask(Task):
@@ -183,26 +162,3 @@ class InversionTask(Task):
 
     def close(self) -> None:
         self.layer.close()
-
-
-# Tasks of the PDEs whose inverse problem is not one layer's (the others: InversionTask).
-TASKS = {"marker": MarkerInversionTask}
-
-
-def run(scene: Scene, method: str, *, out_dir: Path | None = None, resume: bool = False, epochs: int | None = None,
-        progress: bool = False, stop_after: int | None = None, stop_at_time: float | None = None) -> RunResult:
-    """Train a sip or hig scene with ``method`` (its own, or "backprop"); metrics and checkpoints in ``out_dir``.
-
-    ``stop_at_time`` ends the run once its training steps took that many
-    seconds (a resumed run can so be extended to equal training time)."""
-    task = TASKS.get(scene.pde["type"], InversionTask)(scene, method)
-    trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer["batch"],
-                      out_dir=out_dir, seed=scene.data["seed"], progress=progress, stop_after=stop_after,
-                      stop_at=scene.optimizer["stop_at"], stop_at_time=stop_at_time,
-                      settings=run_settings(scene, method=method))
-    try:
-        rows = trainer.run(resume=resume)
-    finally:
-        task.close()
-    return RunResult(scene=scene.name, mode=method, k_eps=None, rows=rows,
-                     out_dir=None if out_dir is None else str(out_dir))

@@ -15,7 +15,7 @@ iterate (not of the converged solution). Methods:
 * ``"gmres"`` — left-preconditioned GMRES(m) with classical Gram-Schmidt and
   restarts, the iterate of KSPGMRES (see :func:`gmres`).
 
-A is a constant :class:`fempdl.sparse.SparseOperator` (or anything with ``@``), P the
+A is a constant :class:`fempdl.iterative.sparse.SparseOperator` (or anything with ``@``), P the
 inverse diagonal (n, 1) or None.
 No 0/0 can occur: when a column's residual vanishes (a zero right-hand side),
 or has fallen by 1e-20 from its start (far past double precision), its step
@@ -157,7 +157,7 @@ def gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int, rest
 # Floats autograd keeps per iteration, in units of n * B, with a constant operator
 # and with one whose entries are differentiated (a matrix control), counted
 # with saved-tensor hooks. Jacobi with a constant operator keeps nothing: it is
-# linear in X, fempdl.sparse.SparseOperator keeps no operand, and its step
+# linear in X, fempdl.iterative.sparse.SparseOperator keeps no operand, and its step
 # tensor is built once.
 _STORED_PER_ITERATION = {"jacobi": (0, 2), "steepest_descent": (2, 2), "cg": (4, 4), "gmres": (4, 5)}
 

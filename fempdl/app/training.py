@@ -19,7 +19,7 @@ validation metric and writes, after every epoch:
   generator) and the metrics so far.
 
 Every file is written to a temporary file in the same directory and moved into
-place with ``os.replace`` (:mod:`fempdl.checkpoints`), so an interrupted run
+place with ``os.replace`` (:mod:`fempdl.app.checkpoints`), so an interrupted run
 (Ctrl-C, a killed job) leaves the last completed epoch intact; the checkpoint
 before it is kept as ``checkpoint.prev.pt``. ``run(resume=True)`` restores all
 of it and continues; with the same settings the resumed run produces the same
@@ -27,9 +27,9 @@ metrics as an uninterrupted one. The checkpoint is loaded with
 ``weights_only=True`` (nothing in it is executed) and carries the run's
 fingerprint (:meth:`Trainer.fingerprint`): a resume with other settings is
 refused, naming what changed. The output directory is locked while a run
-trains in it (:mod:`fempdl.rundir`).
+trains in it (:mod:`fempdl.app.rundir`).
 
-A task (:class:`fempdl.experiments.Task`) provides: ``model`` (nn.Module),
+A task (:class:`fempdl.app.runner.Task`) provides: ``model`` (nn.Module),
 ``optimizer``, ``scheduler`` (or None), ``layers`` (the SolveLayers whose
 iterations are counted), ``train_size``, ``val_size``, ``loss(indices)`` (the
 mean over those samples), ``validation_errors(indices)`` (one per sample) and
@@ -63,13 +63,15 @@ from tqdm import tqdm
 
 from mpi4py import MPI
 
-from fempdl import __version__, checkpoints, parallel, rundir
-from fempdl.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
+from fempdl import __version__, parallel
+from fempdl.app import checkpoints
+from fempdl.app import rundir
+from fempdl.app.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
 from fempdl.prdp import PRDP
 
 __all__ = ["Trainer", "nmse", "sample_nmse", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES"]
 # Fingerprint keys a resumed run may change: the run's length, which --epochs and an
-# equal-training-time extension (fempdl.compare) move.
+# equal-training-time extension (fempdl.app.compare) move.
 RESUMABLE_CHANGES = ("run.scene.optimizer.epochs", "run.epochs")
 PARALLEL_MODES = ("data", "mesh")
 _log = logging.getLogger(__name__)
@@ -160,7 +162,7 @@ class Trainer:
     def run(self, resume: bool = False) -> list[dict]:
         """Train; returns the metric rows (one per epoch, including resumed ones).
 
-        The output directory is locked for the run (:class:`fempdl.rundir.RunLock`:
+        The output directory is locked for the run (:class:`fempdl.app.rundir.RunLock`:
         a second run on it is refused); temporary files an interrupted write
         left there are removed; a fresh run (``resume=False``) first removes
         the checkpoints of a run it replaces."""
@@ -216,7 +218,7 @@ class Trainer:
         return self.rows
 
     def _log_epoch(self, row: dict) -> None:
-        """One INFO line per epoch on the "fempdl.training" logger (rank 0; the record
+        """One INFO line per epoch on the "fempdl.app.training" logger (rank 0; the record
         carries ``epoch``, 1-based, so a handler can keep every N-th)."""
         if self._writer and _log.isEnabledFor(logging.INFO):
             run = f"{self.out_dir.name}: " if self.out_dir is not None else ""

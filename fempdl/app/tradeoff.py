@@ -28,10 +28,10 @@ import csv
 import json
 from pathlib import Path
 
-from fempdl import experiments
-from fempdl.experiments import RunResult
-from fempdl.scene import Scene
-from fempdl.training import TIME_PARTS, write_atomically
+from fempdl.app import runner
+from fempdl.app.runner import RunResult
+from fempdl.app.scene import Scene
+from fempdl.app.training import TIME_PARTS, write_atomically
 
 __all__ = ["sweep", "savings", "comparison_table", "write_report", "geometric_caps", "summary_lines",
            "time_split", "plot_time_split"]
@@ -49,14 +49,14 @@ def geometric_caps(k_eps: int) -> list[int]:
 def sweep(scene: Scene, *, ks: list[int] | None = None, out_dir: Path | None = None,
           progress: bool = False) -> dict[str, RunResult]:
     """Train ``scene`` with every fixed K, the converged baseline and PRDP."""
-    baseline = experiments.run(scene, "converged", out_dir=_sub(out_dir, "converged"), progress=progress)
+    baseline = runner.run(scene, "converged", out_dir=_sub(out_dir, "converged"), progress=progress)
     keps = baseline.k_eps
     runs = {}
     for k in ks or geometric_caps(keps):
-        runs[f"K={k}"] = experiments.run(scene, "fixed", k, out_dir=_sub(out_dir, f"k{k}"), progress=progress,
+        runs[f"K={k}"] = runner.run(scene, "fixed", k, out_dir=_sub(out_dir, f"k{k}"), progress=progress,
                                          k_eps_value=keps)
     runs[f"K_eps={keps}"] = baseline
-    runs["PRDP"] = experiments.run(scene, "prdp", out_dir=_sub(out_dir, "prdp"), progress=progress,
+    runs["PRDP"] = runner.run(scene, "prdp", out_dir=_sub(out_dir, "prdp"), progress=progress,
                                    k_eps_value=keps)
     return runs
 
@@ -137,7 +137,7 @@ def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir:
 
 
 def time_split(run: RunResult) -> dict[str, float]:
-    """Seconds of the run's wall time per part (:data:`fempdl.training.TIME_PARTS`)."""
+    """Seconds of the run's wall time per part (:data:`fempdl.app.training.TIME_PARTS`)."""
     last = run.rows[-1]
     return {part: float(last.get(f"time_{part}", 0.0)) for part in TIME_PARTS}
 

@@ -8,7 +8,7 @@ For B right-hand sides stacked as the columns of R (n, B), K iterations of
 KSPRICHARDSON + PCJACOBI computes column by column, with the same operations
 in the same order per entry; only the summation order inside a sparse row
 product may differ, so the iterates agree to round-off (about 1e-15
-relative). CG and GMRES(m) run :func:`fempdl.unrolled.solve`'s KSPCG and
+relative). CG and GMRES(m) run :func:`fempdl.iterative.unrolled.solve`'s KSPCG and
 KSPGMRES recurrences the same way. PCJACOBI replaces a zero diagonal entry by 1, and so does this engine.
 
 The operator is a torch CSR copy of the assembled PETSc matrix (serial only),
@@ -27,9 +27,9 @@ import numpy as np
 import torch
 from petsc4py import PETSc
 
-from fempdl import unrolled
+from fempdl.iterative import unrolled
 from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
-from fempdl.sparse import sparse_to_torch
+from fempdl.iterative.sparse import sparse_to_torch
 
 __all__ = ["BatchedEngine"]
 

@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from fempdl.sparse import SparseOperator, sparse_to_torch
+from fempdl.iterative.sparse import SparseOperator, sparse_to_torch
 
 __all__ = ["ResidualMLP", "GraphConvNet", "mlp", "normalised_adjacency"]
 

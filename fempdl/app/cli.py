@@ -29,12 +29,13 @@ import logging
 import sys
 from pathlib import Path
 
-from fempdl import __version__, rundir
+from fempdl import __version__
+from fempdl.app import rundir
 
 DEFAULT_SCENE = "heat-emulator-2d"
 
 
-def _positive_int(text: str) -> int:
+def positive_int(text: str) -> int:
     try:
         value = int(text)
     except ValueError:
@@ -45,7 +46,7 @@ def _positive_int(text: str) -> int:
 
 
 def _k_list(text: str) -> list[int]:
-    values = sorted({_positive_int(part) for part in text.split(",") if part.strip()})
+    values = sorted({positive_int(part) for part in text.split(",") if part.strip()})
     if not values:
         raise argparse.ArgumentTypeError(f"expected comma-separated ints >= 1, got {text!r}")
     return values
@@ -59,13 +60,13 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="train a scene (default: heat-emulator-2d with PRDP)")
     run.add_argument("scene", nargs="?", default=DEFAULT_SCENE, help="bundled scene name or path to a .toml file")
     mode = run.add_mutually_exclusive_group()
-    mode.add_argument("--k", type=_positive_int, help="train with a fixed iteration cap K")
+    mode.add_argument("--k", type=positive_int, help="train with a fixed iteration cap K")
     mode.add_argument("--prdp", action="store_true", help="train with PRDP (the default)")
     mode.add_argument("--converged", action="store_true", help="train with the converged cap K_eps only")
     run.add_argument("--out", type=Path, help="output directory (default runs/SCENE)")
     run.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
     run.add_argument("--overwrite", action="store_true", help="replace the runs already in --out")
-    run.add_argument("--epochs", type=_positive_int, help="override the scene's number of epochs")
+    run.add_argument("--epochs", type=positive_int, help="override the scene's number of epochs")
     run.add_argument("--no-baseline", action="store_true", help="skip the converged baseline run")
     run.add_argument("--no-progress", action="store_true", help="hide progress bars")
     run.add_argument("--seed", type=int, help="network initialisation and minibatch order (default: the "
@@ -80,14 +81,14 @@ def build_parser() -> argparse.ArgumentParser:
     trade.add_argument("scene", help="bundled scene name or path to a .toml file")
     trade.add_argument("--ks", type=_k_list, help="fixed caps to sweep (default 1, 2, 4, ... below K_eps)")
     trade.add_argument("--out", type=Path, help="output directory (default runs/SCENE/tradeoff)")
-    trade.add_argument("--epochs", type=_positive_int, help="override the scene's number of epochs")
+    trade.add_argument("--epochs", type=positive_int, help="override the scene's number of epochs")
     trade.add_argument("--overwrite", action="store_true", help="replace the runs already in --out")
     trade.add_argument("--no-progress", action="store_true")
 
     comp = sub.add_parser("compare", help="a sip or hig scene's method against Adam + backprop; ratios and plots")
     comp.add_argument("scene", help="bundled scene name or path to a .toml file (task sip or hig)")
     comp.add_argument("--out", type=Path, help="output directory (default runs/SCENE/compare)")
-    comp.add_argument("--epochs", type=_positive_int, help="override the scene's number of epochs")
+    comp.add_argument("--epochs", type=positive_int, help="override the scene's number of epochs")
     comp.add_argument("--equal-iterations-only", action="store_true",
                       help="do not extend the baseline to the method's training time")
     comp.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
@@ -95,10 +96,10 @@ def build_parser() -> argparse.ArgumentParser:
     comp.add_argument("--no-progress", action="store_true")
 
     for command in (run, trade, comp):
-        command.add_argument("--threads", type=_positive_int,
+        command.add_argument("--threads", type=positive_int,
                              help="torch threads per process (default: torch's; under mpirun the node's "
                                   "cores shared among its ranks)")
-        command.add_argument("--log-every", type=_positive_int, metavar="N",
+        command.add_argument("--log-every", type=positive_int, metavar="N",
                              help="log a line every N epochs to stderr (default: every epoch when stderr "
                                   "is not a terminal, none on a terminal, where the progress bar shows)")
         command.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -113,7 +114,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from fempdl import parallel, scene
+    from fempdl import parallel
+    from fempdl.app import scene
 
     from mpi4py import MPI
 
@@ -142,8 +144,8 @@ def main(argv=None) -> int:
 
 
 def _load_and_run(args) -> int:
-    from fempdl import scene
-    from fempdl.checkpoints import CheckpointError, remove_stale_temporaries
+    from fempdl.app import scene
+    from fempdl.app.checkpoints import CheckpointError, remove_stale_temporaries
 
     from mpi4py import MPI
 
@@ -208,8 +210,9 @@ def _output_directory(args, sc) -> Path:
 
 def _command(args, sc, out: Path) -> int:
     """The run, tradeoff or compare command of a loaded scene, into ``out``."""
-    from fempdl import experiments, tradeoff
-    from fempdl.scene import METHOD_TASKS
+    from fempdl.app import runner
+    from fempdl.app import tradeoff
+    from fempdl.app.scene import METHOD_TASKS
 
     from mpi4py import MPI
 
@@ -231,12 +234,12 @@ def _command(args, sc, out: Path) -> int:
         return 0
 
     try:
-        experiments.check_parallel(sc, args.parallel)
+        runner.check_parallel(sc, args.parallel)
     except ValueError as err:
         print(f"fempdl: {err}", file=sys.stderr)
         return 2
-    if args.save_fields and (sc.task not in experiments.FIELD_TASKS or args.parallel == "mesh"):
-        print(f"fempdl: --save-fields writes the fields of {' and '.join(experiments.FIELD_TASKS)} scenes, "
+    if args.save_fields and (sc.task not in runner.FIELD_TASKS or args.parallel == "mesh"):
+        print(f"fempdl: --save-fields writes the fields of {' and '.join(runner.FIELD_TASKS)} scenes, "
               f"serial or with --parallel data; {sc.name!r} is of task {sc.task!r}"
               + (" on a distributed mesh" if args.parallel == "mesh" else ""), file=sys.stderr)
         return 2
@@ -244,12 +247,12 @@ def _command(args, sc, out: Path) -> int:
     baseline = None
     common = {"progress": progress, "parallel": args.parallel, "seed": args.seed, "save": args.save_fields}
     if not args.no_baseline or args.converged:
-        baseline = experiments.run(sc, "converged", out_dir=out / "converged",
+        baseline = runner.run(sc, "converged", out_dir=out / "converged",
                                    resume=_can_resume(args, out / "converged"), **common)
     if not args.converged:
         mode, k, label = ("fixed", args.k, f"K={args.k}") if args.k else ("prdp", None, "PRDP")
         sub = out / (f"k{args.k}" if args.k else "prdp")
-        runs[label] = experiments.run(sc, mode, k, out_dir=sub, resume=_can_resume(args, sub),
+        runs[label] = runner.run(sc, mode, k, out_dir=sub, resume=_can_resume(args, sub),
                                       k_eps_value=None if baseline is None else baseline.k_eps, **common)
     if baseline is not None:
         runs[f"K_eps={baseline.k_eps}"] = baseline
@@ -268,7 +271,8 @@ def _command(args, sc, out: Path) -> int:
 
 def _methods(args, sc, progress: bool, out: Path) -> int:
     """`fempdl run` and `fempdl compare` on a sip or hig scene: its method and Adam with backpropagation."""
-    from fempdl import compare, inversion
+    from fempdl.app import compare
+    from fempdl.app import runner
 
     if args.command == "run":
         if args.save_fields:
@@ -280,7 +284,7 @@ def _methods(args, sc, progress: bool, out: Path) -> int:
                   f"the {sc.task} scene {sc.name!r} solves with LU on one process", file=sys.stderr)
             return 2
         names = [sc.task] + ([] if args.no_baseline else [compare.BASELINE])
-        runs = {name: inversion.run(sc, name, out_dir=out / name, progress=progress,
+        runs = {name: runner.run_method(sc, name, out_dir=out / name, progress=progress,
                                     resume=_can_resume(args, out / name)) for name in names}
         print(f"scene {sc.name}: {sc.description}")
         print(compare.table(sc, runs))

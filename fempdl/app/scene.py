@@ -77,7 +77,7 @@ from pathlib import Path
 from typing import Any
 
 from fempdl.resources import GEOMETRIES, estimated_dofs, format_bytes, memory_budget
-from fempdl.rundir import check_slug
+from fempdl.app.rundir import check_slug
 
 __all__ = ["Scene", "SceneError", "load", "available", "parse"]
 
@@ -150,7 +150,7 @@ _TASK_SECTIONS = {
 # The PDEs each task is built for.
 _TASK_PDES = {"emulator": ("heat", "burgers"), "inverse": ("poisson",), "hybrid": ("oseen",),
               "sip": ("poisson", "heat", "marker"), "hig": ("poisson",)}
-# Tasks that compare a training method with Adam and backpropagation (fempdl.inversion).
+# Tasks that compare a training method with Adam and backpropagation (fempdl.app.tasks.inversion).
 METHOD_TASKS = ("sip", "hig")
 _INVERSION_DATA = {"truths", "noise", "resample"}
 
@@ -203,14 +203,14 @@ class Scene:
 
 def available() -> list[str]:
     """Names of the bundled scenes."""
-    return sorted(p.name[:-5] for p in resources.files("fempdl.scenes").iterdir() if p.name.endswith(".toml"))
+    return sorted(p.name[:-5] for p in resources.files("fempdl.app.scenes").iterdir() if p.name.endswith(".toml"))
 
 
 def bundled_text(name: str) -> str:
     """The TOML text of bundled scene ``name`` (a start for a scene of your own)."""
     if name not in available():
         raise SceneError(f"unknown scene {name!r}; bundled scenes are {available()}")
-    return resources.files("fempdl.scenes").joinpath(f"{name}.toml").read_text()
+    return resources.files("fempdl.app.scenes").joinpath(f"{name}.toml").read_text()
 
 
 def load(name_or_path, overrides=()) -> Scene:

@@ -34,11 +34,12 @@ from mpi4py import MPI
 from scipy.spatial import cKDTree
 
 from fempdl import _dolfinx, mesh
-from fempdl.experiments import Task, make_optimizer, smooth_fields
+from fempdl.app.networks import mlp
+from fempdl.app.scene import Scene
+from fempdl.app.tasks.base import Task, make_optimizer
+from fempdl.app.tasks.data import smooth_fields
 from fempdl.forms._common import make_function
 from fempdl.marker_flow import MarkerFlow
-from fempdl.networks import mlp
-from fempdl.scene import Scene
 from fempdl.sip import LinearisedGaussNewton, proxy_loss
 
 __all__ = ["MarkerInversionTask", "marker_flow"]

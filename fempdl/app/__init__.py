@@ -1,0 +1,1 @@
+"""The scene application: scene files and their schema, networks, the trainer, one module per task, runs, reports and the command line. It builds on the layers and the training methods; nothing in them imports it."""

@@ -1,0 +1,214 @@
+"""Runs of a scene: a solver-cap mode (fixed K, converged K_eps or PRDP) or a training method (SIP, HIG, Adam).
+
+A run mode is ``("fixed", K)``, ``("converged", None)`` (fixed K = K_eps) or
+``("prdp", None)`` (K from the scene's [prdp] block, refined on plateaus).
+K_eps, the "converged" cap, is the most iterations the scene's solver
+(``[solver] preset``) needs to reach the scene's ``k_eps_rtol`` on the task's
+reference inputs. sip and hig scenes run with :func:`run_method`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import torch
+from mpi4py import MPI
+
+from fempdl import io
+from fempdl.app.scene import Scene
+from fempdl.app.tasks import METHOD_TASKS, TASKS
+from fempdl.app.training import Trainer
+from fempdl.bridge_torch import SolveLayer
+from fempdl.ksp_adjoint import KSPOptions
+from fempdl.parallel import shard
+from fempdl.prdp import PRDP
+
+__all__ = ["build_task", "k_eps", "run", "run_method", "run_settings", "save_fields", "RunResult", "MODES",
+           "FIELD_TASKS"]
+_log = logging.getLogger(__name__)
+
+MODES = ("fixed", "converged", "prdp")
+#: Tasks whose validation predictions and references :func:`save_fields` writes.
+FIELD_TASKS = ("emulator", "inverse")
+
+
+@dataclasses.dataclass
+class RunResult:
+    """What a run produced; ``rows`` are the per-epoch metrics of :class:`Trainer`.
+
+    ``mode`` is a run mode of :data:`MODES`, or the training method of a sip or
+    hig scene (:mod:`fempdl.app.tasks.inversion`), whose runs have no ``k_eps``."""
+
+    scene: str
+    mode: str
+    k_eps: int | None
+    rows: list
+    out_dir: str | None
+
+    @property
+    def final_metric(self) -> float:
+        return self.rows[-1]["val_metric"]
+
+    @property
+    def total_iterations(self) -> int:
+        return self.rows[-1]["total_iterations"]
+
+    @property
+    def wall_time(self) -> float:
+        return self.rows[-1]["wall_time"]
+
+    @property
+    def k_schedule(self) -> list[tuple[int, int]]:
+        """(first epoch, K) for every K used."""
+        out = []
+        for row in self.rows:
+            if not out or out[-1][1] != row["k"]:
+                out.append((row["epoch"], row["k"]))
+        return out
+
+
+def build_task(scene: Scene, options: KSPOptions, parallel: str | None = None,
+               comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None):
+    """The training task of a solver-cap scene, with its layer solving under ``options``.
+
+    ``parallel="mesh"`` distributes the mesh over ``comm``; every other mode
+    builds the whole problem on each rank (``COMM_SELF``). ``seed`` initialises
+    the network (default: the scene's data seed; the data stay the scene's)."""
+    check_parallel(scene, parallel)
+    if scene.task not in TASKS:
+        raise ValueError(f"scene {scene.name!r} compares training methods, not solver caps: train it with "
+                         "run_method (the commands `fempdl run` and `fempdl compare` do)")
+    return TASKS[scene.task](scene, options, comm=comm if parallel == "mesh" else MPI.COMM_SELF, seed=seed)
+
+
+def check_parallel(scene: Scene, parallel: str | None) -> None:
+    """Raise ``ValueError`` when the scene's task cannot train in the ``parallel`` mode."""
+    if parallel not in (None, "data", "mesh"):
+        raise ValueError(f"parallel must be None, 'data' or 'mesh', got {parallel!r}")
+    if parallel is not None and scene.task in ("sip", "hig"):
+        raise ValueError(f"scene {scene.name!r}: {scene.task} scenes train on one process (the exact inverse "
+                         "assembles serial scipy operators and HIG decomposes the whole batch's Jacobian at once); "
+                         "run them without mpirun")
+    if parallel == "data" and scene.task == "inverse":
+        raise ValueError(f"scene {scene.name!r}: --parallel data splits batches of samples, and the inverse task "
+                         "has one; use --parallel mesh to distribute its mesh instead")
+    if parallel == "mesh" and scene.task != "inverse":
+        raise ValueError(f"scene {scene.name!r}: --parallel mesh distributes the mesh, but the {scene.task} task's "
+                         "network (an MLP or graph network on whole DOF vectors) needs the whole field on every "
+                         "rank; use --parallel data to spread its samples over the ranks instead")
+
+
+def solver_options(scene: Scene, k: int | None, rtol: float | None = None) -> KSPOptions:
+    """The scene's capped solver: ``k`` iterations, or run to ``rtol`` when ``k`` is None."""
+    return KSPOptions.preset(scene.solver["preset"], max_it=k, rtol=rtol,
+                             lag_preconditioner=scene.solver["lag_preconditioner"])
+
+
+def k_eps(task, options: KSPOptions, shard_over: MPI.Comm = MPI.COMM_SELF, batch: int = 1) -> int:
+    """Largest iteration count the solver needs to reach its rtol on the task's reference inputs.
+
+    With ``shard_over`` the samples are spread over its ranks (data-parallel
+    runs, where every rank holds the whole problem) and the maximum is theirs.
+    A lagged preconditioner is probed in calls of ``batch`` samples, as it trains."""
+    probe = SolveLayer(task.problem, dataclasses.replace(options, engine="petsc"))
+    inputs = {name: torch.atleast_2d(value) for name, value in task.k_eps_rhs().items()}
+    size = batch if options.lag_preconditioner else 1
+    with torch.no_grad():
+        idx = shard(torch.arange(next(iter(inputs.values())).shape[0]), shard_over)
+        for chunk in idx.split(size):
+            probe(**{name: value[chunk] for name, value in inputs.items()})
+    most = shard_over.allreduce(probe.stats.max_forward_iterations, op=MPI.MAX)
+    probe.close()
+    _log.info("K_eps = %d (%s + %s to rtol %s)", most, options.ksp_type, options.pc_type, options.rtol)
+    return most
+
+
+def save_fields(task, out_dir: Path, samples: int = 4, title: str | None = None) -> list[Path]:
+    """Write the task's validation predictions against their references
+    (``task.validation_fields``) into ``out_dir``: ``fields.xdmf`` with the
+    prediction, reference and error of the first ``samples`` validation samples
+    (one XDMF time step per sample), and on a 2D mesh ``fields.png``
+    (prediction, reference and error of the first sample). One process."""
+    idx = torch.arange(min(samples, task.val_size))
+    name, prediction, reference = task.validation_fields(idx)
+    fields = {"prediction": (name, prediction), "reference": (name, reference), "error": (name, prediction - reference)}
+    paths = [io.write_fields(Path(out_dir) / "fields.xdmf", task.problem, fields, times=range(len(prediction)))]
+    if task.problem.V.mesh.topology.dim == 2:
+        paths.append(io.plot_fields(Path(out_dir) / "fields.png", task.problem,
+                                    {label: (n, v[0]) for label, (n, v) in fields.items()}, title=title,
+                                    same_scale=("prediction", "reference")))
+    return paths
+
+
+def run_settings(scene: Scene, **settings) -> dict:
+    """What defines a run of ``scene``, for the checkpoint's fingerprint: the parsed
+    scene (not its file's location or description) and ``settings`` (mode, K, ...)."""
+    parsed = {key: value for key, value in scene.as_dict().items() if key not in ("source", "description")}
+    return {"scene": parsed, **settings}
+
+
+def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None = None, resume: bool = False,
+        epochs: int | None = None, progress: bool = False, k_eps_value: int | None = None,
+        stop_after: int | None = None, parallel: str | None = None,
+        comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None, save: bool = False) -> RunResult:
+    """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp").
+
+    ``parallel`` ("data" or "mesh") trains on the ranks of ``comm`` together
+    (:mod:`fempdl.parallel`); every rank returns the same result. ``seed``
+    sets the network initialisation and the minibatch order (default: the
+    scene's data seed); the data are the scene's either way. ``save`` writes
+    the validation fields after training (:func:`save_fields`, into
+    ``out_dir``; rank 0; not with ``parallel="mesh"``)."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
+    if save and (out_dir is None or scene.task not in FIELD_TASKS or parallel == "mesh"):
+        raise ValueError(f"save=True writes validation fields of {list(FIELD_TASKS)} scenes into out_dir, serial "
+                         f"or with parallel='data'; got task {scene.task!r}, out_dir={out_dir!r}, "
+                         f"parallel={parallel!r}")
+    if (mode == "fixed") != (k is not None):
+        raise ValueError("give k exactly when mode='fixed'")
+    task = build_task(scene, solver_options(scene, k or 1), parallel, comm, seed)
+    keps = k_eps_value if k_eps_value is not None else k_eps(
+        task, solver_options(scene, None, scene.data["k_eps_rtol"]),
+        shard_over=comm if parallel == "data" else MPI.COMM_SELF, batch=scene.optimizer.get("batch", 1))
+    prdp = None
+    if mode == "converged":
+        task.layer.max_it = keps
+    elif mode == "prdp":
+        p = scene.prdp
+        prdp = PRDP(task.layers, k0=p["k0"], dk=p["dk"], tau_step=p["tau_step"], tau_stop=p["tau_stop"],
+                    delta=p["delta"], ema_window=p["ema_window"], k_cap=p["k_cap"] or keps,
+                    guard=p["guard"], growth=p["growth"])
+    trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer.get("batch", 1),
+                      out_dir=out_dir, prdp=prdp, seed=scene.data["seed"] if seed is None else seed,
+                      progress=progress,
+                      stop_after=stop_after, stop_at=scene.optimizer["stop_at"], parallel=parallel, comm=comm,
+                      settings=run_settings(scene, mode=mode, k=k, seed=seed))
+    try:
+        rows = trainer.run(resume=resume)
+        if save and comm.rank == 0:
+            save_fields(task, out_dir, title=f"{scene.name}, {mode}" + (f" K={k}" if k else ""))
+    finally:
+        task.close()
+    return RunResult(scene=scene.name, mode=mode, k_eps=keps, rows=rows,
+                     out_dir=None if out_dir is None else str(out_dir))
+
+
+def run_method(scene: Scene, method: str, *, out_dir: Path | None = None, resume: bool = False, epochs: int | None = None,
+        progress: bool = False, stop_after: int | None = None, stop_at_time: float | None = None) -> RunResult:
+    """Train a sip or hig scene with ``method`` (its own, or "backprop"); metrics and checkpoints in ``out_dir``.
+
+    ``stop_at_time`` ends the run once its training steps took that many
+    seconds (a resumed run can so be extended to equal training time)."""
+    task = METHOD_TASKS[scene.pde["type"]](scene, method)
+    trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer["batch"],
+                      out_dir=out_dir, seed=scene.data["seed"], progress=progress, stop_after=stop_after,
+                      stop_at=scene.optimizer["stop_at"], stop_at_time=stop_at_time,
+                      settings=run_settings(scene, method=method))
+    try:
+        rows = trainer.run(resume=resume)
+    finally:
+        task.close()
+    return RunResult(scene=scene.name, mode=method, k_eps=None, rows=rows,
+                     out_dir=None if out_dir is None else str(out_dir))

@@ -1,0 +1,63 @@
+"""The task protocol the trainer runs, and what every task shares: its optimizer and its step."""
+from __future__ import annotations
+
+import torch
+
+from fempdl.system import assemble_scipy
+
+__all__ = ["Task", "make_optimizer", "optimisation_step", "operator_pattern"]
+
+
+def optimisation_step(optimizer, loss: torch.Tensor) -> float:
+    """One step of ``optimizer`` on ``loss``; returns the loss value."""
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+    return loss.item()
+
+
+class Task:
+    """What :class:`~fempdl.app.training.Trainer` trains; subclasses define the physics.
+
+    A task has ``model``, ``optimizer``, ``scheduler`` (or None), ``layers``
+    (the capped layers whose iterations are counted), ``train_size``,
+    ``val_size``, and two functions of sample indices (a LongTensor):
+
+    * ``loss(idx)``: the training loss of those samples, a mean over them (so a
+      batch split into shards is the shard losses weighted by their sizes);
+    * ``validation_errors(idx)``: one error per validation sample; the
+      validation metric is their mean over all ``val_size`` samples.
+
+    ``train_step(idx)`` is one step of ``optimizer`` on ``loss(idx)``; a task
+    whose optimizer makes its own update (HIG, :mod:`fempdl.app.tasks.inversion`)
+    replaces it. A task may also define ``start_epoch(epoch)``, which the
+    Trainer calls before every epoch (to draw new training data).
+    """
+
+    val_size = 1
+
+    def train_step(self, idx) -> float:
+        """One optimizer step on the samples ``idx``; returns the loss."""
+        return optimisation_step(self.optimizer, self.loss(idx))
+
+    def validate(self) -> float:
+        """The validation metric: the mean error over every validation sample."""
+        with torch.no_grad():
+            return float(self.validation_errors(torch.arange(self.val_size)).double().mean())
+
+
+def operator_pattern(problem) -> "sp.csr_matrix":
+    """The assembled operator without boundary conditions: its pattern is the DOF graph."""
+    return assemble_scipy(problem.a_form)
+
+
+def make_optimizer(spec: dict, params):
+    params = list(params)
+    if spec["type"] == "adam":
+        # The fused kernel updates all parameters in one call: the per-tensor loop of
+        # the default implementation costs more than these small networks' arithmetic.
+        optimizer = torch.optim.Adam(params, lr=spec["lr"], fused=True)
+    else:
+        optimizer = torch.optim.SGD(params, lr=spec["lr"])
+    scheduler = None if spec["decay"] == 1.0 else torch.optim.lr_scheduler.ExponentialLR(optimizer, spec["decay"])
+    return optimizer, scheduler
