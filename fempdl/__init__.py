@@ -10,8 +10,7 @@ import logging
 import os
 
 # OpenMP threads (torch's, the BLAS's) that spin-wait between parallel regions
-# stall any other busy process on the same cores (measured: two runs at once
-# on 2 cores took 6x as long as one). The policy is read when the OpenMP
+# stall any other busy process on the same cores (scripts/bench_stall.py). The policy is read when the OpenMP
 # runtime loads, so it is set here, before anything that loads it; a value the
 # user set wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

@@ -207,11 +207,6 @@ def assemble_vector_into(b: PETSc.Vec, L_form, a_form=None, bcs=()) -> PETSc.Vec
     return b
 
 
-def assemble_scalar(M_form, comm) -> float:
-    """Assemble a functional and sum it over ``comm``."""
-    return comm.allreduce(dolfinx.fem.assemble_scalar(M_form), op=MPI.SUM)
-
-
 def bc_dofs_owned(bcs, n_owned: int) -> np.ndarray:
     """Owned local indices of all DOFs constrained by ``bcs`` (sorted, unique)."""
     if not bcs:

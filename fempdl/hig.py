@@ -1,30 +1,17 @@
-"""Half-inverse gradients (HIG): a network optimizer that half-inverts the network + solver Jacobian.
+"""Half-inverse gradients (HIG): an optimizer that half-inverts the network + physics Jacobian.
 
-For a batch of B inputs, the network (weights theta, P of them) predicts x_i
-and the physics maps them to outcomes y_i = physics(x_i) in R^m; the loss L
-depends on the y_i. HIG stacks the per-sample Jacobians dy_i/dtheta into
-J of shape (B m, P) and the loss gradients dL/dy_i into g of length B m,
-takes the SVD J = U S V^T (or, for R <= P/2, the cheaper eigendecomposition
-of the Gram matrix J J^T; :func:`half_inverse_update`) and updates
+For a batch of B samples with outcomes y_i in R^m, J (B m, P) stacks the
+Jacobians dy_i/dtheta and g the loss gradients dL/dy_i; with J = U S V^T,
 
     delta theta = -eta * max(S)^beta * V S^kappa U^T g,
 
-where singular values at or below tau * max(S) are dropped (their S^kappa
-is set to 0). kappa = 1, beta = 0 is gradient descent (V S U^T g = J^T g);
-kappa = -1 is the Gauss-Newton pseudo-inverse step J^+ g; kappa = -1/2
-(the default) is the half-inverse of paper 002. beta = -1 - kappa rescales
-the largest singular value to one.
-
-The Jacobian is J_i = J_physics(x_i) J_net(x_i): the network part by
-``torch.func`` (vmap of jacrev over the samples), the physics part by
-backward passes with the m unit vectors as output gradients (for a
-:class:`fempdl.bridge_torch.SolveLayer`, m adjoint solves per sample, in one
-batched call); a physics that is linear in x (a source or an initial state of
-a fixed-matrix layer) has the same Jacobian for every sample and every step:
-``linear_physics=True`` computes it on the first step and reuses it (per
-physics callable). The decomposition costs O(B m P min(B m, P)) and
-J takes 8 B m P bytes: :class:`HIG` refuses, with the size it would need, a
-Jacobian larger than ``max_jacobian_bytes``.
+singular values at or below tau * max(S) dropped. kappa = 1, beta = 0 is
+gradient descent, kappa = -1 the Gauss-Newton step J^+ g, kappa = -1/2 (the
+default) the half-inverse of "Half-Inverse Gradients for Physical Deep
+Learning" (Schnell, Holl, Thuerey); beta = -1 - kappa rescales the largest
+singular value to one. J_i = J_physics(x_i) J_net(x_i): the network part by
+``torch.func``, the physics part by m backward passes (m adjoint solves of a
+SolveLayer, batched). :class:`HIG` refuses a J above ``max_jacobian_bytes``.
 """
 from __future__ import annotations
 
@@ -47,7 +34,7 @@ def half_inverse_update(jacobian: torch.Tensor, g: torch.Tensor, *, kappa: float
 
     ``method``: ``"svd"`` (J's SVD, O(R^2 P) with a large constant),
     ``"gram"`` (the eigendecomposition of the R x R Gram matrix J J^T = U S^2 U^T,
-    then V S^kappa U^T g = J^T U S^(kappa - 1) U^T g; 3-12x faster when R < P,
+    then V S^kappa U^T g = J^T U S^(kappa - 1) U^T g; cheaper when R < P,
     but it resolves singular values only down to sqrt(eps max(R, P)) max(S),
     about 2e-7 max(S), since squaring loses half the digits) or ``"auto"``
     (gram when R <= P/2 and tau is above that resolution, else svd).
@@ -139,7 +126,11 @@ class HIG:
 
     def jacobian(self, inputs: torch.Tensor, physics: Callable | None = None,
                  linear_physics: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-        """(y, J): outcomes (B, m) and the stacked Jacobian (B m, P) in float64."""
+        """(y, J): outcomes (B, m) and the stacked Jacobian (B m, P) in float64.
+
+        ``linear_physics``: the physics is linear in x (a source or initial state of a
+        fixed-matrix layer), so its Jacobian is the same for every sample and step: it
+        is computed on the first call and reused (per physics callable)."""
         params = {name: p.detach() for name, p in zip(self.names, self.parameters)}
         n_params = sum(p.numel() for p in params.values())
         with torch.no_grad():

@@ -175,7 +175,7 @@ class KSPOptions:
             preconditioner, serial; used whenever the call's matrix is shared
             by the batch). ``"auto"`` (default): batched for Richardson where
             faster (B >= 2, and two or more torch threads or n * B <= 2^20),
-            PETSc otherwise (batched CG/GMRES measured slower than PETSc). ``SolveStats.engine`` reports which ran.
+            PETSc otherwise (the rule is :meth:`BatchedEngine.faster_than_petsc`'s). ``SolveStats.engine`` reports which ran.
         adjoint_operator: how the transposed solve gets A^T. ``"transpose"``:
             KSPSolveTranspose on A (the preconditioner's transpose is applied).
             ``"assembled"``: an explicitly assembled A^T (PETSc's MatTranspose,
@@ -231,7 +231,7 @@ class KSPOptions:
         if self.max_it is _UNSET:
             object.__setattr__(self, "max_it", None if self.ksp_type in _DIRECT_KSP_TYPES else DEFAULT_CAP)
         if self.max_it is not None:
-            _check_int("max_it", self.max_it, minimum=1, maximum=MAX_PETSC_INT,
+            check_int("max_it", self.max_it, minimum=1, maximum=MAX_PETSC_INT,
                        hint="use max_it=None to run to rtol instead of capping")
             if self.ksp_type in _DIRECT_KSP_TYPES:
                 raise ValueError(
@@ -258,7 +258,7 @@ class KSPOptions:
                 "the result is not the solution. Use pc_type='lu' (KSPOptions.preset('lu')) for a direct "
                 "solve, or an iterative ksp_type such as 'richardson' (max_it=1 applies the preconditioner once)")
         if self.gmres_restart is not None:
-            _check_int("gmres_restart", self.gmres_restart, minimum=1, maximum=MAX_PETSC_INT)
+            check_int("gmres_restart", self.gmres_restart, minimum=1, maximum=MAX_PETSC_INT)
             if self.ksp_type not in _RESTARTED_KSP_TYPES:
                 raise ValueError(
                     f"gmres_restart is only meaningful for {sorted(_RESTARTED_KSP_TYPES)}, "
@@ -337,11 +337,9 @@ class KSPOptions:
         full Schur-complement fieldsplit: velocity block by LU, Schur complement
         by the least-squares commutator (PCLSC, its B B^T solve by hypre
         BoomerAMG, or by MUMPS where PETSc has no hypre); for saddle-point problems with fields ``"u"`` and ``"p"``,
-        the Stokes and Oseen forms. Measured to rtol 1e-8 on the bundled
-        meshes (scripts/bench_flow.py): 26-66 iterations forward and adjoint
-        for Stokes and for Oseen down to nu = 1e-3, in channel and enclosed
-        flows, where the "selfp" Schur approximation takes 24-36 for Stokes
-        but 250-4,000 for Oseen), ``"lu"`` (direct; MUMPS, which pivots through
+        the Stokes and Oseen forms, whose iteration counts stay flat down to
+        small viscosities where "selfp" does not: scripts/bench_flow.py),
+        ``"lu"`` (direct; MUMPS, which pivots through
         the zero pressure block of a saddle point). Iterative presets run to
         rtol=1e-10 unless ``max_it`` caps them.
 
@@ -484,13 +482,6 @@ class CumulativeStats:
         fresh = CumulativeStats()
         for f in dataclasses.fields(self):
             setattr(self, f.name, getattr(fresh, f.name))
-
-    def as_dict(self) -> dict:
-        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "last"}
-        out["solves_by_engine"] = dict(self.solves_by_engine)
-        out["total_iterations"] = self.total_iterations
-        out["solve_time"] = self.solve_time
-        return out
 
 
 class CappedSolver:
@@ -970,7 +961,8 @@ def _check_choice(name: str, value, allowed: frozenset) -> None:
         raise ValueError(f"{name}={value!r} is not a PETSc type; choose one of {sorted(allowed)}")
 
 
-def _check_int(name: str, value, *, minimum: int, maximum: int | None = None, hint: str = "") -> None:
+def check_int(name: str, value, *, minimum: int, maximum: int | None = None, hint: str = "") -> None:
+    """Raise TypeError unless ``value`` is an int (numpy ints too, bools not), ValueError outside [minimum, maximum]."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise TypeError(f"{name} must be an int, got {value!r}" + (f"; {hint}" if hint else ""))
     if value < minimum:

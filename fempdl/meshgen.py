@@ -13,42 +13,14 @@ built here from a gmsh (OpenCASCADE) geometry for a target mesh size ``h``.
 ``"box"``
     3D unit cube ``[0, 1]^3`` in tetrahedra. Uniform size.
 
-Physical groups (the integer tags DOLFINx reads into ``cell_tags`` and
-``facet_tags``)::
-
-    CELL_TAG = 1   # every cell of every bundled mesh
-    FACET_TAGS = {
-        "lshape":   {"outer": 1, "reentrant": 2},
-        "obstacle": {"inlet": 1, "outlet": 2, "walls": 3, "obstacle": 4},
-        "box":      {"bottom": 1, "top": 2, "sides": 3},
-    }
-
-"reentrant" is the two edges meeting at the origin (``x = 0, y <= 0`` and
+Every cell has tag ``CELL_TAG``; every exterior facet one tag of
+``FACET_TAGS[name]``: "reentrant" is the two edges meeting at the origin (``x = 0, y <= 0`` and
 ``y = 0, x >= 0``), "outer" the other four; "inlet" is ``x = 0``, "outlet"
 ``x = 2.2``, "walls" ``y = 0`` and ``y = 0.41``; "bottom" is ``z = 0``, "top"
 ``z = 1``, "sides" the four vertical faces. Every exterior facet carries
 exactly one facet tag; interior facets carry none.
 
-Sizes measured with gmsh 4.8.4 (P1 DOFs = vertices; the committed files use
-the defaults marked ``*``)::
-
-    name      h        cells   P1 DOFs
-    lshape    0.1        734       408
-    lshape    0.05*     2800      1481
-    lshape    0.04      4410      2306
-    lshape    0.03      7870      4071   <- the ~4k DOF benchmark size
-    lshape    0.02     17464      8933
-    lshape    0.0073  130018     65558   <- the ~66k DOF benchmark size (4 s)
-    obstacle  0.05      1275       705
-    obstacle  0.035*    2555      1373
-    obstacle  0.02      7723      4028
-    obstacle  0.01     30569     15616
-    box       0.15      1624       464
-    box       0.1*      4923      1187
-    box       0.08      9566      2166
-    box       0.05     37312      7450
-
-Regenerate the committed files with ``python -m fempdl.meshgen`` (options
+Cell and DOF counts per h are in the README (Bundled meshes). Regenerate the committed files with ``python -m fempdl.meshgen`` (options
 ``--out DIR``, ``--name NAME``, ``--h H``). Meshing runs on one thread with
 the user's gmsh configuration files ignored, so the output is reproducible
 for a given gmsh version.

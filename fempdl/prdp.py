@@ -1,46 +1,14 @@
 """PRDP: raise a solver's iteration cap K only when the validation metric plateaus.
 
-The controller of the PRDP paper (Algorithm 4). After every validation, call
-:meth:`PRDP.step` with the metric (lower is better, e.g. the validation nMSE):
+The controller of "Progressively Refined Differentiable Physics" (Algorithm 4).
+After every validation, :meth:`PRDP.step` takes the metric (lower is better):
+it smooths the history with an EMA, and when the progress over the last
+``delta`` entries stalls (ratio above ``tau_step``) it refines K by ``dk``
+(never above ``k_cap``) unless the previous refinement bought less than
+1 - ``tau_stop`` (then it holds, until the metric moves again). The interface
+follows ``ReduceLROnPlateau``: ``step(metric) -> bool``, ``state_dict()``.
 
-1. The metric history m is smoothed by an exponential moving average with
-   alpha = 2 / (ema_window + 1) and ema[0] = m[0].
-2. No decision is made while the history holds at most ``delta`` entries.
-3. r = ema[-1] / ema[-delta] (Python indexing) measures the recent progress.
-   If r > tau_step, training has plateaued at the current K:
-
-   * rc = ema[-1] / c compares the plateau with the checkpoint c of the
-     previous plateau. If rc < tau_stop (the last refinement still improved the
-     metric by more than 1 - tau_stop) or rc > 1 (the metric got worse), set
-     c = ema[-1] and refine: K += dk, never above ``k_cap``.
-   * Otherwise hold: more solver accuracy no longer helps (K_max reached).
-     Holding is not permanent: if the metric later improves by more than
-     1 - tau_stop against c, or worsens, and plateaus again, refinement resumes.
-
-Two optional departures from Algorithm 4, off by default:
-
-* ``guard``: refine at once, without waiting for a plateau, when the metric
-  rises above ``guard`` times the best metric so far and above the previous
-  one. Training at a cap too low for the task teaches a network to lean on the
-  unconverged solve, which a converged validation metric shows as a rise; the
-  plain algorithm waits ``delta`` steps and an EMA before it reacts.
-* ``growth``: a refinement raises K to max(K + dk, ceil(growth * K)), so a
-  wide range of caps is crossed in few refinements.
-
-The checkpoint c starts at the first metric (the paper's reference code uses a
-large constant or the initial validation error; with the first metric, a run
-that plateaus at once within tau_stop of where it started holds its K rather
-than refining blindly). The only state is c, K and the history.
-
-The controller sets ``max_it`` of the layers it drives (one or several
-:class:`~fempdl.bridge_torch.SolveLayer`, or anything with a ``max_it``
-attribute), or calls a user callback with the new K. Its interface follows
-``torch.optim.lr_scheduler.ReduceLROnPlateau``: ``step(metric) -> bool``,
-``state_dict()`` / ``load_state_dict()``.
-
-:func:`k_eps` measures the converged cap K_eps of a layer on given inputs,
-the usual ``k_cap`` (more iterations than the solver needs to converge buy
-nothing).
+:func:`k_eps` measures a layer's converged cap K_eps, the usual ``k_cap``.
 """
 from __future__ import annotations
 
@@ -52,6 +20,7 @@ from typing import Callable, Iterable
 import torch
 
 from fempdl.bridge_torch import SolveLayer
+from fempdl.ksp_adjoint import check_int
 
 __all__ = ["PRDP", "PRDPRecord", "k_eps"]
 _log = logging.getLogger(__name__)
@@ -76,6 +45,14 @@ class PRDPRecord:
 class PRDP:
     """Progressive refinement of an iteration cap K.
 
+    At every :meth:`step`: ema is the EMA of the metrics (alpha =
+    2 / (ema_window + 1), ema[0] = m[0]); with more than ``delta`` entries,
+    r = ema[-1] / ema[-delta]. If r > tau_step (a plateau), rc = ema[-1] / c
+    compares it with the checkpoint c of the previous plateau (c starts at the
+    first metric): if rc < tau_stop (the last refinement still helped) or
+    rc > 1 (the metric got worse), c = ema[-1] and K is refined; otherwise K
+    holds. ``guard`` and ``growth`` are optional departures, off by default.
+
     Args:
         target: a layer (anything with a ``max_it`` attribute), a list of them,
             a callable ``f(k)``, or ``None`` (read :attr:`k` yourself). Its cap is
@@ -95,12 +72,12 @@ class PRDP:
     def __init__(self, target=None, *, k0: int = 1, dk: int = 1, tau_step: float = 0.95,
                  tau_stop: float = 0.9, delta: int = 3, ema_window: int = 6, k_cap: int | None = None,
                  guard: float | None = None, growth: float = 1.0):
-        _check_int("k0", k0, 1)
-        _check_int("dk", dk, 1)
-        _check_int("delta", delta, 2)
-        _check_int("ema_window", ema_window, 1)
+        check_int("k0", k0, minimum=1)
+        check_int("dk", dk, minimum=1)
+        check_int("delta", delta, minimum=2)
+        check_int("ema_window", ema_window, minimum=1)
         if k_cap is not None:
-            _check_int("k_cap", k_cap, k0)
+            check_int("k_cap", k_cap, minimum=k0)
         for name, value in (("tau_step", tau_step), ("tau_stop", tau_stop)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value <= 1.0:
                 raise ValueError(f"{name} must be a number in (0, 1], got {value!r}")
@@ -236,10 +213,3 @@ def _setter(target) -> Callable[[int], None]:
 
 def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _check_int(name: str, value, minimum: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name} must be an int, got {value!r}")
-    if value < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value!r}")

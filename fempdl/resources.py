@@ -48,8 +48,8 @@ class Geometry:
     vertices_per_cell: float
 
 
-# Measured (fempdl.meshgen's table): lshape 2800 cells at h=0.05 and 130018 at 0.0073; obstacle 2555 at
-# 0.035 and 30569 at 0.01; box 4923 at 0.1 and 37312 at 0.05. The densities are the largest of the two.
+# cells ~ density * h^-dim: the larger of the densities at the coarsest and finest sizes of the
+# README's bundled-mesh table.
 GEOMETRIES = {
     "lshape": Geometry(dim=2, cell_density=7.0, max_h=1.0, vertices_per_cell=0.53),
     "obstacle": Geometry(dim=2, cell_density=3.2, max_h=0.41, vertices_per_cell=0.54),

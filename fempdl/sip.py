@@ -1,59 +1,15 @@
 """Scale-invariant physics (SIP) training: inverse-physics updates fed back through an L2 proxy loss.
 
-The network predicts physical parameters x0 (a source, an initial state) from
-observations; the physics P maps them to outcomes y = P(x0). Instead of
-backpropagating ||P(x0) - y*||^2 through P, an inverse-physics update gives
-
-    x* = x0 + U(y* | x0),
-
-and the network is trained on the proxy loss 1/2 ||x0 - stopgrad(x*)||^2 with
-any torch optimizer (:func:`sip_step`). The inverse updates here:
-
-* :class:`GradientStep`: x* = x0 - eta * dL/dx0 (L = 1/2 ||P(x0) - y*||^2 per
-  sample). With eta = 1 the proxy gradient equals backpropagation's exactly
-  (paper 001, Theorem 1); it is the baseline, not a useful inverse.
-* :class:`ExactLinearInverse`: for a layer whose right-hand side is affine in
-  the control, A u = C m + c (Poisson's source: C = M the mass matrix; a heat
-  step's initial state: C = M - (1 - theta) dt K), the exact inverse of the
-  discrete map is one application of the operator and one solve with C:
-
-      x* = x0 + eta * C^{-1} A_full (y* - P(x0))   (on the free DOFs),
-
-  with A_full the operator assembled without boundary conditions and C, A_full
-  restricted to the rows and columns of the DOFs off the Dirichlet boundary.
-  P only sees the free rows, so P(x*) = y* for eta = 1. The control's values
-  at Dirichlet DOFs reach the free rows only through the mass coupling and
-  are not determined by y*; both inverses keep x0's values there, so the
-  answer is unique.
-  For Poisson C is the mass matrix: no implicit solve of the PDE is needed.
-  For a heat step it is the backward heat equation: it multiplies mode k by
-  1 + dt lambda_k, so noise in y* at high frequencies is amplified without
-  bound; use the damped inverse below.
-* :class:`GaussNewtonInverse`: capped CG on the (optionally Tikhonov-damped)
-  normal equations (J^T J + alpha I) dx = J^T (y* - P(x0)), with J v and
-  J^T w from the layer's own forward and adjoint solves (dx, too, is zero at
-  the Dirichlet DOFs). ``alpha > 0`` is the
-  damping of the heat inverse: along a singular pair (sigma_k) of J the
-  update multiplies the residual by sigma_k / (sigma_k^2 + alpha) instead of
-  1/sigma_k (for a heat step sigma_k falls like 1/(1 + dt lambda_k)), so no
-  component is amplified by more than 1/(2 sqrt(alpha)). Its cap ``max_it`` is
-  a knob like a layer's, for PRDP to drive.
-* :class:`TikhonovInverse`: the same damped normal equations solved exactly,
-  through the singular value decomposition of the discrete map's Jacobian
-  (J = U S V^T, built once by one tangent solve per free control DOF):
-
-      dx = V diag(s_k / (s_k^2 + alpha)) U^T (y* - P(x0)).
-
-  It is what GaussNewtonInverse converges to as its cap grows. Each call then
-  costs one forward solve and two dense products instead of two solves per CG
-  iteration; the price is 8 (2 n_y + n_x) n_x bytes for J, U and V, refused above
-  ``max_matrix_bytes``. ``singular_values`` exposes the spectrum the damping
-  acts on, so alpha can be chosen against the noise level.
-* :class:`LinearisedGaussNewton`: for a nonlinear physics (a rollout of
-  layers, e.g. :class:`fempdl.marker_flow.MarkerFlow`), one damped
-  Gauss-Newton step with a Tikhonov prior, capped CG on the normal equations
-  of the linearisation at x0 (J^T w by backpropagation, J v by a forward
-  difference).
+A network predicts x0 from observations; instead of backpropagating
+||P(x0) - y*||^2 through the physics P, an inverse update gives
+x* = x0 + U(y* | x0), and the network is trained on the proxy loss
+1/2 ||x0 - stopgrad(x*)||^2 with any torch optimizer (:func:`sip_step`), as in
+"Scale-invariant Learning by Physics Inversion" (Holl, Koltun, Thuerey). The
+updates: :class:`GradientStep` (gradient descent: the baseline),
+:class:`ExactLinearInverse` (the discrete map's exact inverse, for a control
+the right-hand side is affine in), :class:`GaussNewtonInverse` and
+:class:`TikhonovInverse` (damped normal equations, capped CG or SVD), and
+:class:`LinearisedGaussNewton` (a nonlinear rollout of layers).
 
 Shapes: x0 is (B, n_x) (the control's DOFs), y* is (B, n_y) (the layer's
 output DOFs); every update returns (B, n_x) without a graph.
@@ -113,7 +69,10 @@ class _LayerInverse:
 
 
 class GradientStep(_LayerInverse):
-    """x* = x0 - eta * d/dx0 [1/2 ||P(x0) - y*||^2] for every sample (one adjoint solve)."""
+    """x* = x0 - eta * d/dx0 [1/2 ||P(x0) - y*||^2] for every sample (one adjoint solve).
+
+    With eta = 1 the proxy gradient equals backpropagation's exactly (Physical
+    Gradients for Deep Learning, Theorem 1): the baseline, not a useful inverse."""
 
     def __init__(self, layer: SolveLayer, control: str, eta: float = 1.0, fixed: dict | None = None):
         super().__init__(layer, control, fixed)
@@ -128,7 +87,15 @@ class GradientStep(_LayerInverse):
 
 
 class ExactLinearInverse(_LayerInverse):
-    """x* = x0 + eta C^{-1} A_full (y* - P(x0)) for a control the right-hand side is affine in (module docstring).
+    """x* = x0 + eta C^{-1} A_full (y* - P(x0)) for a control the right-hand side is affine in.
+
+    For A u = C m + c (Poisson's source: C = M the mass matrix; a heat step's
+    initial state: C = M - (1 - theta) dt K) this is the exact inverse of the
+    discrete map on the DOFs off the Dirichlet boundary (A_full assembled
+    without boundary conditions, both restricted to those rows and columns):
+    P(x*) = y* for eta = 1. Values at Dirichlet DOFs are not determined by y*
+    and keep x0's. For a heat step C^-1 is the backward heat equation, which
+    amplifies high-frequency noise without bound: use a damped inverse there.
 
     Serial (the operators are assembled into scipy matrices); C is factorised
     once. The matrix must not depend on a control that varies (pass none)."""
@@ -164,8 +131,10 @@ class GaussNewtonInverse(_LayerInverse):
 
     J v = P(v) - P(0) and J^T w (one adjoint solve) come from the layer, so the
     control must enter the right-hand side affinely (then P is affine and J
-    is exact); ``damping`` = alpha (Tikhonov). ``max_it`` is the CG cap (PRDP
-    may move it), ``rtol`` stops earlier on the normal-equation residual.
+    is exact); ``damping`` = alpha (Tikhonov): along a singular pair s_k of J
+    the residual is multiplied by s_k / (s_k^2 + alpha) instead of 1 / s_k, so
+    no component grows by more than 1 / (2 sqrt(alpha)). ``max_it`` is the CG
+    cap (PRDP may move it), ``rtol`` stops earlier on the normal-equation residual.
     After a call, ``last_iterations`` is the number of CG iterations run.
     """
 
@@ -298,13 +267,15 @@ class LinearisedGaussNewton:
 
 
 class TikhonovInverse(_LayerInverse):
-    """x* = x0 + eta V diag(s / (s^2 + alpha)) U^T (y* - P(x0)), from the SVD J = U S V^T (module docstring).
+    """x* = x0 + eta V diag(s / (s^2 + alpha)) U^T (y* - P(x0)), from the SVD J = U S V^T.
 
     J (n_y, n_free) holds P(e_i) - P(0) for the free control DOFs i (one
     batched forward call; exact because the control enters the right-hand
     side affinely). It is built and decomposed on the first call, so a
     training clock counts it. With ``damping`` = alpha = 0 the update is the
-    pseudo-inverse: singular values below n eps s_max are dropped. Serial.
+    pseudo-inverse: singular values below n eps s_max are dropped. It is what
+    GaussNewtonInverse converges to as its cap grows; J, U and V take
+    8 (2 n_y + n_x) n_x bytes, refused above ``max_matrix_bytes``. Serial.
     """
 
     def __init__(self, layer: SolveLayer, control: str, *, damping: float, eta: float = 1.0,

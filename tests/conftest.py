@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 from mpi4py import MPI
+import dolfinx.fem
 
 from fempdl import forms, mesh
 from fempdl.ksp_adjoint import KSPOptions
@@ -84,3 +85,8 @@ def control_values(prob, name: str, batch: int, seed: int = 0) -> torch.Tensor:
     base = torch.as_tensor(prob.interpolate(smooth, name))
     noise = 0.2 * torch.rand(batch, n, generator=gen, dtype=torch.float64)
     return (base + noise) if name == "kappa" else (base - 1.0 + noise)
+
+
+def integral(form, comm) -> float:
+    """A compiled functional assembled and summed over ``comm``."""
+    return comm.allreduce(dolfinx.fem.assemble_scalar(form), op=MPI.SUM)

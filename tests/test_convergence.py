@@ -16,6 +16,7 @@ import dolfinx.fem
 from fempdl import _dolfinx, forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
+from conftest import integral
 
 
 X, Y = sympy.symbols("x y")
@@ -41,7 +42,7 @@ def l2_error(prob, values: np.ndarray) -> float:
     uh.x.scatter_forward()
     x = ufl.SpatialCoordinate(prob.V.mesh)
     err = _dolfinx.compile_form((uh - exact_ufl(x)) ** 2 * ufl.dx(degree=8))
-    return float(np.sqrt(_dolfinx.assemble_scalar(err, prob.V.mesh.comm)))
+    return float(np.sqrt(integral(err, prob.V.mesh.comm)))
 
 
 def poisson_error(h: float, degree: int) -> tuple[int, float]:

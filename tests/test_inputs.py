@@ -708,3 +708,26 @@ def test_closed_layer_repr(prob):
     lay = SolveLayer(prob, KSPOptions(max_it=5))
     lay.close()
     assert repr(lay) == "SolveLayer(closed)"
+
+
+def test_problem_constants_are_declared_and_a_change_reaches_the_next_solve(msh):
+    """A heat step declares dt through Problem(constants=...); halving dt changes u1 = (M + dt K)^-1 M u0
+    exactly as a problem built with the halved dt does."""
+    prob = forms.heat.problem(msh, controls=("u0",), dt=0.02)
+    assert set(prob.constants) == {"dt"} and float(prob.constants["dt"].value) == 0.02
+    with pytest.raises(TypeError):
+        prob.constants["dt"] = None                         # a read-only view: declared once, by the form
+    u0 = torch.as_tensor(prob.interpolate(lambda x: np.sin(np.pi * x[0]) * np.cos(np.pi * x[1])))
+    layer = SolveLayer(prob, "lu")
+    before = layer(u0=u0)
+    prob.constants["dt"].value = 0.01
+    after = layer(u0=u0)
+    fresh = SolveLayer(forms.heat.problem(msh, controls=("u0",), dt=0.01), "lu")(u0=u0)
+    assert torch.allclose(after, fresh, rtol=0, atol=1e-12)
+    assert (after - before).abs().max() > 1e-4
+
+
+def test_problem_constants_must_be_dolfinx_constants(raw):
+    with pytest.raises(TypeError, match=r"constants\['dt'\] must be a dolfinx.fem.Constant under a str name, got float"):
+        Problem(raw["a"], raw["L"], (), controls={"f": raw["f"]}, constants={"dt": 0.1})
+    assert not Problem(raw["a"], raw["L"], (), controls={"f": raw["f"]}).enclosed

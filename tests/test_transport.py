@@ -14,6 +14,7 @@ import dolfinx.fem
 from fempdl import _dolfinx, forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
+from conftest import integral
 
 X, Y = sympy.symbols("x y")
 M_EXACT = sympy.sin(sympy.pi * X) * sympy.cos(sympy.pi * Y / 2) + X * Y
@@ -52,7 +53,7 @@ def transport_error(h: float, degree: int, supg: bool) -> tuple[int, float]:
     mh.x.scatter_forward()
     x = ufl.SpatialCoordinate(msh.mesh)
     err = _dolfinx.compile_form((mh - _ufl(M_EXACT, x)) ** 2 * ufl.dx(degree=8))
-    return prob.V.mesh.comm.allreduce(prob.output_size), float(np.sqrt(_dolfinx.assemble_scalar(err, msh.mesh.comm)))
+    return prob.V.mesh.comm.allreduce(prob.output_size), float(np.sqrt(integral(err, msh.mesh.comm)))
 
 
 @pytest.mark.parametrize("degree,supg", [(1, True), (1, False), (2, True)])
@@ -92,7 +93,7 @@ def test_marker_mass_is_conserved_on_an_enclosed_domain(coarse, supg):
 
     def mass(values):
         mass_fn.x.array[: prob.output_size] = values.numpy()
-        return _dolfinx.assemble_scalar(mass_form, coarse.mesh.comm)
+        return integral(mass_form, coarse.mesh.comm)
 
     m0, m_start = mass(m), m.clone()
     masses = []

@@ -39,7 +39,7 @@ def problem(msh, controls=("w", "u_prev"), *, nu: float = 1e-2, dt: float = 0.1,
     """Build one Burgers step on ``msh`` (arguments as in :func:`fempdl.forms.oseen.problem`).
 
     Returns:
-        A :class:`fempdl.Problem` with the Constants ``nu`` and ``dt`` as attributes.
+        A :class:`fempdl.Problem`; ``problem.constants`` holds ``nu`` and ``dt``.
     """
     controls = check_controls(controls, CONTROLS, "burgers")
     if not isinstance(supg, bool):

@@ -49,7 +49,7 @@ def problem(msh, controls=("u0",), *, dt: float = 0.01, theta: float = 1.0, degr
             (zero-flux boundary; the mass matrix keeps the step well posed).
 
     Returns:
-        A :class:`fempdl.Problem`; its ``dt`` attribute is the step Constant.
+        A :class:`fempdl.Problem`; ``problem.constants["dt"]`` is the step Constant.
     """
     controls = check_controls(controls, CONTROLS, "heat")
     tagged = as_tagged(msh)

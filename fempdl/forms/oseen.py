@@ -56,8 +56,8 @@ def problem(msh, controls=("w", "u_prev"), *, nu: float = 1e-2, dt: float = 0.1,
         velocity: Dirichlet velocity data ``{part: value}`` (``None``: no-slip everywhere).
 
     Returns:
-        A :class:`fempdl.Problem` with fields ``"u"``, ``"p"`` and the Constants
-        ``nu``, ``dt``, ``grad_div`` as attributes, and ``enclosed``.
+        A :class:`fempdl.Problem` with fields ``"u"``, ``"p"``; ``problem.constants``
+        holds ``nu``, ``dt`` and ``grad_div``, and ``problem.enclosed`` says whether the pressure constant is projected out.
     """
     controls = check_controls(controls, CONTROLS, "oseen")
     if not isinstance(supg, bool):

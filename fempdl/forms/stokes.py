@@ -44,8 +44,8 @@ def problem(msh, controls=("f",), *, nu: float = 1.0, degree: int = 2, f=0.0, ve
             whole boundary.
 
     Returns:
-        A :class:`fempdl.Problem` with fields ``"u"``, ``"p"`` and attributes
-        ``nu`` (a Constant) and ``enclosed``.
+        A :class:`fempdl.Problem` with fields ``"u"``, ``"p"``; ``problem.constants``
+        holds ``nu``, and ``problem.enclosed`` says whether the pressure constant is projected out.
     """
     controls = check_controls(controls, CONTROLS, "stokes")
     tagged = as_tagged(msh)

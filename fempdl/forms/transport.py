@@ -69,7 +69,7 @@ def problem(msh, controls=("w", "m_prev"), *, kappa: float = 1e-3, dt: float = 0
             whole boundary).
 
     Returns:
-        A :class:`fempdl.Problem` with the Constants ``kappa`` and ``dt`` as attributes.
+        A :class:`fempdl.Problem`; ``problem.constants`` holds ``kappa`` and ``dt``.
     """
     controls = check_controls(controls, CONTROLS, "transport")
     if not isinstance(supg, bool):
