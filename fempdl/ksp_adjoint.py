@@ -118,6 +118,10 @@ _NO_TRUE_TRANSPOSE = frozenset({"fieldsplit", "hypre", "sor"})
 _LSC_INNER = ({"fieldsplit_p_lsc_pc_type": "hypre"} if PETSc.Sys.hasExternalPackage("hypre") else
               {"fieldsplit_p_lsc_pc_type": "lu", "fieldsplit_p_lsc_pc_factor_mat_solver_type": "mumps",
                "fieldsplit_p_lsc_mat_mumps_icntl_24": 1})
+# The "amg" preset's preconditioner: hypre's BoomerAMG where PETSc has hypre (its
+# transpose is wrong in 3.18, so the adjoint solves the assembled A^T), else GAMG.
+_AMG = (dict(pc_type="hypre", petsc_options={"pc_hypre_type": "boomeramg"})
+        if PETSc.Sys.hasExternalPackage("hypre") else dict(pc_type="gamg"))
 DEFAULT_RTOL = 1e-10
 DEFAULT_CAP = 20  # max_it when not given, for iterative methods (direct ones get None)
 _UNSET = object()  # max_it not given
@@ -333,7 +337,10 @@ class KSPOptions:
         Presets: ``"jacobi"`` (Richardson + PCJACOBI, the PRDP paper's solver),
         ``"cg"`` (CG + Jacobi), ``"gmres"`` (GMRES(30) + Jacobi),
         ``"gmres-ilu"`` (GMRES(30) + ILU(0): non-symmetric systems without a
-        saddle point, e.g. a Burgers step), ``"schur"`` (GMRES(50) with a
+        saddle point, e.g. a Burgers step), ``"amg"`` (CG + algebraic multigrid:
+        hypre BoomerAMG, or PETSc's GAMG where PETSc has no hypre; symmetric
+        positive problems on large meshes, where Jacobi's iteration count grows
+        with the mesh), ``"schur"`` (GMRES(50) with a
         full Schur-complement fieldsplit: velocity block by LU, Schur complement
         by the least-squares commutator (PCLSC, its B B^T solve by hypre
         BoomerAMG, or by MUMPS where PETSc has no hypre); for saddle-point problems with fields ``"u"`` and ``"p"``,
@@ -982,6 +989,7 @@ PRESETS: Mapping[str, KSPOptions] = types.MappingProxyType({
         "fieldsplit_u_ksp_type": "preonly", "fieldsplit_u_pc_type": "lu",
         "fieldsplit_p_ksp_type": "preonly", "fieldsplit_p_pc_type": "lsc",
         **_LSC_INNER}),
+    "amg": KSPOptions(ksp_type="cg", max_it=None, **_AMG),
     "lu": KSPOptions(ksp_type="preonly", pc_type="lu", max_it=None,
                      petsc_options={"pc_factor_mat_solver_type": "mumps"}),
 })
