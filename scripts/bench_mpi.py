@@ -94,7 +94,7 @@ def training_worker(args) -> dict:
     sc = scene.load(args.scene)
     run = runner.run(sc, "fixed", args.k, epochs=args.epochs, parallel="data", k_eps_value=args.k)
     wall = run.wall_time - run.rows[0]["wall_time"]
-    samples = sc.data["train"] * (len(run.rows) - 1)
+    samples = sc.data.train * (len(run.rows) - 1)
     return {"scene": sc.name, "k": args.k, "epochs": len(run.rows), "timed_samples": samples, "wall_time": wall,
             "samples_per_second": samples / wall, "train_loss": [row["train_loss"] for row in run.rows],
             "total_iterations": run.total_iterations}

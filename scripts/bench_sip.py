@@ -21,6 +21,7 @@ Run: ``python scripts/bench_sip.py`` (a few minutes on 2 cores).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 from pathlib import Path
@@ -51,7 +52,7 @@ def main(argv=None) -> int:
     for name in args.scenes:
         sc = scene.load(name)
         if args.epochs:
-            sc.optimizer["epochs"] = args.epochs
+            sc = dataclasses.replace(sc, optimizer=dataclasses.replace(sc.optimizer, epochs=args.epochs))
         report_dir = args.out.parent / "sip" / name
         runs, split, _ = compare.compare_and_report(sc, report_dir)
         results[name] = {"scene": sc.as_dict(), **split}

@@ -52,7 +52,7 @@ def single_problems(task: MarkerInversionTask, args) -> dict:
     P, val = task.physics, task.val
     idx = torch.arange(args.problems)
     m0, y = val["m0"][idx], val["y"][idx]
-    prior = task.scene.marker["prior"]
+    prior = task.scene.marker.prior
 
     def marker_error(x):
         with torch.no_grad():
@@ -109,9 +109,9 @@ def train(sc, method: str, iterations: int, every: int, time_budget: float | Non
           max_iterations: int | None = None) -> dict:
     """Train the scene's network with ``method``; the curve of (iteration, time, x error, y error)."""
     task = MarkerInversionTask(sc, method)
-    steps = math.ceil(task.train_size / sc.optimizer["batch"])
-    batches = [torch.arange(i, min(i + sc.optimizer["batch"], task.train_size))
-               for i in range(0, task.train_size, sc.optimizer["batch"])]
+    steps = math.ceil(task.train_size / sc.optimizer.batch)
+    batches = [torch.arange(i, min(i + sc.optimizer.batch, task.train_size))
+               for i in range(0, task.train_size, sc.optimizer.batch)]
     val = torch.arange(task.val_size)
     rows = [{"iteration": 0, "train_time": 0.0, "velocity_error": task.validate(),
              "marker_error": float(task.marker_errors(val).mean())}]
@@ -188,8 +188,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     sc = scene.load(args.scene)
-    steps = math.ceil(sc.data["train"] / sc.optimizer["batch"])
-    iterations = args.iterations or sc.optimizer["epochs"] * steps
+    steps = math.ceil(sc.data.train / sc.optimizer.batch)
+    iterations = args.iterations or sc.optimizer.epochs * steps
     result = {"machine": machine_info(), "scene": sc.as_dict(), "command": " ".join(sys.argv)}
     sweeps = {"backprop": ("baseline", args.baseline_lr), "sip": ("optimizer", args.sip_lr)}
     if any(rates for _, rates in sweeps.values()):

@@ -103,7 +103,7 @@ def metrics(run_dir: Path) -> list[dict]:
 def tiny(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("scene") / "tiny.toml"
     path.write_text(TINY)
-    assert scene.load(path).optimizer["epochs"] == EPOCHS
+    assert scene.load(path).optimizer.epochs == EPOCHS
     return path
 
 
@@ -450,13 +450,24 @@ def test_scenes_show_prints_the_bundled_toml(capsys):
     assert capsys.readouterr().err.startswith("fempdl: unknown scene 'no-such-scene'; bundled scenes are")
 
 
+def test_scenes_schema_prints_every_section_and_key(capsys):
+    assert cli.main(["scenes", "--schema"]) == 0
+    text = capsys.readouterr().out
+    assert text == scene.schema_text() + "\n"
+    headers = [line.split()[0] for line in text.splitlines() if line.startswith("[")]
+    assert headers == [f"[{name}]" for name in scene.SECTIONS]
+    for name, block in zip(scene.SECTIONS, text.split("\n[")[1:]):
+        keys = [line.split()[0] for line in block.splitlines()[1:] if line.strip()]
+        assert keys == [field.name for field in dataclasses.fields(scene.SECTIONS[name])], name
+
+
 def test_set_values_are_toml_or_plain_strings(tiny):
     quoted = scene.load(tiny, ['solver.preset="cg"', "optimizer.lr=2e-3", "prdp.k_cap = 9", "network.hidden=8"])
     plain = scene.load(tiny, ["solver.preset=cg", "optimizer.lr=2e-3", "prdp.k_cap=9", "network.hidden=8"])
     assert quoted == plain
-    assert (plain.solver["preset"], plain.optimizer["lr"], plain.prdp["k_cap"], plain.network["hidden"]) == \
+    assert (plain.solver.preset, plain.optimizer.lr, plain.prdp.k_cap, plain.network.hidden) == \
         ("cg", 2e-3, 9, 8)
-    assert scene.load(tiny).solver["preset"] == "jacobi"
+    assert scene.load(tiny).solver.preset == "jacobi"
 
 
 def test_run_with_set_trains_the_overridden_scene(tiny, tmp_path):
@@ -540,7 +551,7 @@ def test_validation_fields_are_what_the_metric_measures(tiny):
     from fempdl.ksp_adjoint import KSPOptions
     from fempdl.app.training import sample_nmse
     sc = scene.load(tiny)
-    assert sc.data["rollout"] == 1
+    assert sc.data.rollout == 1
     task = runner.build_task(sc, KSPOptions(max_it=2))
     try:
         name, prediction, reference = task.validation_fields(torch.arange(task.val_size))

@@ -15,6 +15,7 @@ from mpi4py import MPI
 from fempdl import mesh
 from fempdl.app import runner
 from fempdl.app import scene
+from fempdl.app.scene import PdeConfig
 from fempdl.app.tasks.data import smooth_fields
 from fempdl.app.tasks.hybrid import HybridTask, VelocityTransfer, channel_problem
 from fempdl.ksp_adjoint import KSPOptions
@@ -152,7 +153,7 @@ def test_corrector_starts_at_identity_and_never_moves_masked_dofs():
 
 
 def test_point_evaluation_transfer_is_exact_for_quadratics_and_fills_boundary_nodes():
-    pde = {"nu": 1e-3, "dt": 0.02, "inflow": 1.0, "degree": 2}
+    pde = PdeConfig(type="oseen", nu=1e-3, dt=0.02, inflow=1.0, degree=2)
     fine = channel_problem(mesh.load("obstacle", MPI.COMM_SELF, h=0.08), pde, controls=())
     coarse = channel_problem(mesh.load("obstacle", MPI.COMM_SELF, h=0.15), pde, controls=())
     Vf, Vc = fine.field_space("u"), coarse.field_space("u")
@@ -183,7 +184,7 @@ def test_transfer_between_different_domains_is_an_error():
     from fempdl import forms
     source = forms.burgers.problem(lshape, controls=()).V
     target = channel_problem(mesh.load("obstacle", MPI.COMM_SELF, h=0.15),
-                             {"nu": 1e-3, "dt": 0.02, "inflow": 1.0, "degree": 2}, controls=()).field_space("u")
+                             PdeConfig(type="oseen", nu=1e-3, dt=0.02, inflow=1.0, degree=2), controls=()).field_space("u")
     with pytest.raises(ValueError, match="lie outside the source mesh.*do not cover the same domain"):
         VelocityTransfer(source, target)
 
@@ -204,12 +205,12 @@ def test_burgers_chain_gradient_matches_finite_differences(burgers):
 def test_burgers_validation_rolls_out_and_capped_chain_counts_iterations(burgers):
     task = runner.build_task(burgers, runner.solver_options(burgers, 4))
     try:
-        assert len(task.val_targets) == burgers.data["rollout"] == 2
+        assert len(task.val_targets) == burgers.data.rollout == 2
         assert task.layer.problem.matrix_controls == {"w"}
         task.train_step(torch.arange(4))
         # Four samples, forward and adjoint, each exactly K = 4 GMRES iterations.
         assert task.layer.stats.forward_iterations == task.layer.stats.backward_iterations == 16
-        keps = runner.k_eps(task, runner.solver_options(burgers, None, burgers.data["k_eps_rtol"]))
+        keps = runner.k_eps(task, runner.solver_options(burgers, None, burgers.data.k_eps_rtol))
         assert keps > 8
     finally:
         task.close()

@@ -1,6 +1,7 @@
 """Scene files: the bundled scenes, every way a scene can be malformed, and the defaults."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from importlib import resources
@@ -9,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from fempdl.app import scene
-from fempdl.app.scene import SCHEMA, SceneError
+from fempdl.app.scene import SceneError
 
 EXPECTED_BUNDLED = {"heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
                     "burgers-emulator", "ns-hybrid", "sip-poisson", "sip-heat", "hig-poisson", "sip-flow",
@@ -55,8 +56,8 @@ def test_available_lists_the_bundled_files():
 
 def _keys_for(sc, section: str) -> set:
     """The schema's keys of a section, less those the scene's task and PDE do not use."""
-    unused = [scene._NOT_FOR.get(("task", sc.task), {}), scene._NOT_FOR.get(("pde", sc.pde["type"]), {})]
-    return set(SCHEMA[section]).difference(*(by_section.get(section, set()) for by_section in unused))
+    unused = [scene._NOT_FOR.get(("task", sc.task), {}), scene._NOT_FOR.get(("pde", sc.pde.type), {})]
+    return set(scene.specs(section)).difference(*(by_section.get(section, set()) for by_section in unused))
 
 
 @pytest.mark.parametrize("name", scene.available())
@@ -66,36 +67,36 @@ def test_bundled_scene_loads_with_its_tasks_sections(name):
     assert sc.source == f"bundled:{name}"
     assert sc.description.strip()
     assert sc.task in ("emulator", "inverse", "hybrid", "sip", "hig")
-    assert sc.mesh["name"]
+    assert sc.mesh.name
     sections = ("mesh", "pde", "data", "optimizer") + (("network", "baseline") if sc.task in scene.METHOD_TASKS
                                                        else ("solver", "prdp"))
     for section in sections:
-        assert set(getattr(sc, section)) == _keys_for(sc, section), section
+        assert set(sc.as_dict()[section]) == _keys_for(sc, section), section
     if sc.task in scene.METHOD_TASKS:
         assert sc.solver is None and sc.prdp is None and sc.inverse is None
         assert (sc.sip is not None, sc.hig is not None) == (sc.task == "sip", sc.task == "hig")
-        assert sc.optimizer["batch"] <= sc.data["train"]
-        assert sc.baseline["lr"] > 0
+        assert sc.optimizer.batch <= sc.data.train
+        assert sc.baseline.lr > 0
     elif sc.task in ("emulator", "hybrid"):
         assert sc.inverse is None
-        assert set(sc.network) == set(SCHEMA["network"])
-        assert sc.network["type"] in ("mlp", "graph")
-        assert sc.pde["type"] in {"emulator": ("heat", "burgers"), "hybrid": ("oseen",)}[sc.task]
+        assert set(sc.as_dict()["network"]) == set(scene.specs("network"))
+        assert sc.network.type in ("mlp", "graph")
+        assert sc.pde.type in {"emulator": ("heat", "burgers"), "hybrid": ("oseen",)}[sc.task]
         assert (sc.hybrid is not None) == (sc.task == "hybrid")
         # Every training sample passes the layer once per epoch in batches that fit.
-        assert sc.optimizer["batch"] <= sc.data["train"]
+        assert sc.optimizer.batch <= sc.data.train
     else:
         assert sc.network is None
-        theta_ref, theta_init = sc.inverse["theta_ref"], sc.inverse["theta_init"]
+        theta_ref, theta_init = sc.inverse.theta_ref, sc.inverse.theta_init
         assert len(theta_ref) == len(theta_init) >= 1
         assert all(type(v) is float and math.isfinite(v) for v in theta_ref + theta_init)
         assert theta_ref != theta_init
-        assert sc.pde["type"] == "poisson"
-        assert sc.optimizer["stop_at"] is not None and sc.optimizer["stop_at"] > 0
+        assert sc.pde.type == "poisson"
+        assert sc.optimizer.stop_at is not None and sc.optimizer.stop_at > 0
     if sc.prdp is not None:
-        if sc.prdp["k_cap"] is not None:
-            assert sc.prdp["k_cap"] >= sc.prdp["k0"]
-        assert 0 < sc.prdp["tau_stop"] <= 1 and 0 < sc.prdp["tau_step"] <= 1
+        if sc.prdp.k_cap is not None:
+            assert sc.prdp.k_cap >= sc.prdp.k0
+        assert 0 < sc.prdp.tau_stop <= 1 and 0 < sc.prdp.tau_step <= 1
 
 
 @pytest.mark.parametrize("name", scene.available())
@@ -108,40 +109,58 @@ def test_bundled_scene_by_path_equals_by_name(name):
 
 def test_bundled_values():
     two_d = scene.load("heat-emulator-2d")
-    assert (two_d.mesh["name"], two_d.mesh["h"], two_d.network["type"]) == ("lshape", None, "mlp")
-    assert scene.load("heat-emulator-3d").network["type"] == "graph"
-    assert scene.load("poisson-inverse").inverse == {"theta_ref": [2.0], "theta_init": [5.0]}
+    assert (two_d.mesh.name, two_d.mesh.h, two_d.network.type) == ("lshape", None, "mlp")
+    assert scene.load("heat-emulator-3d").network.type == "graph"
+    assert scene.load("poisson-inverse").as_dict()["inverse"] == {"theta_ref": [2.0], "theta_init": [5.0]}
     three = scene.load("poisson-inverse-3").inverse
-    assert len(three["theta_ref"]) == len(three["theta_init"]) == 3
+    assert len(three.theta_ref) == len(three.theta_init) == 3
 
 
-def test_mutating_a_loaded_scene_does_not_leak_into_the_next_load():
+def test_a_loaded_scene_is_frozen_and_changed_by_replace():
     first = scene.load("heat-emulator-2d")
-    epochs = first.optimizer["epochs"]
-    first.optimizer["epochs"] = epochs + 1000  # what `fempdl run --epochs` does
-    assert scene.load("heat-emulator-2d").optimizer["epochs"] == epochs
-    a, b = scene.parse(toml()), scene.parse(toml())
-    a.optimizer["lr"] = 5.0
-    assert b.optimizer["lr"] == 1e-3
+    epochs = first.optimizer.epochs
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        first.optimizer.epochs = epochs + 1000
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        first.optimizer = None
+    # What `fempdl run --epochs` does: a new scene; the loaded one and the next load are unchanged.
+    longer = dataclasses.replace(first, optimizer=dataclasses.replace(first.optimizer, epochs=epochs + 1000))
+    assert longer.optimizer.epochs == epochs + 1000 and longer.optimizer.lr == first.optimizer.lr
+    assert longer.as_dict()["optimizer"]["epochs"] == epochs + 1000
+    assert first.optimizer.epochs == scene.load("heat-emulator-2d").optimizer.epochs == epochs
+    assert longer.pde is first.pde
+
+
+def test_schema_text_names_every_section_and_key():
+    blocks = {block.split("]")[0]: block for block in scene.schema_text().split("\n[")[1:]}
+    assert set(blocks) == set(scene.SECTIONS)
+    for name, cls in scene.SECTIONS.items():
+        lines = {line.split()[0]: line for line in blocks[name].splitlines()[1:] if line.strip()}
+        assert set(lines) == {field.name for field in dataclasses.fields(cls)}, name
+        for field in dataclasses.fields(cls):
+            spec, line = field.metadata["spec"], lines[field.name]
+            assert spec.doc in line and ("required" in line) == spec.required, line
+            assert all(f'"{choice}"' in line for choice in spec.choices or ()), line
 
 
 # ------------------------------------------------------------------ defaults
 def test_parse_fills_the_schema_defaults():
     sc = scene.parse(toml())
     assert (sc.name, sc.task, sc.description, sc.source) == ("t", "emulator", "", "<string>")
-    assert sc.mesh == {"name": "lshape", "h": None}
-    assert sc.pde == {"type": "heat", "dt": 0.01, "theta": 1.0, "kappa": 1.0, "degree": 1}   # nu, inflow: not heat
-    assert sc.data == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "k_eps_rtol": 1e-5, "rollout": 1}
-    assert sc.network == {"type": "mlp", "hidden": 128, "layers": 2}
-    assert sc.optimizer == {"type": "adam", "lr": 1e-3, "decay": 1.0, "epochs": 30, "batch": 16, "stop_at": None}
-    assert sc.solver == {"preset": "jacobi", "diff": "implicit", "warm_start": False, "lag_preconditioner": False}
-    assert sc.prdp == {"k0": 1, "dk": 1, "tau_step": 0.95, "tau_stop": 0.9, "delta": 3, "ema_window": 6,
+    assert sc.as_dict()["mesh"] == {"name": "lshape", "h": None}
+    assert sc.as_dict()["pde"] == {"type": "heat", "dt": 0.01, "theta": 1.0, "kappa": 1.0, "degree": 1}   # nu, inflow: not heat
+    assert sc.as_dict()["data"] == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "k_eps_rtol": 1e-5, "rollout": 1}
+    assert sc.as_dict()["network"] == {"type": "mlp", "hidden": 128, "layers": 2}
+    assert sc.as_dict()["optimizer"] == {"type": "adam", "lr": 1e-3, "decay": 1.0, "epochs": 30, "batch": 16, "stop_at": None}
+    assert sc.as_dict()["solver"] == {"preset": "jacobi", "diff": "implicit", "warm_start": False, "lag_preconditioner": False}
+    assert sc.as_dict()["prdp"] == {"k0": 1, "dk": 1, "tau_step": 0.95, "tau_stop": 0.9, "delta": 3, "ema_window": 6,
                        "k_cap": None, "guard": None, "growth": 1.0}
     assert sc.inverse is None
     # ... and they are the schema's.
-    for section, keys in SCHEMA.items():
+    for section in scene.SECTIONS:
+        keys = scene.specs(section)
         values = {"name": sc.name, "task": sc.task, "description": sc.description} if section == "scene" \
-            else getattr(sc, section)
+            else sc.as_dict()[section]
         if values is None:
             continue
         assert set(values) == _keys_for(sc, section), section
@@ -153,48 +172,48 @@ def test_parse_fills_the_schema_defaults():
 def test_method_scene_defaults():
     sip = scene.parse(toml({"optimizer": "lr = 0.02\ndecay = 0.99"}, base=SIP))
     assert sip.solver is None and sip.prdp is None and sip.hig is None
-    assert sip.sip == {"inverse": "exact", "eta": 1.0, "damping": 0.0, "cg_iterations": 20}
-    assert sip.baseline == {"lr": 0.02, "decay": 0.99}          # the method's schedule unless given
+    assert sip.as_dict()["sip"] == {"inverse": "exact", "eta": 1.0, "damping": 0.0, "cg_iterations": 20}
+    assert sip.as_dict()["baseline"] == {"lr": 0.02, "decay": 0.99}          # the method's schedule unless given
     own = scene.parse(toml({"optimizer": "lr = 0.02\ndecay = 0.99", "baseline": "lr = 0.1\ndecay = 1.0"}, base=SIP))
-    assert own.baseline == {"lr": 0.1, "decay": 1.0}
-    assert sip.data == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "truths": "smooth", "noise": 0.0,
+    assert own.as_dict()["baseline"] == {"lr": 0.1, "decay": 1.0}
+    assert sip.as_dict()["data"] == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "truths": "smooth", "noise": 0.0,
                         "resample": False}
-    assert sip.network == {"type": "mlp", "hidden": 128, "layers": 2} and sip.pde["degree"] == 1
+    assert sip.as_dict()["network"] == {"type": "mlp", "hidden": 128, "layers": 2} and sip.pde.degree == 1
     hig = scene.parse(toml({"network": "layers = 0"}, base=HIG))
-    assert hig.baseline == {"lr": 1e-3, "decay": 1.0} and hig.network["layers"] == 0
-    assert hig.hig == {"lr": 0.5, "kappa": -0.5, "beta": 0.0, "tau": 1e-5, "method": "auto",
+    assert hig.as_dict()["baseline"] == {"lr": 1e-3, "decay": 1.0} and hig.network.layers == 0
+    assert hig.as_dict()["hig"] == {"lr": 0.5, "kappa": -0.5, "beta": 0.0, "tau": 1e-5, "method": "auto",
                        "max_jacobian_mib": 1024.0}
-    assert hig.optimizer == {"epochs": 30, "batch": 16, "stop_at": None}
+    assert hig.as_dict()["optimizer"] == {"epochs": 30, "batch": 16, "stop_at": None}
 
 
 def test_given_values_override_only_their_keys():
     sc = scene.parse(toml({"optimizer": "epochs = 5\nlr = 2", "mesh": "h = 0.2"}), source="mine.toml")
     assert sc.source == "mine.toml"
-    assert sc.optimizer == {"type": "adam", "lr": 2.0, "decay": 1.0, "epochs": 5, "batch": 16, "stop_at": None}
-    assert type(sc.optimizer["lr"]) is float  # an int is accepted where a float is expected
-    assert sc.mesh == {"name": "lshape", "h": 0.2}
+    assert sc.as_dict()["optimizer"] == {"type": "adam", "lr": 2.0, "decay": 1.0, "epochs": 5, "batch": 16, "stop_at": None}
+    assert type(sc.optimizer.lr) is float  # an int is accepted where a float is expected
+    assert sc.as_dict()["mesh"] == {"name": "lshape", "h": 0.2}
 
 
 def test_flow_defaults():
     hybrid = scene.parse(toml(base=HYBRID))
-    assert hybrid.pde["degree"] == 2  # Taylor-Hood P2-P1
-    assert hybrid.hybrid == {"fine_h": 0.05, "steps": 2, "spinup": 10, "perturbation": 0.2}
-    assert hybrid.network == {"type": "mlp", "hidden": 128, "layers": 2}
+    assert hybrid.pde.degree == 2  # Taylor-Hood P2-P1
+    assert hybrid.as_dict()["hybrid"] == {"fine_h": 0.05, "steps": 2, "spinup": 10, "perturbation": 0.2}
+    assert hybrid.as_dict()["network"] == {"type": "mlp", "hidden": 128, "layers": 2}
     burgers = scene.parse(toml(base=BURGERS))
-    assert burgers.pde["degree"] == 1 and burgers.pde["nu"] == 0.01 and burgers.hybrid is None
+    assert burgers.pde.degree == 1 and burgers.pde.nu == 0.01 and burgers.hybrid is None
 
 
 def test_inverse_defaults_and_theta_as_floats():
     sc = scene.parse(toml({"inverse": ""}, base={**INVERSE, "inverse": "theta_ref = [2, 0.5]\ntheta_init = [1, 1]"}))
     assert sc.task == "inverse" and sc.network is None
-    assert sc.inverse == {"theta_ref": [2.0, 0.5], "theta_init": [1.0, 1.0]}
-    assert all(type(v) is float for v in sc.inverse["theta_ref"] + sc.inverse["theta_init"])
-    assert sc.optimizer["stop_at"] is None and sc.pde["type"] == "poisson"
+    assert sc.as_dict()["inverse"] == {"theta_ref": [2.0, 0.5], "theta_init": [1.0, 1.0]}
+    assert all(type(v) is float for v in sc.inverse.theta_ref + sc.inverse.theta_init)
+    assert sc.optimizer.stop_at is None and sc.pde.type == "poisson"
 
 
 def test_boundary_values_are_accepted():
     sc = scene.parse(toml({"prdp": "delta = 2\nk_cap = 1", "pde": "theta = 0.0", "data": "seed = 0"}))
-    assert (sc.prdp["delta"], sc.prdp["k_cap"], sc.pde["theta"]) == (2, 1, 0.0)
+    assert (sc.prdp.delta, sc.prdp.k_cap, sc.pde.theta) == (2, 1, 0.0)
 
 
 # ------------------------------------------------------------------ malformed scenes
@@ -205,7 +224,7 @@ BAD = {
     "toml-duplicate-key": (toml({"scene": 'name = "u"'}), ["not valid TOML"]),
     # unknown section / key
     "unknown-section": (toml({"training": "epochs = 3"}),
-                        ["unknown section(s) ['training']", f"allowed sections are {sorted(SCHEMA)}"]),
+                        ["unknown section(s) ['training']", f"allowed sections are {sorted(scene.SECTIONS)}"]),
     "unknown-top-level-key": ('epochs = 3\n' + toml(), ["unknown section(s) ['epochs']"]),
     "unknown-key": (toml({"optimizer": "learning_rate = 0.1"}),
                     ["unknown key(s) ['learning_rate'] in [optimizer]",
@@ -378,7 +397,7 @@ def test_load_by_path(tmp_path):
     path = tmp_path / "mine.toml"
     path.write_text(toml({"optimizer": "epochs = 7"}))
     sc = scene.load(path)
-    assert (sc.name, sc.source, sc.optimizer["epochs"]) == ("t", str(path), 7)
+    assert (sc.name, sc.source, sc.optimizer.epochs) == ("t", str(path), 7)
 
 
 def test_unknown_bundled_name_lists_the_bundled_scenes():
@@ -415,7 +434,7 @@ def test_strings_are_never_evaluated(tmp_path):
     path = tmp_path / "evil.toml"
     path.write_text(text)
     for sc in (scene.parse(text), scene.load(path)):
-        assert sc.description == payload and sc.mesh["name"] == payload
+        assert sc.description == payload and sc.mesh.name == payload
     # The name becomes a directory: only a slug is accepted.
     with pytest.raises(scene.SceneError, match=r"\[scene\] name must be 1-128 letters"):
         scene.parse(text.replace('name = "evil"', f'name = "{quoted}"'))
@@ -441,4 +460,5 @@ warm_start = true
 """
     with pytest.raises(SceneError, match=r"\[solver\] warm_start do\(es\) not apply to task 'inverse'"):
         scene.parse(text)
-    assert "warm_start" not in scene.parse(text.replace("warm_start = true", "")).solver
+    parsed = scene.parse(text.replace("warm_start = true", ""))
+    assert parsed.solver.warm_start is None and "warm_start" not in parsed.as_dict()["solver"]

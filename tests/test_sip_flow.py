@@ -198,8 +198,8 @@ batch = 4
 def test_the_bundled_sip_flow_scenes_parse_with_the_marker_keys():
     for name in ("sip-flow", "sip-flow-full"):
         sc = scene.load(name)
-        assert sc.pde["type"] == "marker" and sc.pde["degree"] == 2 and sc.sip["inverse"] == "gauss-newton"
-        assert set(sc.marker) == {"steps", "smoothing", "speed", "shape", "width", "placement", "prior"}
+        assert sc.pde.type == "marker" and sc.pde.degree == 2 and sc.sip.inverse == "gauss-newton"
+        assert set(sc.as_dict()["marker"]) == {"steps", "smoothing", "speed", "shape", "width", "placement", "prior"}
     assert scene.load("sip-poisson").marker is None
 
 

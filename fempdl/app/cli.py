@@ -11,7 +11,8 @@ baseline and PRDP, and writes a table, plots and the IC/PR savings split.
 ``fempdl compare SCENE`` runs a sip or hig scene's method and Adam with
 backpropagation side by side, at equal iterations and at equal training time,
 and writes the ratios and plots of the error against both. ``fempdl scenes``
-lists the bundled scenes; ``fempdl scenes --show NAME`` prints one's TOML.
+lists the bundled scenes; ``fempdl scenes --show NAME`` prints one's TOML,
+``fempdl scenes --schema`` every section and key a scene file takes.
 ``--set section.key=value`` (repeatable) overrides a scene value, checked
 like the file. ``fempdl run --save-fields`` writes each run's validation
 predictions, references and errors (``fields.xdmf``, ``fields.png``).
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import logging
 import sys
 from pathlib import Path
@@ -107,15 +109,17 @@ def build_parser() -> argparse.ArgumentParser:
                                   "--set solver.preset=cg; VALUE is a TOML value or plain text (a string), "
                                   "checked like the file")
 
-    scenes = sub.add_parser("scenes", help="list the bundled scenes, or print one")
-    scenes.add_argument("--show", metavar="NAME", help="print bundled scene NAME's TOML (a start for your own)")
+    scenes = sub.add_parser("scenes", help="list the bundled scenes, print one, or print the schema")
+    shown = scenes.add_mutually_exclusive_group()
+    shown.add_argument("--show", metavar="NAME", help="print bundled scene NAME's TOML (a start for your own)")
+    shown.add_argument("--schema", action="store_true",
+                       help="print every section and key of a scene file: type, default, allowed values, meaning")
     return parser
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from fempdl import parallel
-    from fempdl.app import scene
 
     from mpi4py import MPI
 
@@ -129,18 +133,28 @@ def main(argv=None) -> int:
         return 2
 
     if args.command == "scenes":
-        if args.show is not None:
-            try:
-                print(scene.bundled_text(args.show), end="")
-            except scene.SceneError as err:
-                print(f"fempdl: {err}", file=sys.stderr)
-                return 2
-            return 0
-        for name in scene.available():
-            print(f"{name:<22} {scene.load(name).description}")
-        return 0
+        return _scenes(args)
     with _library_log(getattr(args, "log_every", None), MPI.COMM_WORLD.rank):
         return _load_and_run(args)
+
+
+def _scenes(args) -> int:
+    """``fempdl scenes``: the bundled scenes, one's TOML (``--show``) or the schema (``--schema``)."""
+    from fempdl.app import scene
+
+    if args.schema:
+        print(scene.schema_text())
+        return 0
+    if args.show is not None:
+        try:
+            print(scene.bundled_text(args.show), end="")
+        except scene.SceneError as err:
+            print(f"fempdl: {err}", file=sys.stderr)
+            return 2
+        return 0
+    for name in scene.available():
+        print(f"{name:<22} {scene.load(name).description}")
+    return 0
 
 
 def _load_and_run(args) -> int:
@@ -155,7 +169,7 @@ def _load_and_run(args) -> int:
         print(f"fempdl: {err}", file=sys.stderr)
         return 2
     if args.epochs is not None:
-        sc.optimizer["epochs"] = args.epochs
+        sc = dataclasses.replace(sc, optimizer=dataclasses.replace(sc.optimizer, epochs=args.epochs))
     try:
         out = _output_directory(args, sc)
         # The whole command holds the lock: a second command on the same --out is refused,
@@ -226,7 +240,7 @@ def _command(args, sc, out: Path) -> int:
         return _methods(args, sc, progress, out)
     if args.command == "tradeoff":
         runs = tradeoff.sweep(sc, ks=args.ks, out_dir=out, progress=progress)
-        split = tradeoff.savings(runs, stop_at=sc.optimizer["stop_at"])
+        split = tradeoff.savings(runs, stop_at=sc.optimizer.stop_at)
         paths = tradeoff.write_report(sc, runs, split, out)
         print(tradeoff.comparison_table(runs))
         print("\n".join(tradeoff.summary_lines(split)))
@@ -301,7 +315,9 @@ def _methods(args, sc, progress: bool, out: Path) -> int:
 
 def _can_resume(args, run_dir: Path) -> bool:
     """--resume continues every run that has a checkpoint (a finished run is not repeated)."""
-    return args.resume and (run_dir / "checkpoint.pt").exists()
+    from fempdl.app.training import CHECKPOINT
+
+    return args.resume and (run_dir / CHECKPOINT).exists()
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ from pathlib import Path
 from fempdl.app import runner, tasks
 from fempdl.app.runner import RunResult
 from fempdl.app.scene import Scene
-from fempdl.app.training import write_atomically
+from fempdl.app.training import CHECKPOINT, write_atomically
 
 __all__ = ["compare", "compare_and_report", "summary", "summary_lines", "table", "write_report"]
 
@@ -44,7 +44,7 @@ def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_tim
     def train(name: str, **kwargs) -> RunResult:
         sub = out_dir / name
         return runner.run_method(scene, name, out_dir=sub, progress=progress,
-                             resume=resume and (sub / "checkpoint.pt").exists(), **kwargs)
+                             resume=resume and (sub / CHECKPOINT).exists(), **kwargs)
 
     runs = {method: train(method, epochs=epochs)}
     n = len(runs[method].rows)
@@ -66,7 +66,7 @@ def compare_and_report(scene: Scene, out_dir: Path, *, equal_time: bool = True, 
 
 
 def steps_per_epoch(scene: Scene) -> int:
-    return math.ceil(scene.data["train"] / scene.optimizer["batch"])
+    return math.ceil(scene.data.train / scene.optimizer.batch)
 
 
 def summary(scene: Scene, runs: dict[str, RunResult], equal_time: bool = True) -> dict:

@@ -101,8 +101,8 @@ def check_parallel(scene: Scene, parallel: str | None) -> None:
 
 def solver_options(scene: Scene, k: int | None, rtol: float | None = None) -> KSPOptions:
     """The scene's capped solver: ``k`` iterations, or run to ``rtol`` when ``k`` is None."""
-    return KSPOptions.preset(scene.solver["preset"], max_it=k, rtol=rtol,
-                             lag_preconditioner=scene.solver["lag_preconditioner"])
+    return KSPOptions.preset(scene.solver.preset, max_it=k, rtol=rtol,
+                             lag_preconditioner=scene.solver.lag_preconditioner)
 
 
 def k_eps(task, options: KSPOptions, shard_over: MPI.Comm = MPI.COMM_SELF, batch: int = 1) -> int:
@@ -170,20 +170,20 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
         raise ValueError("give k exactly when mode='fixed'")
     task = build_task(scene, solver_options(scene, k or 1), parallel, comm, seed)
     keps = k_eps_value if k_eps_value is not None else k_eps(
-        task, solver_options(scene, None, scene.data["k_eps_rtol"]),
-        shard_over=comm if parallel == "data" else MPI.COMM_SELF, batch=scene.optimizer.get("batch", 1))
+        task, solver_options(scene, None, scene.data.k_eps_rtol),
+        shard_over=comm if parallel == "data" else MPI.COMM_SELF, batch=_batch(scene))
     prdp = None
     if mode == "converged":
         task.layer.max_it = keps
     elif mode == "prdp":
         p = scene.prdp
-        prdp = PRDP(task.layers, k0=p["k0"], dk=p["dk"], tau_step=p["tau_step"], tau_stop=p["tau_stop"],
-                    delta=p["delta"], ema_window=p["ema_window"], k_cap=p["k_cap"] or keps,
-                    guard=p["guard"], growth=p["growth"])
-    trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer.get("batch", 1),
-                      out_dir=out_dir, prdp=prdp, seed=scene.data["seed"] if seed is None else seed,
+        prdp = PRDP(task.layers, k0=p.k0, dk=p.dk, tau_step=p.tau_step, tau_stop=p.tau_stop,
+                    delta=p.delta, ema_window=p.ema_window, k_cap=p.k_cap or keps,
+                    guard=p.guard, growth=p.growth)
+    trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=_batch(scene),
+                      out_dir=out_dir, prdp=prdp, seed=scene.data.seed if seed is None else seed,
                       progress=progress,
-                      stop_after=stop_after, stop_at=scene.optimizer["stop_at"], parallel=parallel, comm=comm,
+                      stop_after=stop_after, stop_at=scene.optimizer.stop_at, parallel=parallel, comm=comm,
                       settings=run_settings(scene, mode=mode, k=k, seed=seed))
     try:
         rows = trainer.run(resume=resume)
@@ -195,16 +195,21 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
                      out_dir=None if out_dir is None else str(out_dir))
 
 
+def _batch(scene: Scene) -> int:
+    """The scene's mini-batch size; the inverse task has none (its one sample is its batch)."""
+    return 1 if scene.optimizer.batch is None else scene.optimizer.batch
+
+
 def run_method(scene: Scene, method: str, *, out_dir: Path | None = None, resume: bool = False, epochs: int | None = None,
         progress: bool = False, stop_after: int | None = None, stop_at_time: float | None = None) -> RunResult:
     """Train a sip or hig scene with ``method`` (its own, or "backprop"); metrics and checkpoints in ``out_dir``.
 
     ``stop_at_time`` ends the run once its training steps took that many
     seconds (a resumed run can so be extended to equal training time)."""
-    task = METHOD_TASKS[scene.pde["type"]](scene, method)
-    trainer = Trainer(task, epochs=epochs or scene.optimizer["epochs"], batch=scene.optimizer["batch"],
-                      out_dir=out_dir, seed=scene.data["seed"], progress=progress, stop_after=stop_after,
-                      stop_at=scene.optimizer["stop_at"], stop_at_time=stop_at_time,
+    task = METHOD_TASKS[scene.pde.type](scene, method)
+    trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=scene.optimizer.batch,
+                      out_dir=out_dir, seed=scene.data.seed, progress=progress, stop_after=stop_after,
+                      stop_at=scene.optimizer.stop_at, stop_at_time=stop_at_time,
                       settings=run_settings(scene, method=method))
     try:
         rows = trainer.run(resume=resume)

@@ -1,71 +1,12 @@
-"""Scenes: TOML files that declare a training experiment, validated against a schema.
+"""Scenes: TOML files that declare a training experiment, parsed into typed, frozen sections.
 
-A scene declares only what its task needs. Sections and keys (defaults in
-brackets; ``required`` has none)::
-
-    [scene]      name (required: letters, digits, "-_.": it names the run directory), description [""],
-                 task (required: "emulator" | "inverse" | "hybrid" | "sip" | "hig")
-    [mesh]       name (required: bundled name or path to a .msh), h [bundled default]
-    [pde]        type (required: "heat" | "burgers" for emulators, "poisson" for inverse
-                 and hig, "poisson" | "heat" | "marker" for sip, "oseen" for hybrid), degree [1; 2 for oseen, marker], kappa [1.0] (heat, poisson),
-                 dt [0.01] (heat, burgers, oseen), theta [1.0] (heat), nu [0.01] (burgers,
-                 oseen), inflow [1.0] (oseen: peak of the parabolic inlet profile)
-    [data]       seed [0], k_eps_rtol [1e-5] (not sip, hig), and for all but inverse
-                 train [64], validation [16], modes [4], rollout [1] (steps of the validation
-                 rollout; emulator, hybrid); for sip and hig: truths ["smooth"] ("smooth" |
-                 "rectangles": sums of ``modes`` sine modes or boxes), noise [0.0] (Gaussian
-                 noise on the observations, relative to their largest value), resample
-                 [false] (draw new training truths every epoch)
-    [network]    type ["mlp"] ("mlp" | "graph"; heat emulators only), hidden [128],
-                 layers [2] (hidden layers, 0: linear; graph convolutions, >= 1)
-                                                         (emulator, hybrid, sip, hig)
-    [sip]        inverse (required: "exact" | "tikhonov" | "gauss-newton"), eta [1.0],
-                 damping [0.0] (Tikhonov alpha; tikhonov, gauss-newton), cg_iterations
-                 [20] (gauss-newton)                                          (sip only)
-    [marker]     steps [4], smoothing [0.1] (the projection's length ell), speed [1.0] (largest
-                 initial speed), shape ["blob"] ("blob" | "band"), width [0.25], placement
-                 ["random"] ("random" | "central": the node farthest from the walls), prior [1e-4]
-                 (Tikhonov prior of the Gauss-Newton inverse); [pde] dt, nu (fluid), kappa
-                 (marker diffusivity), degree [2] (velocity); [sip] inverse "gauss-newton"
-                                                                   (sip on pde "marker" only)
-    [hig]        lr [1.0], kappa [-0.5], beta [0.0], tau [1e-5], method ["auto"] ("auto" |
-                 "svd" | "gram"), max_jacobian_mib [1024]                     (hig only)
-    [baseline]   lr [the optimizer's lr; 1e-3 for hig], decay [the optimizer's decay; 1.0
-                 for hig]: Adam with backpropagation through the physics, the method's
-                 comparison                                                  (sip, hig)
-    [inverse]    theta_ref (required), theta_init (required)                  (inverse only)
-    [hybrid]     fine_h (required: the reference mesh size), steps [2] (unrolled training
-                 steps), spinup [10] (fine steps from rest before sampling),
-                 perturbation [0.2] (initial perturbation, relative to inflow) (hybrid only)
-    [optimizer]  type ["adam"] ("adam" | "sgd"), lr [1e-3], decay [1.0] (not hig: HIG is
-                 its optimizer), epochs [30], batch [16] (not inverse), stop_at [none]: end
-                 once the validation metric is <= it
-    [solver]     preset ["jacobi"] ("jacobi" | "cg" | "gmres" | "gmres-ilu" | "schur": the
-                 capped solver; "schur" is for oseen and only it),
-                 diff ["implicit"] ("implicit" | "unrolled"), warm_start [false] (start the
-                 capped solve from the state being advanced instead of zero; emulator,
-                 hybrid), lag_preconditioner [false] (per-sample matrices share the
-                 first sample's preconditioner within a call; KSPOptions)    (not sip, hig)
-    [prdp]       k0 [1], dk [1], tau_step [0.95], tau_stop [0.9], delta [3], ema_window [6],
-                 k_cap [none], guard [none] (refine at once when the metric rises above
-                 guard x its best), growth [1.0] (a refinement sets K to
-                 max(K + dk, ceil(growth K)))                              (not sip, hig)
-
-sip and hig scenes solve their physics with LU (exact solutions and
-gradients): they compare training methods, not solver caps.
-
-Unknown sections or keys, keys that do not apply to the task or PDE, wrong
-types, out-of-range values and missing required keys raise :class:`SceneError`
-naming the key and the allowed values. Values are data: strings are never
-evaluated. A scene whose data and network would not fit in half the available
-memory (estimated from the bundled mesh's size at h, :func:`estimated_memory`),
-or that asks for more sine modes than the mesh resolves, is refused with the
-estimate; a file that is not UTF-8 is a SceneError too. The fixed cap of a
-run is not part of a scene: it is chosen per run (``fempdl run --k K``), as
-PRDP and the converged cap K_eps are.
-
-Bundled scenes live in ``fempdl/scenes/``; :func:`load` takes a bundled name
-or a path.
+Each section of a scene file is a frozen dataclass below (:class:`MeshConfig`,
+:class:`PdeConfig`, ...); each field carries its type, default, choices, bounds
+and a one-line doc, so the schema is written once, there. :func:`schema_text`
+renders it (``fempdl scenes --schema``). :func:`parse` is the one place that
+validates: a malformed scene raises :class:`SceneError` naming the key and what
+is allowed. Bundled scenes live in ``fempdl/app/scenes/``; :func:`load` takes a
+bundled name or a path.
 """
 from __future__ import annotations
 
@@ -79,64 +20,232 @@ from typing import Any
 from fempdl.resources import GEOMETRIES, estimated_dofs, format_bytes, memory_budget
 from fempdl.app.rundir import check_slug
 
-__all__ = ["Scene", "SceneError", "load", "available", "parse"]
+__all__ = ["Scene", "SceneError", "load", "available", "parse", "schema_text", "SECTIONS", "Spec", "specs",
+           "SceneSection", "MeshConfig", "PdeConfig", "DataConfig", "NetworkConfig", "InverseConfig", "SipConfig",
+           "MarkerConfig", "HigConfig", "BaselineConfig", "HybridConfig", "OptimizerConfig", "SolverConfig",
+           "PrdpConfig"]
 
 _REQUIRED = object()
+_POSITIVE = 1e-300      # a minimum of "> 0"
 
 
 @dataclasses.dataclass(frozen=True)
-class _Key:
-    kind: type | tuple
+class Spec:
+    """What a scene key accepts: its type, default (``_REQUIRED``: none), choices and bounds, and what it means."""
+
+    kind: type
     default: Any = _REQUIRED
+    doc: str = ""
     choices: tuple | None = None
     minimum: float | None = None
     maximum: float | None = None
 
+    @property
+    def required(self) -> bool:
+        return self.default is _REQUIRED
 
-_POSITIVE = 1e-300
-SCHEMA: dict[str, dict[str, _Key]] = {
-    "scene": {"name": _Key(str), "description": _Key(str, ""),
-              "task": _Key(str, choices=("emulator", "inverse", "hybrid", "sip", "hig"))},
-    "mesh": {"name": _Key(str), "h": _Key(float, None, minimum=_POSITIVE)},
-    "pde": {"type": _Key(str, choices=("heat", "poisson", "burgers", "oseen", "marker")),
-            "dt": _Key(float, 0.01, minimum=_POSITIVE), "theta": _Key(float, 1.0, minimum=0.0, maximum=1.0),
-            "kappa": _Key(float, 1.0, minimum=_POSITIVE), "degree": _Key(int, None, minimum=1),
-            "nu": _Key(float, 0.01, minimum=_POSITIVE), "inflow": _Key(float, 1.0, minimum=_POSITIVE)},
-    "data": {"train": _Key(int, 64, minimum=1), "validation": _Key(int, 16, minimum=1),
-             "modes": _Key(int, 4, minimum=1), "seed": _Key(int, 0, minimum=0),
-             "k_eps_rtol": _Key(float, 1e-5, minimum=_POSITIVE, maximum=0.5), "rollout": _Key(int, 1, minimum=1),
-             "truths": _Key(str, "smooth", choices=("smooth", "rectangles")), "noise": _Key(float, 0.0, minimum=0.0),
-             "resample": _Key(bool, False)},
-    "network": {"type": _Key(str, "mlp", choices=("mlp", "graph")), "hidden": _Key(int, 128, minimum=1),
-                "layers": _Key(int, 2, minimum=0)},
-    "inverse": {"theta_ref": _Key(list), "theta_init": _Key(list)},
-    "sip": {"inverse": _Key(str, choices=("exact", "tikhonov", "gauss-newton")),
-            "eta": _Key(float, 1.0, minimum=_POSITIVE),
-            "damping": _Key(float, 0.0, minimum=0.0), "cg_iterations": _Key(int, 20, minimum=1)},
-    "marker": {"steps": _Key(int, 4, minimum=1), "smoothing": _Key(float, 0.1, minimum=_POSITIVE),
-               "speed": _Key(float, 1.0, minimum=_POSITIVE), "shape": _Key(str, "blob", choices=("blob", "band")),
-               "width": _Key(float, 0.25, minimum=_POSITIVE), "prior": _Key(float, 1e-4, minimum=0.0),
-               "placement": _Key(str, "random", choices=("random", "central"))},
-    "hig": {"lr": _Key(float, 1.0, minimum=_POSITIVE), "kappa": _Key(float, -0.5), "beta": _Key(float, 0.0),
-            "tau": _Key(float, 1e-5, minimum=0.0, maximum=1.0),
-            "method": _Key(str, "auto", choices=("auto", "svd", "gram")),
-            "max_jacobian_mib": _Key(float, 1024.0, minimum=_POSITIVE)},
-    "baseline": {"lr": _Key(float, None, minimum=_POSITIVE), "decay": _Key(float, None, minimum=_POSITIVE)},
-    "hybrid": {"fine_h": _Key(float, minimum=_POSITIVE), "steps": _Key(int, 2, minimum=1),
-               "spinup": _Key(int, 10, minimum=0), "perturbation": _Key(float, 0.2, minimum=0.0)},
-    "optimizer": {"type": _Key(str, "adam", choices=("adam", "sgd")), "lr": _Key(float, 1e-3, minimum=_POSITIVE),
-                  "decay": _Key(float, 1.0, minimum=_POSITIVE), "epochs": _Key(int, 30, minimum=1),
-                  "batch": _Key(int, 16, minimum=1), "stop_at": _Key(float, None, minimum=_POSITIVE)},
-    "solver": {"preset": _Key(str, "jacobi", choices=("jacobi", "cg", "gmres", "gmres-ilu", "schur")),
-               "diff": _Key(str, "implicit", choices=("implicit", "unrolled")),
-               "warm_start": _Key(bool, False), "lag_preconditioner": _Key(bool, False)},
-    "prdp": {"k0": _Key(int, 1, minimum=1), "dk": _Key(int, 1, minimum=1),
-             "tau_step": _Key(float, 0.95, minimum=_POSITIVE, maximum=1.0),
-             "tau_stop": _Key(float, 0.9, minimum=_POSITIVE, maximum=1.0),
-             "delta": _Key(int, 3, minimum=2), "ema_window": _Key(int, 6, minimum=1),
-             "k_cap": _Key(int, None, minimum=1), "guard": _Key(float, None, minimum=1.0 + 1e-12),
-             "growth": _Key(float, 1.0, minimum=1.0)},
+
+def _key(kind: type, default: Any = _REQUIRED, doc: str = "", **bounds):
+    """A section field whose metadata holds its :class:`Spec` (required keys have no default)."""
+    spec = Spec(kind, default, doc, **bounds)
+    if spec.required:
+        return dataclasses.field(metadata={"spec": spec})
+    return dataclasses.field(default=default, metadata={"spec": spec})
+
+
+_section = dataclasses.dataclass(frozen=True, kw_only=True)
+
+
+@_section
+class SceneSection:
+    """[scene]: what the run is called and which task it trains."""
+
+    name: str = _key(str, doc='letters, digits and "-_.": it names the run directory')
+    description: str = _key(str, "", doc="free text")
+    task: str = _key(str, doc="what is trained", choices=("emulator", "inverse", "hybrid", "sip", "hig"))
+
+
+@_section
+class MeshConfig:
+    """[mesh]: the domain."""
+
+    name: str = _key(str, doc="a bundled mesh's name or the path to a .msh file")
+    h: float | None = _key(float, None, doc="mesh size (none: the bundled mesh's default)", minimum=_POSITIVE)
+
+
+@_section
+class PdeConfig:
+    """[pde]: the physics.
+
+    Keys the PDE type does not use are refused in a file and None here."""
+
+    type: str = _key(str, doc="heat | burgers for emulator, poisson for inverse and hig, poisson | heat | marker "
+                              "for sip, oseen for hybrid", choices=("heat", "poisson", "burgers", "oseen", "marker"))
+    dt: float | None = _key(float, 0.01, doc="time step (heat, burgers, oseen, marker)", minimum=_POSITIVE)
+    theta: float | None = _key(float, 1.0, doc="theta time stepping: 1 implicit Euler (heat)",
+                               minimum=0.0, maximum=1.0)
+    kappa: float | None = _key(float, 1.0, doc="diffusivity (heat, poisson; marker: the marker's)",
+                               minimum=_POSITIVE)
+    degree: int | None = _key(int, None, doc="element degree (none: 1; 2 for oseen and marker, "
+                                             "the Taylor-Hood velocity)", minimum=1)
+    nu: float | None = _key(float, 0.01, doc="viscosity (burgers, oseen, marker)", minimum=_POSITIVE)
+    inflow: float | None = _key(float, 1.0, doc="peak of the parabolic inlet profile (oseen)", minimum=_POSITIVE)
+
+
+@_section
+class DataConfig:
+    """[data]: the generated samples.
+
+    Keys the task does not use are refused in a file and None here."""
+
+    train: int | None = _key(int, 64, doc="training samples (not inverse)", minimum=1)
+    validation: int | None = _key(int, 16, doc="validation samples (not inverse)", minimum=1)
+    modes: int | None = _key(int, 4, doc="sine modes (or boxes) per axis of the random fields (not inverse)",
+                             minimum=1)
+    seed: int = _key(int, 0, doc="seed of the data (and of the network, unless a run sets its own)", minimum=0)
+    k_eps_rtol: float | None = _key(float, 1e-5, doc="rtol whose iteration count is the converged cap K_eps "
+                                                     "(not sip, hig)", minimum=_POSITIVE, maximum=0.5)
+    rollout: int | None = _key(int, 1, doc="steps of the validation rollout (emulator, hybrid)", minimum=1)
+    truths: str | None = _key(str, "smooth", doc="sums of `modes` sine modes or boxes (sip, hig)",
+                              choices=("smooth", "rectangles"))
+    noise: float | None = _key(float, 0.0, doc="Gaussian noise on the observations, relative to their largest "
+                                               "value (sip, hig)", minimum=0.0)
+    resample: bool | None = _key(bool, False, doc="draw new training truths every epoch (sip, hig)")
+
+
+@_section
+class NetworkConfig:
+    """[network]: the trained network."""
+
+    type: str = _key(str, "mlp", doc="graph: heat emulators only", choices=("mlp", "graph"))
+    hidden: int = _key(int, 128, doc="width of the hidden layers", minimum=1)
+    layers: int = _key(int, 2, doc="hidden layers (0: linear); for graph the convolutions, >= 1", minimum=0)
+
+
+@_section
+class InverseConfig:
+    """[inverse]: the source modes to recover."""
+
+    theta_ref: tuple = _key(list, doc="the true source mode coefficients (numbers)")
+    theta_init: tuple = _key(list, doc="the initial guess, as long as theta_ref")
+
+
+@_section
+class SipConfig:
+    """[sip]: the scale-invariant physics inverse."""
+
+    inverse: str = _key(str, doc="the physics inverse (marker: gauss-newton)",
+                        choices=("exact", "tikhonov", "gauss-newton"))
+    eta: float = _key(float, 1.0, doc="step along the inverse's update", minimum=_POSITIVE)
+    damping: float = _key(float, 0.0, doc="Tikhonov alpha (tikhonov, gauss-newton)", minimum=0.0)
+    cg_iterations: int = _key(int, 20, doc="CG iterations of the Gauss-Newton inverse (gauss-newton)", minimum=1)
+
+
+@_section
+class MarkerConfig:
+    """[marker]: the advected marker (pde "marker" only)."""
+
+    steps: int = _key(int, 4, doc="time steps of the flow", minimum=1)
+    smoothing: float = _key(float, 0.1, doc="the projection's length ell", minimum=_POSITIVE)
+    speed: float = _key(float, 1.0, doc="largest initial speed", minimum=_POSITIVE)
+    shape: str = _key(str, "blob", doc="the marker's shape", choices=("blob", "band"))
+    width: float = _key(float, 0.25, doc="the marker's width", minimum=_POSITIVE)
+    prior: float = _key(float, 1e-4, doc="Tikhonov prior of the Gauss-Newton inverse", minimum=0.0)
+    placement: str = _key(str, "random", doc="central: the node farthest from the walls",
+                          choices=("random", "central"))
+
+
+@_section
+class HigConfig:
+    """[hig]: the half-inverse gradient optimizer."""
+
+    lr: float = _key(float, 1.0, doc="learning rate", minimum=_POSITIVE)
+    kappa: float = _key(float, -0.5, doc="exponent of the half-inverse")
+    beta: float = _key(float, 0.0, doc="momentum")
+    tau: float = _key(float, 1e-5, doc="relative truncation of small singular values", minimum=0.0, maximum=1.0)
+    method: str = _key(str, "auto", doc="how the half-inverse is computed", choices=("auto", "svd", "gram"))
+    max_jacobian_mib: float = _key(float, 1024.0, doc="largest Jacobian held in memory, MiB", minimum=_POSITIVE)
+
+
+@_section
+class BaselineConfig:
+    """[baseline]: Adam with backpropagation through the physics, the method's comparison."""
+
+    lr: float | None = _key(float, None, doc="none: the optimizer's lr; 1e-3 for hig", minimum=_POSITIVE)
+    decay: float | None = _key(float, None, doc="none: the optimizer's decay; 1.0 for hig", minimum=_POSITIVE)
+
+
+@_section
+class HybridConfig:
+    """[hybrid]: the solver-in-the-loop correction of a coarse flow."""
+
+    fine_h: float = _key(float, doc="the reference mesh size", minimum=_POSITIVE)
+    steps: int = _key(int, 2, doc="unrolled training steps", minimum=1)
+    spinup: int = _key(int, 10, doc="fine steps from rest before sampling", minimum=0)
+    perturbation: float = _key(float, 0.2, doc="initial perturbation, relative to inflow", minimum=0.0)
+
+
+@_section
+class OptimizerConfig:
+    """[optimizer]: the training loop.
+
+    Keys the task does not use are refused in a file and None here."""
+
+    type: str | None = _key(str, "adam", doc="not hig: HIG is its optimizer", choices=("adam", "sgd"))
+    lr: float | None = _key(float, 1e-3, doc="learning rate (not hig)", minimum=_POSITIVE)
+    decay: float | None = _key(float, 1.0, doc="learning rate factor per epoch (not hig)", minimum=_POSITIVE)
+    epochs: int = _key(int, 30, doc="training epochs", minimum=1)
+    batch: int | None = _key(int, 16, doc="mini-batch size (not inverse)", minimum=1)
+    stop_at: float | None = _key(float, None, doc="end once the validation metric is <= it (none: never)",
+                                 minimum=_POSITIVE)
+
+
+@_section
+class SolverConfig:
+    """[solver]: the capped linear solver (sip and hig solve with LU: they compare methods, not caps)."""
+
+    preset: str = _key(str, "jacobi", doc="the capped solver; schur is for oseen and only it",
+                       choices=("jacobi", "cg", "gmres", "gmres-ilu", "schur"))
+    diff: str = _key(str, "implicit", doc="how gradients pass the solve (unrolled: jacobi or cg)",
+                     choices=("implicit", "unrolled"))
+    warm_start: bool | None = _key(bool, False, doc="start the capped solve from the state being advanced "
+                                                    "(emulator, hybrid)")
+    lag_preconditioner: bool = _key(bool, False, doc="per-sample matrices share the first sample's "
+                                                     "preconditioner within a call")
+
+
+@_section
+class PrdpConfig:
+    """[prdp]: progressively refined differentiable physics."""
+
+    k0: int = _key(int, 1, doc="first cap", minimum=1)
+    dk: int = _key(int, 1, doc="least increase of a refinement", minimum=1)
+    tau_step: float = _key(float, 0.95, doc="refine when the metric improves less than this factor",
+                           minimum=_POSITIVE, maximum=1.0)
+    tau_stop: float = _key(float, 0.9, doc="stop refining when a refinement improves less than this factor",
+                           minimum=_POSITIVE, maximum=1.0)
+    delta: int = _key(int, 3, doc="epochs compared for a plateau", minimum=2)
+    ema_window: int = _key(int, 6, doc="epochs of the metric's moving average", minimum=1)
+    k_cap: int | None = _key(int, None, doc="largest cap (none: K_eps)", minimum=1)
+    guard: float | None = _key(float, None, doc="refine at once when the metric rises above guard x its best "
+                                                "(none: never)", minimum=1.0 + 1e-12)
+    growth: float = _key(float, 1.0, doc="a refinement sets K to max(K + dk, ceil(growth K))", minimum=1.0)
+
+
+# Every section, in file order: the schema.
+SECTIONS: dict[str, type] = {
+    "scene": SceneSection, "mesh": MeshConfig, "pde": PdeConfig, "data": DataConfig, "network": NetworkConfig,
+    "inverse": InverseConfig, "sip": SipConfig, "marker": MarkerConfig, "hig": HigConfig,
+    "baseline": BaselineConfig, "hybrid": HybridConfig, "optimizer": OptimizerConfig, "solver": SolverConfig,
+    "prdp": PrdpConfig,
 }
+
+
+def specs(section: str) -> dict[str, Spec]:
+    """The keys of ``section`` and their specs, in order."""
+    return {f.name: f.metadata["spec"] for f in dataclasses.fields(SECTIONS[section])}
+
+
 # Sections each task needs (others must be absent) and may omit (then all defaults).
 _TASK_SECTIONS = {
     "emulator": {"required": {"scene", "mesh", "pde"}, "optional": {"data", "network", "optimizer", "solver", "prdp"}},
@@ -155,7 +264,7 @@ METHOD_TASKS = ("sip", "hig")
 _INVERSION_DATA = {"truths", "noise", "resample"}
 
 
-# Keys a task or PDE type does not use: setting them is an error, not a silent no-op.
+# Keys a task or PDE type does not use: setting them is an error, not a silent no-op; they are None in the scene.
 _NOT_FOR = {
     ("task", "inverse"): {"data": {"train", "validation", "modes", "rollout"} | _INVERSION_DATA,
                           "optimizer": {"batch"}, "solver": {"warm_start"}},
@@ -171,34 +280,99 @@ _NOT_FOR = {
 }
 
 
+def _unused(task: str, pde: str) -> dict[str, set]:
+    """The keys, by section, that ``task`` and PDE type ``pde`` do not use."""
+    out: dict[str, set] = {}
+    for by_section in (_NOT_FOR.get(("task", task), {}), _NOT_FOR.get(("pde", pde), {})):
+        for name, keys in by_section.items():
+            out.setdefault(name, set()).update(keys)
+    return out
+
+
 class SceneError(ValueError):
     """A scene file is malformed; the message names the section, key and what is allowed."""
 
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
-    """A validated scene: one dict per section, holding the keys its task and PDE use, defaults filled in."""
+    """A validated scene: one frozen section object per section its task uses (None for the others).
+
+    Change one with :func:`dataclasses.replace` (``replace(scene, optimizer=replace(scene.optimizer,
+    epochs=5))``); the values are not validated again."""
 
     name: str
     task: str
     description: str
-    mesh: dict
-    pde: dict
-    data: dict
-    optimizer: dict
-    solver: dict | None = None
-    prdp: dict | None = None
-    network: dict | None = None
-    inverse: dict | None = None
-    hybrid: dict | None = None
-    sip: dict | None = None
-    hig: dict | None = None
-    baseline: dict | None = None
-    marker: dict | None = None
+    mesh: MeshConfig
+    pde: PdeConfig
+    data: DataConfig
+    optimizer: OptimizerConfig
+    solver: SolverConfig | None = None
+    prdp: PrdpConfig | None = None
+    network: NetworkConfig | None = None
+    inverse: InverseConfig | None = None
+    hybrid: HybridConfig | None = None
+    sip: SipConfig | None = None
+    hig: HigConfig | None = None
+    baseline: BaselineConfig | None = None
+    marker: MarkerConfig | None = None
     source: str = ""
 
     def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """Plain (JSON-able) values: one dict per section, holding the keys its task and PDE use."""
+        unused = _unused(self.task, self.pde.type)
+        out = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if dataclasses.is_dataclass(value):
+                value = {key: list(v) if isinstance(v, tuple) else v
+                         for key, v in dataclasses.asdict(value).items() if key not in unused.get(f.name, ())}
+            out[f.name] = value
+        return out
+
+
+def schema_text() -> str:
+    """The schema as text: every section (and the tasks that take it), key, type, default, choices, bounds and doc."""
+    lines = ["Scene files (TOML): sections and keys. A key a task or PDE does not use is refused.", ""]
+    for name, cls in SECTIONS.items():
+        tasks = [task for task, sections in _TASK_SECTIONS.items()
+                 if name in sections["required"] | sections["optional"]]
+        needed = [task for task, sections in _TASK_SECTIONS.items() if name in sections["required"]]
+        usage = "every task" if len(tasks) == len(_TASK_SECTIONS) else ", ".join(tasks)
+        if needed and needed != tasks:
+            usage += f"; required for {', '.join(needed)}"
+        elif needed:
+            usage += "; required"
+        lines.append(f"[{name}]  {cls.__doc__.splitlines()[0].partition(': ')[2].rstrip('.')} ({usage})")
+        lines.extend(f"  {key:<19}{_describe(spec)}" for key, spec in specs(name).items())
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _describe(spec: Spec) -> str:
+    """One key's line of :func:`schema_text`: type, default, choices, bounds, doc."""
+    kind = "list of numbers" if spec.kind is list else spec.kind.__name__
+    if spec.required:
+        default = "required"
+    else:
+        default = "default " + _toml(spec.default)
+    parts = [kind, default]
+    if spec.choices is not None:
+        parts.append("one of " + " | ".join(f'"{c}"' for c in spec.choices))
+    if spec.minimum is not None:
+        parts.append("> 0" if spec.minimum == _POSITIVE else f">= {spec.minimum:g}")
+    if spec.maximum is not None:
+        parts.append(f"<= {spec.maximum:g}")
+    return ", ".join(parts) + f": {spec.doc}"
+
+
+def _toml(value) -> str:
+    """``value`` as TOML writes it (``none``: the key is left out)."""
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return str(value).lower()
+    return f'"{value}"' if isinstance(value, str) else repr(value)
 
 
 def available() -> list[str]:
@@ -240,15 +414,22 @@ def load(name_or_path, overrides=()) -> Scene:
 
 
 def parse(text: str, source: str = "<string>", overrides=()) -> Scene:
-    """Validate TOML text, with ``overrides`` applied (see :func:`load`), as a scene."""
+    """Validate TOML text, with ``overrides`` applied (see :func:`load`), as a scene.
+
+    Unknown sections or keys, keys that do not apply to the task or PDE, wrong
+    types, out-of-range values and missing required keys raise :class:`SceneError`;
+    values are data, strings are never evaluated. A scene whose data and network
+    would not fit in half the available memory (:func:`estimated_memory`), or that
+    asks for more sine modes than the mesh resolves, is refused with the estimate.
+    The cap K of a run is no part of a scene: it is chosen per run."""
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise SceneError(f"{source}: not valid TOML: {err}") from None
     _apply_overrides(raw, overrides, source)
-    unknown = sorted(set(raw) - set(SCHEMA))
+    unknown = sorted(set(raw) - set(SECTIONS))
     if unknown:
-        raise SceneError(f"{source}: unknown section(s) {unknown}; allowed sections are {sorted(SCHEMA)}")
+        raise SceneError(f"{source}: unknown section(s) {unknown}; allowed sections are {sorted(SECTIONS)}")
     if "scene" not in raw:
         raise SceneError(f"{source}: missing section [scene] (with name and task)")
     header = _section(raw, "scene", source)
@@ -257,25 +438,8 @@ def parse(text: str, source: str = "<string>", overrides=()) -> Scene:
     except ValueError as err:
         raise SceneError(f"{source}: {err}") from None
     task = header["task"]
-    sections = _TASK_SECTIONS[task]
-    missing = sorted(sections["required"] - set(raw))
-    if missing:
-        raise SceneError(f"{source}: task {task!r} needs section(s) {missing}")
-    extra = sorted(set(raw) - sections["required"] - sections["optional"])
-    if extra:
-        raise SceneError(f"{source}: section(s) {extra} do not apply to task {task!r}; "
-                         f"allowed: {sorted(sections['required'] | sections['optional'])}")
-    values = {name: _section(raw, name, source) for name in SCHEMA if name in sections["required"] | sections["optional"]}
-    for (what, value), unused in _NOT_FOR.items():
-        if (task if what == "task" else values["pde"]["type"]) != value:
-            continue
-        for name, keys in unused.items():
-            given = sorted(keys & set(raw.get(name, {})))
-            if given:
-                raise SceneError(f"{source}: [{name}] {', '.join(given)} do(es) not apply to {what} {value!r}; "
-                                 "remove them")
-            for key in keys:     # a section holds only the keys its task and PDE use
-                values[name].pop(key, None)
+    values = _task_sections(raw, task, source)
+    _drop_unused(values, raw, task, source)
     pde = values["pde"]
     if pde["type"] not in _TASK_PDES[task]:
         raise SceneError(f"{source}: [pde] type {pde['type']!r} does not apply to task {task!r}; "
@@ -284,18 +448,53 @@ def parse(text: str, source: str = "<string>", overrides=()) -> Scene:
         _check_method(values, raw, source)
     else:
         _check_flow(values, source)
-        solver = values["solver"]
-        if solver["diff"] == "unrolled" and solver["preset"] not in ("jacobi", "cg"):
-            raise SceneError(f"{source}: [solver] diff = 'unrolled' needs preset 'jacobi' or 'cg', "
-                             f"got {solver['preset']!r}")
-        prdp = values["prdp"]
-        if prdp["k_cap"] is not None and prdp["k_cap"] < prdp["k0"]:
-            raise SceneError(f"{source}: [prdp] k_cap must be >= k0 ({prdp['k0']}), got {prdp['k_cap']}")
+        _check_solver(values, source)
     if task == "inverse":
         _check_inverse(values["inverse"], source)
     _check_size(task, values, source)
-    return Scene(name=header["name"], task=task, description=header["description"], source=source,
-                 **{name: values.get(name) for name in SCHEMA if name != "scene"})
+    sections = {name: SECTIONS[name](**values[name]) if name in values else None
+                for name in SECTIONS if name != "scene"}
+    return Scene(name=header["name"], task=task, description=header["description"], source=source, **sections)
+
+
+def _task_sections(raw: dict, task: str, source: str) -> dict[str, dict]:
+    """The checked keys (defaults filled in) of every section ``task`` takes; refuses missing and extra sections."""
+    sections = _TASK_SECTIONS[task]
+    missing = sorted(sections["required"] - set(raw))
+    if missing:
+        raise SceneError(f"{source}: task {task!r} needs section(s) {missing}")
+    extra = sorted(set(raw) - sections["required"] - sections["optional"])
+    if extra:
+        raise SceneError(f"{source}: section(s) {extra} do not apply to task {task!r}; "
+                         f"allowed: {sorted(sections['required'] | sections['optional'])}")
+    taken = sections["required"] | sections["optional"]
+    return {name: _section(raw, name, source) for name in SECTIONS if name in taken}
+
+
+def _drop_unused(values: dict, raw: dict, task: str, source: str) -> None:
+    """Refuse keys the task or PDE does not use when the file gives them; set them to None otherwise."""
+    for (what, value), unused in _NOT_FOR.items():
+        if (task if what == "task" else values["pde"]["type"]) != value:
+            continue
+        for name, keys in unused.items():
+            given = sorted(keys & set(raw.get(name, {})))
+            if given:
+                raise SceneError(f"{source}: [{name}] {', '.join(given)} do(es) not apply to {what} {value!r}; "
+                                 "remove them")
+            for key in keys:
+                if name in values:
+                    values[name][key] = None
+
+
+def _check_solver(values: dict, source: str) -> None:
+    """The choices across [solver] and [prdp] of the tasks with a capped solver."""
+    solver = values["solver"]
+    if solver["diff"] == "unrolled" and solver["preset"] not in ("jacobi", "cg"):
+        raise SceneError(f"{source}: [solver] diff = 'unrolled' needs preset 'jacobi' or 'cg', "
+                         f"got {solver['preset']!r}")
+    prdp = values["prdp"]
+    if prdp["k_cap"] is not None and prdp["k_cap"] < prdp["k0"]:
+        raise SceneError(f"{source}: [prdp] k_cap must be >= k0 ({prdp['k0']}), got {prdp['k_cap']}")
 
 
 def _check_flow(values: dict, source: str) -> None:
@@ -379,10 +578,11 @@ def _apply_overrides(raw: dict, overrides, source: str) -> None:
 
 
 def _section(raw: dict, name: str, source: str) -> dict:
+    """The checked values of section ``name`` as given in ``raw``, with the defaults of the keys it omits."""
     given = raw.get(name, {})
     if not isinstance(given, dict):
         raise SceneError(f"{source}: [{name}] must be a table, got {type(given).__name__}")
-    schema = SCHEMA[name]
+    schema = specs(name)
     unknown = sorted(set(given) - set(schema))
     if unknown:
         raise SceneError(f"{source}: unknown key(s) {unknown} in [{name}]; allowed keys are {sorted(schema)}")
@@ -398,7 +598,7 @@ def _section(raw: dict, name: str, source: str) -> dict:
     return out
 
 
-def _checked(value, spec: _Key, where: str):
+def _checked(value, spec: Spec, where: str):
     kind = spec.kind
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
@@ -431,7 +631,7 @@ def estimated_memory(task: str, values: dict) -> tuple[float, float, dict] | Non
     parts = {}
     if task != "inverse":
         samples = data["train"] + data["validation"]
-        states = 2 * data.get("rollout", 1) + 1 if task in ("emulator", "hybrid") else 2
+        states = 2 * data["rollout"] + 1 if task in ("emulator", "hybrid") else 2
         parts["data"] = samples * dofs * states * 12.0
     if network is not None:
         width, depth = network["hidden"], network["layers"]
@@ -457,10 +657,10 @@ def _check_size(task: str, values: dict, source: str) -> None:
         raise SceneError(f"{source}: the scene needs about {format_bytes(total)} ({split}; about {dofs:.3g} DOFs), "
                          f"more than the memory budget of {format_bytes(budget)} (half the available memory); "
                          "reduce [data] train and validation, [network] hidden and layers, or refine the mesh less")
-    modes = values["data"].get("modes")
+    modes = values["data"]["modes"]
     dim = GEOMETRIES[values["mesh"]["name"]].dim
     most = max(4 * dofs, 1000)      # generous: the DOF estimate of a coarse mesh is rough
-    if modes is not None and values["data"].get("truths", "smooth") == "smooth" and modes ** dim > most:
+    if modes is not None and values["data"]["truths"] in (None, "smooth") and modes ** dim > most:
         raise SceneError(f"{source}: [data] modes = {modes} gives {modes}^{dim} sine modes, far more than the "
                          f"mesh's about {dofs:.3g} DOFs resolve; use at most {int(most ** (1.0 / dim))}")
 
@@ -472,8 +672,8 @@ def _check_inverse(section: dict, source: str) -> None:
         if not values or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
                                  and math.isfinite(v) for v in values):
             raise SceneError(f"{source}: [inverse] {key} must be a non-empty list of finite numbers, got {values!r}")
-        section[key] = [float(v) for v in values]
+        section[key] = tuple(float(v) for v in values)
         lengths.add(len(values))
     if len(lengths) != 1:
         raise SceneError(f"{source}: [inverse] theta_ref and theta_init must have the same length "
-                         f"(the number of source modes P), got {section['theta_ref']} and {section['theta_init']}")
+                         f"(the number of source modes P), got {list(section['theta_ref'])} and {list(section['theta_init'])}")

@@ -69,7 +69,8 @@ from fempdl.app import rundir
 from fempdl.app.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
 from fempdl.prdp import PRDP
 
-__all__ = ["Trainer", "nmse", "sample_nmse", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES"]
+__all__ = ["Trainer", "nmse", "sample_nmse", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES",
+           "CHECKPOINT"]
 # Fingerprint keys a resumed run may change: the run's length, which --epochs and an
 # equal-training-time extension (fempdl.app.compare) move.
 RESUMABLE_CHANGES = ("run.scene.optimizer.epochs", "run.epochs")

@@ -51,13 +51,15 @@ def operator_pattern(problem) -> "sp.csr_matrix":
     return assemble_scipy(problem.a_form)
 
 
-def make_optimizer(spec: dict, params):
+def make_optimizer(params, kind: str, lr: float, decay: float):
+    """Optimizer ``kind`` ("adam" or "sgd") at learning rate ``lr`` over ``params``, and its
+    scheduler: the rate times ``decay`` every epoch (None when decay is 1)."""
     params = list(params)
-    if spec["type"] == "adam":
+    if kind == "adam":
         # The fused kernel updates all parameters in one call: the per-tensor loop of
         # the default implementation costs more than these small networks' arithmetic.
-        optimizer = torch.optim.Adam(params, lr=spec["lr"], fused=True)
+        optimizer = torch.optim.Adam(params, lr=lr, fused=True)
     else:
-        optimizer = torch.optim.SGD(params, lr=spec["lr"])
-    scheduler = None if spec["decay"] == 1.0 else torch.optim.lr_scheduler.ExponentialLR(optimizer, spec["decay"])
+        optimizer = torch.optim.SGD(params, lr=lr)
+    scheduler = None if decay == 1.0 else torch.optim.lr_scheduler.ExponentialLR(optimizer, decay)
     return optimizer, scheduler

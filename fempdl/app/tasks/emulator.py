@@ -7,7 +7,7 @@ from mpi4py import MPI
 
 from fempdl import forms, mesh
 from fempdl.app.networks import GraphConvNet, ResidualMLP, normalised_adjacency
-from fempdl.app.scene import Scene
+from fempdl.app.scene import NetworkConfig, Scene
 from fempdl.app.tasks.base import Task, make_optimizer, operator_pattern
 from fempdl.app.tasks.data import smooth_fields
 from fempdl.app.training import nmse, sample_nmse
@@ -29,20 +29,20 @@ class EmulatorTask(Task):
 
     def __init__(self, scene: Scene, options: KSPOptions, *, comm: MPI.Comm = MPI.COMM_SELF,
                  seed: int | None = None):
-        rng = np.random.default_rng(scene.data["seed"])
-        msh = mesh.load(scene.mesh["name"], MPI.COMM_SELF, h=scene.mesh["h"])
+        rng = np.random.default_rng(scene.data.seed)
+        msh = mesh.load(scene.mesh.name, MPI.COMM_SELF, h=scene.mesh.h)
         pde = scene.pde
-        self.pde = pde["type"]
-        self.warm_start = scene.solver["warm_start"]
+        self.pde = pde.type
+        self.warm_start = scene.solver.warm_start
         if self.pde == "heat":
-            self.problem = forms.heat.problem(msh, controls=("u0",), dt=pde["dt"], theta=pde["theta"],
-                                              kappa=pde["kappa"], degree=pde["degree"])
+            self.problem = forms.heat.problem(msh, controls=("u0",), dt=pde.dt, theta=pde.theta,
+                                              kappa=pde.kappa, degree=pde.degree)
         else:
-            self.problem = forms.burgers.problem(msh, controls=("w", "u_prev"), nu=pde["nu"], dt=pde["dt"],
-                                                 degree=pde["degree"])
-        n_train, n_val = scene.data["train"], scene.data["validation"]
-        self.rollout = scene.data["rollout"]
-        u0 = torch.as_tensor(self._initial_states(n_train + n_val, scene.data["modes"], rng))
+            self.problem = forms.burgers.problem(msh, controls=("w", "u_prev"), nu=pde.nu, dt=pde.dt,
+                                                 degree=pde.degree)
+        n_train, n_val = scene.data.train, scene.data.validation
+        self.rollout = scene.data.rollout
+        u0 = torch.as_tensor(self._initial_states(n_train + n_val, scene.data.modes, rng))
         # Converged physics: reference data and validation (not counted in layers' iterations).
         self.reference = SolveLayer(self.problem, KSPOptions.preset("lu"))
         with torch.no_grad():
@@ -54,11 +54,12 @@ class EmulatorTask(Task):
         self.val_u0 = u0[n_train:].float()
         self.val_targets = [state[n_train:].float() for state in trajectory[2::2]]
         self.train_size, self.val_size = n_train, n_val
-        self.layer = SolveLayer(self.problem, options, diff=scene.solver["diff"])
+        self.layer = SolveLayer(self.problem, options, diff=scene.solver.diff)
         self.layers = [self.layer]
-        torch.manual_seed(scene.data["seed"] if seed is None else seed)
+        torch.manual_seed(scene.data.seed if seed is None else seed)
         self.model = self._network(scene.network)
-        self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
+        self.optimizer, self.scheduler = make_optimizer(self.model.parameters(), scene.optimizer.type,
+                                                        scene.optimizer.lr, scene.optimizer.decay)
 
     def physics(self, layer: SolveLayer, u: torch.Tensor) -> torch.Tensor:
         """One step of the scene's PDE from state ``u`` through ``layer`` (the capped
@@ -76,13 +77,13 @@ class EmulatorTask(Task):
         return smooth_fields(self.problem.dof_coordinates(), count, modes, rng,
                              components=self.problem.V.dofmap.index_map_bs)
 
-    def _network(self, spec: dict) -> torch.nn.Module:
+    def _network(self, spec: NetworkConfig) -> torch.nn.Module:
         n = self.problem.output_size
-        if spec["type"] == "mlp":
-            return ResidualMLP(n, spec["hidden"], spec["layers"])
+        if spec.type == "mlp":
+            return ResidualMLP(n, spec.hidden, spec.layers)
         adjacency = normalised_adjacency(operator_pattern(self.problem)).to(torch.float32)
         return GraphConvNet(adjacency, self.problem.dof_coordinates()[:, :self.problem.V.mesh.geometry.dim],
-                            spec["hidden"], spec["layers"])
+                            spec.hidden, spec.layers)
 
     def loss(self, idx) -> torch.Tensor:
         u2 = self.physics(self.layer, self.model(self.train_u0[idx]))

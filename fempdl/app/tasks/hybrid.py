@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 
 from fempdl import _dolfinx, forms, mesh
 from fempdl.app.networks import ResidualMLP
-from fempdl.app.scene import Scene
+from fempdl.app.scene import PdeConfig, Scene
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import smooth_fields
 from fempdl.app.training import sample_nmse
@@ -50,17 +50,17 @@ from fempdl.ksp_adjoint import KSPOptions
 __all__ = ["HybridTask", "channel_problem", "VelocityTransfer"]
 
 
-def channel_problem(tagged, pde: dict, controls=("w", "u_prev")):
+def channel_problem(tagged, pde: PdeConfig, controls=("w", "u_prev")):
     """The Oseen step on a channel mesh with inlet/walls/obstacle/outlet tags."""
     coords = tagged.mesh.geometry.x
     y0, y1 = float(coords[:, 1].min()), float(coords[:, 1].max())
-    height, peak = y1 - y0, pde["inflow"]
+    height, peak = y1 - y0, pde.inflow
 
     def inflow(x):
         s = (x[1] - y0) / height
         return np.stack([4.0 * peak * s * (1.0 - s), np.zeros_like(x[0])])
 
-    return forms.oseen.problem(tagged, controls=controls, nu=pde["nu"], dt=pde["dt"], degree=pde["degree"],
+    return forms.oseen.problem(tagged, controls=controls, nu=pde.nu, dt=pde.dt, degree=pde.degree,
                                velocity={"inlet": inflow, "walls": 0.0, "obstacle": 0.0})
 
 
@@ -107,12 +107,11 @@ class VelocityTransfer:
 
 
 @functools.lru_cache(maxsize=2)
-def _fine_reference(mesh_name: str, coarse_h, fine_h: float, pde_items: tuple, count: int, steps: int,
+def _fine_reference(mesh_name: str, coarse_h, fine_h: float, pde: PdeConfig, count: int, steps: int,
                     spinup: int, perturbation: float, modes: int, seed: int) -> np.ndarray:
     """(steps + 1, count, n_coarse_u) fine-mesh converged states on the coarse velocity DOFs.
 
     Cached: the sweep of ``fempdl tradeoff`` trains one scene several times."""
-    pde = dict(pde_items)
     coarse = channel_problem(mesh.load(mesh_name, MPI.COMM_SELF, h=coarse_h), pde, controls=())
     fine = channel_problem(mesh.load(mesh_name, MPI.COMM_SELF, h=fine_h), pde)
     fine_u = torch.as_tensor(fine.fields["u"])
@@ -126,7 +125,7 @@ def _fine_reference(mesh_name: str, coarse_h, fine_h: float, pde_items: tuple, c
             coords = V.tabulate_dof_coordinates()[:V.dofmap.index_map.size_local]
             rng = np.random.default_rng(seed)
             noise = smooth_fields(coords, count, modes, rng, components=V.dofmap.index_map_bs)
-            noise *= perturbation * pde["inflow"] / max(float(np.abs(noise).max()), 1e-300)
+            noise *= perturbation * pde.inflow / max(float(np.abs(noise).max()), 1e-300)
             u = u + torch.as_tensor(noise)
             states = [u]
             for _ in range(steps):
@@ -144,24 +143,25 @@ class HybridTask(Task):
     def __init__(self, scene: Scene, options: KSPOptions, *, comm: MPI.Comm = MPI.COMM_SELF,
                  seed: int | None = None):
         pde, hyb, data = scene.pde, scene.hybrid, scene.data
-        self.steps, self.rollout = hyb["steps"], data["rollout"]
-        n_train, n_val = data["train"], data["validation"]
-        self.problem = channel_problem(mesh.load(scene.mesh["name"], MPI.COMM_SELF, h=scene.mesh["h"]), pde)
-        reference = _fine_reference(scene.mesh["name"], scene.mesh["h"], hyb["fine_h"], tuple(sorted(pde.items())),
-                                    n_train + n_val, max(self.steps, self.rollout), hyb["spinup"],
-                                    hyb["perturbation"], data["modes"], data["seed"])
+        self.steps, self.rollout = hyb.steps, data.rollout
+        n_train, n_val = data.train, data.validation
+        self.problem = channel_problem(mesh.load(scene.mesh.name, MPI.COMM_SELF, h=scene.mesh.h), pde)
+        reference = _fine_reference(scene.mesh.name, scene.mesh.h, hyb.fine_h, pde,
+                                    n_train + n_val, max(self.steps, self.rollout), hyb.spinup,
+                                    hyb.perturbation, data.modes, data.seed)
         states = torch.as_tensor(reference, dtype=torch.float32)
         self.train_states, self.val_states = states[:, :n_train], states[:, n_train:]
         self.train_size, self.val_size = n_train, n_val
         self.u_dofs = torch.as_tensor(self.problem.fields["u"])
         free = ~np.isin(self.problem.fields["u"], self.problem.bc_dofs)
-        torch.manual_seed(data["seed"] if seed is None else seed)
-        self.model = ResidualMLP(len(self.u_dofs), scene.network["hidden"], scene.network["layers"],
+        torch.manual_seed(data.seed if seed is None else seed)
+        self.model = ResidualMLP(len(self.u_dofs), scene.network.hidden, scene.network.layers,
                                  mask=torch.as_tensor(free, dtype=torch.float32), start_at_identity=True)
-        self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
-        self.layer = SolveLayer(self.problem, options, diff=scene.solver["diff"])
+        self.optimizer, self.scheduler = make_optimizer(self.model.parameters(), scene.optimizer.type,
+                                                        scene.optimizer.lr, scene.optimizer.decay)
+        self.layer = SolveLayer(self.problem, options, diff=scene.solver.diff)
         self.layers = [self.layer]
-        self.warm_start = scene.solver["warm_start"]
+        self.warm_start = scene.solver.warm_start
         self.reference = SolveLayer(self.problem, KSPOptions.preset("lu"))
         with torch.no_grad():
             self.uncorrected_metric = float(self._rollout_errors(self.reference, lambda u: u, self.val_states,

@@ -34,20 +34,21 @@ class InverseTask(Task):
 
     def __init__(self, scene: Scene, options: KSPOptions, *, comm: MPI.Comm = MPI.COMM_SELF,
                  seed: int | None = None):
-        msh = mesh.load(scene.mesh["name"], comm, h=scene.mesh["h"])
+        msh = mesh.load(scene.mesh.name, comm, h=scene.mesh.h)
         pde = scene.pde
         self.comm = comm
-        self.problem = forms.poisson.problem(msh, controls=("f",), kappa=pde["kappa"], degree=pde["degree"])
-        self.theta_ref = torch.tensor(scene.inverse["theta_ref"], dtype=torch.float64)
+        self.problem = forms.poisson.problem(msh, controls=("f",), kappa=pde.kappa, degree=pde.degree)
+        self.theta_ref = torch.tensor(scene.inverse.theta_ref, dtype=torch.float64)
         self.modes = torch.as_tensor(source_modes(self.problem.dof_coordinates(), len(self.theta_ref), comm))
         reference = SolveLayer(self.problem, KSPOptions.preset("lu"))
         with torch.no_grad():
             self.u_ref = reference(f=self.modes @ self.theta_ref)
         reference.close()
-        self.layer = SolveLayer(self.problem, options, diff=scene.solver["diff"])
+        self.layer = SolveLayer(self.problem, options, diff=scene.solver.diff)
         self.layers = [self.layer]
-        self.model = _Theta(scene.inverse["theta_init"])
-        self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
+        self.model = _Theta(scene.inverse.theta_init)
+        self.optimizer, self.scheduler = make_optimizer(self.model.parameters(), scene.optimizer.type,
+                                                        scene.optimizer.lr, scene.optimizer.decay)
 
     def loss(self, idx) -> torch.Tensor:
         u = self.layer(f=self.modes @ self.model.theta)

@@ -40,7 +40,7 @@ from mpi4py import MPI
 
 from fempdl import forms, mesh
 from fempdl.app.networks import mlp
-from fempdl.app.scene import Scene
+from fempdl.app.scene import Scene, SipConfig
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import rectangle_fields, smooth_fields
 from fempdl.app.training import sample_nmse
@@ -74,42 +74,44 @@ class InversionTask(Task):
                              f"got {method!r}")
         self.scene, self.method = scene, method
         pde, data = scene.pde, scene.data
-        msh = mesh.load(scene.mesh["name"], MPI.COMM_SELF, h=scene.mesh["h"])
-        if pde["type"] == "poisson":
-            self.problem, self.control = forms.poisson.problem(msh, controls=("f",), kappa=pde["kappa"],
-                                                               degree=pde["degree"]), "f"
+        msh = mesh.load(scene.mesh.name, MPI.COMM_SELF, h=scene.mesh.h)
+        if pde.type == "poisson":
+            self.problem, self.control = forms.poisson.problem(msh, controls=("f",), kappa=pde.kappa,
+                                                               degree=pde.degree), "f"
         else:
-            self.problem, self.control = forms.heat.problem(msh, controls=("u0",), dt=pde["dt"], theta=pde["theta"],
-                                                            kappa=pde["kappa"], degree=pde["degree"]), "u0"
+            self.problem, self.control = forms.heat.problem(msh, controls=("u0",), dt=pde.dt, theta=pde.theta,
+                                                            kappa=pde.kappa, degree=pde.degree), "u0"
         self.free = np.setdiff1d(np.arange(self.problem.output_size), self.problem.bc_dofs)
         self.layer = SolveLayer(self.problem, KSPOptions.preset("lu"))
         self.layers = [self.layer]
-        self.train_size, self.val_size = data["train"], data["validation"]
-        self.x_val, self.y_val = self._samples(data["validation"], np.random.default_rng([data["seed"], 1]))
-        self.x_train, self.y_train = self._samples(data["train"], np.random.default_rng([data["seed"], 0]))
-        torch.manual_seed(data["seed"])
+        self.train_size, self.val_size = data.train, data.validation
+        self.x_val, self.y_val = self._samples(data.validation, np.random.default_rng([data.seed, 1]))
+        self.x_train, self.y_train = self._samples(data.train, np.random.default_rng([data.seed, 0]))
+        torch.manual_seed(data.seed)
         n_x, n_y = self.problem.control_size(self.control), self.problem.output_size
-        self.model = mlp(n_y, n_x, scene.network["hidden"], scene.network["layers"], torch.nn.Tanh).double()
+        self.model = mlp(n_y, n_x, scene.network.hidden, scene.network.layers, torch.nn.Tanh).double()
         self.scheduler = None
         if method == "backprop":
-            self.optimizer, self.scheduler = make_optimizer({"type": "adam", **scene.baseline}, self.model.parameters())
+            self.optimizer, self.scheduler = make_optimizer(self.model.parameters(), "adam",
+                                                            scene.baseline.lr, scene.baseline.decay)
         elif method == "sip":
-            self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
+            self.optimizer, self.scheduler = make_optimizer(self.model.parameters(), scene.optimizer.type,
+                                                            scene.optimizer.lr, scene.optimizer.decay)
             self.inverse = self._inverse(scene.sip)
         else:
             h = scene.hig
-            self.optimizer = HIG(self.model, lr=h["lr"], kappa=h["kappa"], beta=h["beta"], tau=h["tau"],
-                                 method=h["method"], max_jacobian_bytes=int(h["max_jacobian_mib"] * 2**20))
+            self.optimizer = HIG(self.model, lr=h.lr, kappa=h.kappa, beta=h.beta, tau=h.tau,
+                                 method=h.method, max_jacobian_bytes=int(h.max_jacobian_mib * 2**20))
 
     # ------------------------------------------------------------ data
     def _samples(self, count: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """``count`` truths x (zero at the Dirichlet DOFs) and their observations y = P(x) (+ noise)."""
-        draw = smooth_fields if self.scene.data["truths"] == "smooth" else rectangle_fields
-        x = torch.as_tensor(draw(self.problem.dof_coordinates(), count, self.scene.data["modes"], rng))
+        draw = smooth_fields if self.scene.data.truths == "smooth" else rectangle_fields
+        x = torch.as_tensor(draw(self.problem.dof_coordinates(), count, self.scene.data.modes, rng))
         x[:, self.problem.bc_dofs] = 0.0                    # f and u0 live on the solution space
         with torch.no_grad():
             y = self.layer(**{self.control: x})
-        noise = self.scene.data["noise"]
+        noise = self.scene.data.noise
         if noise > 0:
             scatter = torch.as_tensor(rng.standard_normal(tuple(y.shape)))
             scatter[:, self.problem.bc_dofs] = 0.0         # the boundary values are known exactly
@@ -118,18 +120,18 @@ class InversionTask(Task):
 
     def start_epoch(self, epoch: int) -> None:
         """With ``[data] resample``: new training truths, seeded by the epoch (the same on a resumed run)."""
-        if self.scene.data["resample"]:
-            rng = np.random.default_rng([self.scene.data["seed"], 2, epoch])
+        if self.scene.data.resample:
+            rng = np.random.default_rng([self.scene.data.seed, 2, epoch])
             self.x_train, self.y_train = self._samples(self.train_size, rng)
 
     # ------------------------------------------------------------ methods
-    def _inverse(self, spec: dict):
-        if spec["inverse"] == "exact":
-            return ExactLinearInverse(self.layer, self.control, eta=spec["eta"])
-        if spec["inverse"] == "tikhonov":
-            return TikhonovInverse(self.layer, self.control, damping=spec["damping"], eta=spec["eta"])
-        return GaussNewtonInverse(self.layer, self.control, damping=spec["damping"], max_it=spec["cg_iterations"],
-                                  eta=spec["eta"])
+    def _inverse(self, spec: SipConfig):
+        if spec.inverse == "exact":
+            return ExactLinearInverse(self.layer, self.control, eta=spec.eta)
+        if spec.inverse == "tikhonov":
+            return TikhonovInverse(self.layer, self.control, damping=spec.damping, eta=spec.eta)
+        return GaussNewtonInverse(self.layer, self.control, damping=spec.damping, max_it=spec.cg_iterations,
+                                  eta=spec.eta)
 
     def physics(self, x: torch.Tensor) -> torch.Tensor:
         return self.layer(**{self.control: x})

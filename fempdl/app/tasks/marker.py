@@ -48,9 +48,9 @@ __all__ = ["MarkerInversionTask", "marker_flow"]
 def marker_flow(scene: Scene) -> MarkerFlow:
     """The scene's physics on its mesh (serial, converged solves)."""
     pde, marker = scene.pde, scene.marker
-    msh = mesh.load(scene.mesh["name"], MPI.COMM_SELF, h=scene.mesh["h"])
-    return MarkerFlow(msh, steps=marker["steps"], dt=pde["dt"], nu=pde["nu"], kappa=pde["kappa"],
-                      smoothing=marker["smoothing"], degree=pde["degree"])
+    msh = mesh.load(scene.mesh.name, MPI.COMM_SELF, h=scene.mesh.h)
+    return MarkerFlow(msh, steps=marker.steps, dt=pde.dt, nu=pde.nu, kappa=pde.kappa,
+                      smoothing=marker.smoothing, degree=pde.degree)
 
 
 def _blob(coords, centre, direction, width):
@@ -68,30 +68,32 @@ class MarkerInversionTask(Task):
     """Infer v0 from (m0, m_T), trained by ``method`` ("sip" or "backprop"); module docstring."""
 
     def __init__(self, scene: Scene, method: str):
-        if scene.task != "sip" or scene.pde["type"] != "marker":
+        if scene.task != "sip" or scene.pde.type != "marker":
             raise ValueError(f"MarkerInversionTask trains sip scenes on the marker PDE, got a {scene.task} scene on "
-                             f"{scene.pde['type']!r}")
+                             f"{scene.pde.type!r}")
         if method not in ("sip", "backprop"):
             raise ValueError(f"a sip scene trains with method 'sip' or its baseline 'backprop', got {method!r}")
         self.scene, self.method = scene, method
         self.physics = marker_flow(scene)
         self.layers = list(self.physics.layers)
         data = scene.data
-        self.train_size, self.val_size = data["train"], data["validation"]
-        self._centres = self._interior_nodes(scene.marker["width"], scene.marker["placement"])
-        self.val = self._samples(self.val_size, np.random.default_rng([data["seed"], 1]))
-        self.train = self._samples(self.train_size, np.random.default_rng([data["seed"], 0]))
-        torch.manual_seed(data["seed"])
+        self.train_size, self.val_size = data.train, data.validation
+        self._centres = self._interior_nodes(scene.marker.width, scene.marker.placement)
+        self.val = self._samples(self.val_size, np.random.default_rng([data.seed, 1]))
+        self.train = self._samples(self.train_size, np.random.default_rng([data.seed, 0]))
+        torch.manual_seed(data.seed)
         n_m, n_v = self.physics.marker_size, self.physics.velocity_size
         net = scene.network
-        self.model = mlp(2 * n_m, n_v, net["hidden"], net["layers"], torch.nn.Tanh).double()
+        self.model = mlp(2 * n_m, n_v, net.hidden, net.layers, torch.nn.Tanh).double()
         if method == "backprop":
-            self.optimizer, self.scheduler = make_optimizer({"type": "adam", **scene.baseline}, self.model.parameters())
+            self.optimizer, self.scheduler = make_optimizer(self.model.parameters(), "adam",
+                                                            scene.baseline.lr, scene.baseline.decay)
         else:
-            self.optimizer, self.scheduler = make_optimizer(scene.optimizer, self.model.parameters())
+            self.optimizer, self.scheduler = make_optimizer(self.model.parameters(), scene.optimizer.type,
+                                                            scene.optimizer.lr, scene.optimizer.decay)
             spec = scene.sip
-            self.inverse = LinearisedGaussNewton(self.physics, damping=spec["damping"], prior=scene.marker["prior"],
-                                                 max_it=spec["cg_iterations"], eta=spec["eta"])
+            self.inverse = LinearisedGaussNewton(self.physics, damping=spec.damping, prior=scene.marker.prior,
+                                                 max_it=spec.cg_iterations, eta=spec.eta)
 
     # ------------------------------------------------------------ data
     def _interior_nodes(self, margin: float, placement: str) -> np.ndarray:
@@ -110,19 +112,19 @@ class MarkerInversionTask(Task):
     def _samples(self, count: int, rng: np.random.Generator) -> dict:
         """``count`` truths: raw velocities g, v0 = Pi g, markers m0 and observations y = P(g, m0)."""
         P, marker = self.physics, self.scene.marker
-        g = torch.as_tensor(smooth_fields(P.flow.dof_coordinates("u_prev"), count, self.scene.data["modes"], rng,
+        g = torch.as_tensor(smooth_fields(P.flow.dof_coordinates("u_prev"), count, self.scene.data.modes, rng,
                                           components=2))
         with torch.no_grad():
             speed = P.initial_velocity(g).reshape(count, -1, 2).norm(dim=-1).max(dim=1).values
-            g = g * (marker["speed"] / speed)[:, None]
+            g = g * (marker.speed / speed)[:, None]
             v0 = P.initial_velocity(g)
         coords = P.transport.dof_coordinates()
-        shape = MARKER_SHAPES[marker["shape"]]
+        shape = MARKER_SHAPES[marker.shape]
         m0 = []
         for _ in range(count):
             centre = self._centres[rng.integers(len(self._centres))]
             angle = rng.uniform(0.0, np.pi)
-            m0.append(shape(coords, centre, np.array([np.cos(angle), np.sin(angle)]), marker["width"]))
+            m0.append(shape(coords, centre, np.array([np.cos(angle), np.sin(angle)]), marker.width))
         m0 = torch.as_tensor(np.array(m0))
         with torch.no_grad():
             y = P(g, m0)
@@ -130,8 +132,8 @@ class MarkerInversionTask(Task):
 
     def start_epoch(self, epoch: int) -> None:
         """With ``[data] resample``: new training truths, seeded by the epoch (the same on a resumed run)."""
-        if self.scene.data["resample"]:
-            self.train = self._samples(self.train_size, np.random.default_rng([self.scene.data["seed"], 2, epoch]))
+        if self.scene.data.resample:
+            self.train = self._samples(self.train_size, np.random.default_rng([self.scene.data.seed, 2, epoch]))
 
     # ------------------------------------------------------------ training
     def loss(self, idx) -> torch.Tensor:
