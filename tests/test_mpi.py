@@ -180,7 +180,7 @@ def test_fempdl_refuses_parallel_modes_that_do_not_fit(args, message, tmp_path):
 def test_the_distributed_mesh_example_recovers_the_serial_source():
     finals = {}
     for ranks in (1, 2):
-        done = mpirun(ranks, str(EXAMPLES / "mpi_distributed_mesh.py"), "--h", "0.05", "--steps", "20")
+        done = mpirun(ranks, str(EXAMPLES.parent / "examples" / "distributed_mesh.py"), "--h", "0.05", "--steps", "20")
         assert done.returncode == 0, done.stderr[-3000:]
         last = done.stdout.strip().splitlines()[-1]
         assert last.startswith(f"{ranks} rank(s),"), done.stdout
