@@ -7,15 +7,16 @@ For B right-hand sides stacked as the columns of R (n, B), K iterations of
 (and the same with A^T for the transposed solve) are exactly what PETSc's
 KSPRICHARDSON + PCJACOBI computes column by column, with the same operations
 in the same order per entry; only the summation order inside a sparse row
-product may differ, so the iterates agree to round-off (about 1e-15
-relative). CG and GMRES(m) run :func:`fempdl.iterative.unrolled.solve`'s KSPCG and
-KSPGMRES recurrences the same way. PCJACOBI replaces a zero diagonal entry by 1, and so does this engine.
+product may differ, so the iterates agree to round-off. CG and GMRES(m) run
+the recurrences of PETSc's KSPCG and KSPGMRES (classical Gram-Schmidt, as
+:mod:`fempdl.iterative.unrolled`) in place and without autograd
+(:func:`fast_cg`, :func:`fast_gmres`): whole-block operations, no loop over
+columns. PCJACOBI replaces a zero diagonal entry by 1, and so does this engine.
 
-The operator is a torch CSR copy of the assembled PETSc matrix (serial only),
-refreshed when the matrix is reassembled. Reading the matrix once per
-iteration for all B columns, and torch's threaded sparse kernels, make this
-1.9x (4k DOFs) to 2x (66k DOFs, 2 threads) faster per right-hand side than B
-separate KSP solves at K = 200, B = 32 (``scripts/bench_layer.py``).
+The operator is a torch CSR copy of the assembled PETSc matrix (serial only,
+int32 indices), refreshed when the matrix is reassembled. When batching pays
+is :meth:`BatchedEngine.faster_than_petsc` (measured: ``scripts/bench_layer.py``,
+``scripts/bench_krylov.py``).
 
 This module knows PETSc and torch, nothing of UFL.
 """
@@ -27,13 +28,15 @@ import numpy as np
 import torch
 from petsc4py import PETSc
 
-from fempdl.iterative import unrolled
+from fempdl.iterative.unrolled import _SOLVED
 from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
 from fempdl.iterative.sparse import sparse_to_torch
 
-__all__ = ["BatchedEngine"]
+__all__ = ["BatchedEngine", "fast_cg", "fast_gmres"]
 
 _OWN_OPTIONS = frozenset({"ksp_richardson_scale"})
+CG_BLOCK_VALUES = 2 ** 19   # values per (n, c) CG block (4 MiB): measured best group size at 66k DOFs
+CG_MIN_BATCH = 8   # smallest batch where batched CG beat PETSc's loop (scripts/bench_krylov.py)
 
 
 class BatchedEngine:
@@ -61,18 +64,23 @@ class BatchedEngine:
         return None
 
     @staticmethod
-    def faster_than_petsc(batch: int, n: int) -> bool:
-        """Measured rule (scripts/bench_layer.py): batching pays from B = 2 when
-        torch has two or more threads, or on one thread while the (n, B) iterate
-        stays cache-sized."""
-        return batch >= 2 and (torch.get_num_threads() >= 2 or batch * n <= 2 ** 20)
+    def faster_than_petsc(batch: int, n: int, ksp_type: str = "richardson") -> bool:
+        """Measured rules. Richardson (scripts/bench_layer.py): batching pays from
+        B = 2 when torch has two or more threads, or on one thread while the
+        (n, B) iterate stays cache-sized. CG (scripts/bench_krylov.py): from
+        B = 8. GMRES never: its batched Gram-Schmidt streams B Krylov bases
+        from memory where PETSc's one basis stays in cache."""
+        if ksp_type == "richardson":
+            return batch >= 2 and (torch.get_num_threads() >= 2 or batch * n <= 2 ** 20)
+        return ksp_type == "cg" and batch >= CG_MIN_BATCH
 
     def load(self, A: PETSc.Mat) -> None:
         """Copy the current entries of ``A`` (call again after it is reassembled)."""
         S = petsc_to_scipy(A)
         d = S.diagonal()
-        self._A = sparse_to_torch(S)
-        self._At = sparse_to_torch(S.T.tocsr())
+        index = np.int32 if S.nnz < 2 ** 31 - 1 else np.int64
+        self._A = sparse_to_torch(S, index)
+        self._At = sparse_to_torch(S.T.tocsr(), index)
         safe = np.where(d != 0.0, d, 1.0)  # PCJACOBI's treatment of a zero diagonal
         self._dinv = torch.from_numpy(1.0 / safe)[:, None]
 
@@ -90,8 +98,21 @@ class BatchedEngine:
         precondition = options.pc_type == "jacobi"
         with torch.no_grad():
             if options.ksp_type in ("cg", "gmres"):
-                X = unrolled.solve(options.ksp_type, op, self._dinv if precondition else None, rhs,
-                                   options.max_it, restart=options.gmres_restart or 30, X0=start)
+                # A warm start is the K-step solve of the residual equation, as in PETSc.
+                res = rhs if start is None else rhs - op @ start
+                P = self._dinv if precondition else None
+                if options.ksp_type == "cg":
+                    # Column groups whose (n, c) blocks stay cache-sized: CG's vector updates
+                    # then run from cache at the price of reading A once per group.
+                    B = res.shape[1]
+                    c = max(4, round(CG_BLOCK_VALUES / res.shape[0]))
+                    c = -(-B // -(-B // c))                        # equal groups
+                    X = torch.cat([fast_cg(op, P, res[:, i:i + c].contiguous(), options.max_it)
+                                   for i in range(0, res.shape[1], c)], dim=1)
+                else:
+                    X = fast_gmres(op, P, res, options.max_it, options.gmres_restart or 30)
+                if start is not None:
+                    X.add_(start)
             else:
                 # In place: nothing is differentiated here, so no iterate needs keeping.
                 step = (self._dinv if precondition else torch.ones_like(self._dinv)) * scale
@@ -104,3 +125,102 @@ class BatchedEngine:
         """A X^T (or A^T X^T) for the rows of X (B, n), as rows (B, n)."""
         op = self._At if transpose else self._A
         return np.ascontiguousarray((op @ torch.from_numpy(np.ascontiguousarray(X.T))).T.numpy())
+
+
+# ------------------------------------------------------------------ fast paths
+# In place and without autograd: the engine's solves never need an iterate kept.
+# They run the recurrences of fempdl.iterative.unrolled (PETSc's KSPCG and
+# KSPGMRES) for all columns at once, with whole-block torch operations only.
+
+def _column_dots(X: torch.Tensor, Y: torch.Tensor, buf: torch.Tensor) -> torch.Tensor:
+    """sum_i X[i, b] Y[i, b] for every column b of (n, B) blocks (``buf``: scratch (n, B))."""
+    return torch.mul(X, Y, out=buf).sum(0)
+
+
+def _spmm(A: torch.Tensor, X: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+    """out = A @ X; ``A @ X`` would zero-fill a result and copy it once more."""
+    return torch.addmm(out, A, X, beta=0.0, out=out)
+
+
+def _ratio(num: torch.Tensor, den: torch.Tensor, solved: torch.Tensor) -> torch.Tensor:
+    """num / den per column, 0 where den == 0 or the column is solved (it then stays put)."""
+    zero = (den == 0) | solved
+    return torch.where(zero, torch.zeros_like(num), num / torch.where(zero, torch.ones_like(den), den))
+
+
+def fast_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int) -> torch.Tensor:
+    """K steps of preconditioned CG (KSPCG's recurrences) from X = 0 for R (n, B); returns X (n, B).
+
+    One SpMM and two column-dot passes per iteration. A column counts as solved
+    once its preconditioned residual product r.z has fallen by 1e-40 from its
+    start (unrolled uses r.r; both lie far past double precision)."""
+    X = torch.zeros_like(R)
+    r = R.clone()
+    buf = torch.empty_like(R)
+    z = r if P is None else P * r
+    p = z.clone()
+    beta = _column_dots(r, z, buf)
+    floor = _SOLVED * beta.abs()
+    w = torch.zeros_like(R)
+    for _ in range(K):
+        solved = beta.abs() <= floor
+        _spmm(A, p, w)
+        a = _ratio(beta, _column_dots(p, w, buf), solved)
+        X.addcmul_(p, a)
+        r.addcmul_(w, a, value=-1.0)
+        if P is not None:
+            torch.mul(P, r, out=z)
+        beta_new = _column_dots(r, z, buf)
+        torch.addcmul(z, p, _ratio(beta_new, beta, solved), out=p)
+        beta = beta_new
+    return X
+
+
+def fast_gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int, restart: int) -> torch.Tensor:
+    """K iterations of left-preconditioned GMRES(restart) with classical Gram-Schmidt from X = 0,
+    as :func:`fempdl.iterative.unrolled.gmres` (PETSc's KSPGMRES); R (n, B), returns X (n, B).
+
+    The basis is kept sample-major, (B, m + 1, n), so that the Gram-Schmidt
+    products for all columns are two batched matrix-vector products."""
+    n, batch = R.shape
+    dtype = R.dtype
+    m = min(restart, K)
+    V = torch.empty(batch, m + 1, n, dtype=dtype)
+    X = torch.zeros_like(R)
+    v = torch.empty_like(R)           # the current basis vector, column-major for the SpMM
+    w = torch.zeros_like(R)
+    done = 0
+    while done < K:
+        steps = min(restart, K - done)
+        _spmm(A, X, w)
+        r = R - w
+        if P is not None:
+            r.mul_(P)
+        beta = r.norm(dim=0)
+        broken = beta == 0
+        V[:, 0].copy_((r / torch.where(broken, torch.ones_like(beta), beta)).T)
+        H = torch.zeros(batch, steps + 1, steps, dtype=dtype)
+        for j in range(steps):
+            v.copy_(V[:, j].T)
+            _spmm(A, v, w)
+            if P is not None:
+                w.mul_(P)
+            wt = w.T.contiguous()                                   # (B, n)
+            basis = V[:, :j + 1]                                    # (B, j + 1, n)
+            h = torch.bmm(basis, wt[:, :, None])                    # (B, j + 1, 1)
+            wt[:, :, None].baddbmm_(basis.transpose(1, 2), h, alpha=-1.0)
+            h_next = wt.norm(dim=1)
+            newly = ~broken & (h_next <= 1e-14 * beta)
+            pad = broken
+            broken = broken | newly
+            H[:, :j + 1, j] = torch.where(pad[:, None], torch.zeros_like(h[:, :, 0]), h[:, :, 0])
+            H[:, j + 1, j] = torch.where(pad, torch.ones_like(h_next), torch.where(broken, torch.zeros_like(h_next), h_next))
+            scale = torch.where(broken, torch.zeros_like(h_next), 1.0 / torch.where(broken, torch.ones_like(h_next), h_next))
+            torch.mul(wt, scale[:, None], out=V[:, j + 1])
+        rhs = torch.zeros(batch, steps + 1, 1, dtype=dtype)
+        rhs[:, 0, 0] = beta
+        Q, T = torch.linalg.qr(H)
+        y = torch.linalg.solve_triangular(T, Q.transpose(1, 2) @ rhs, upper=True)   # (B, steps, 1)
+        X.add_(torch.bmm(V[:, :steps].transpose(1, 2), y)[:, :, 0].T)
+        done += steps
+    return X

@@ -14,13 +14,14 @@ import torch
 __all__ = ["sparse_to_torch", "SparseOperator"]
 
 
-def sparse_to_torch(M: sp.csr_matrix) -> torch.Tensor:
-    """A scipy CSR matrix as a float64 torch CSR tensor (copies)."""
+def sparse_to_torch(M: sp.csr_matrix, index_dtype=np.int64) -> torch.Tensor:
+    """A scipy CSR matrix as a float64 torch CSR tensor (copies); ``np.int32``
+    indices spare torch's CPU SpMM a conversion of the indices per product."""
     with warnings.catch_warnings():
         # torch flags CSR support as beta; sparse @ dense used here is stable.
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
         return torch.sparse_csr_tensor(
-            torch.from_numpy(M.indptr.astype(np.int64)), torch.from_numpy(M.indices.astype(np.int64)),
+            torch.from_numpy(M.indptr.astype(index_dtype)), torch.from_numpy(M.indices.astype(index_dtype)),
             torch.from_numpy(M.data.astype(np.float64)), size=M.shape, check_invariants=False)
 
 

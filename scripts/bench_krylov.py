@@ -1,0 +1,125 @@
+"""Benchmark: batched capped CG and GMRES(30) + Jacobi against PETSc's per-sample loop.
+
+Poisson on the bundled L-shape (about 4k and 66k P1 DOFs, as in
+``scripts/bench_layer.py``), the source f as control, B random sources, a
+pure cap of K iterations. One timed call is ``u = layer(f=F); (u * W).sum().backward()``:
+B forward solves and B transposed solves. The two engines (``engine="petsc"``:
+one KSP solve per sample; ``engine="batched"``: all samples at once, see
+:mod:`fempdl.iterative.batched`) are interleaved within every repeat; each
+time reported is the minimum over the repeats, and the speed-up is
+petsc / batched. The results of both engines are compared (max relative
+difference of u and of dJ/df). Also recorded: the choice ``engine="auto"`` makes.
+
+Run::
+
+    .venv/bin/python scripts/bench_krylov.py            # both sizes, CG and GMRES(30), K=200, B=32 (CG also B=2,4,8)
+    .venv/bin/python scripts/bench_krylov.py --sizes small --repeats 1 --out /tmp/k.json
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # before torch loads OpenMP
+
+import argparse
+import datetime
+import time
+from pathlib import Path
+
+from bench_common import comma_list, machine_info, write_json_atomically  # noqa: E402  (loads MPI first)
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+import fempdl  # noqa: E402
+from fempdl.bridge_torch import SolveLayer  # noqa: E402
+from fempdl.ksp_adjoint import KSPOptions  # noqa: E402
+
+MESH_SIZES = {"small": 0.03, "large": 0.0073}
+TARGET = 2.0
+
+
+def options(solver: str, K: int, engine: str) -> KSPOptions:
+    if solver == "cg":
+        return KSPOptions.preset("cg", max_it=K, engine=engine)
+    return KSPOptions.preset("gmres", max_it=K, gmres_restart=30, engine=engine)
+
+
+def call(layer, F, W):
+    F.grad = None
+    t0 = time.perf_counter()
+    u = layer(f=F)
+    (u * W).sum().backward()
+    return time.perf_counter() - t0, u.detach().numpy(), F.grad.numpy().copy()
+
+
+def rel(X, Y) -> float:
+    return float(np.max(np.linalg.norm(X - Y, axis=1) / np.linalg.norm(Y, axis=1)))
+
+
+def bench(size: str, args, rng) -> list:
+    msh = fempdl.mesh.load("lshape", h=MESH_SIZES[size])
+    prob = fempdl.forms.poisson.problem(msh, controls=("f",), g=lambda x: 1.0 + x[0] * x[1])
+    F_all = rng.standard_normal((max(args.batches), prob.control_size("f")))
+    W_all = torch.from_numpy(rng.standard_normal((max(args.batches), prob.output_size)))
+    rows = []
+    for solver, batch in [(s, b) for s in args.solvers for b in args.batches
+                          if b == max(args.batches) or s in args.small_batch_solvers]:
+        F = torch.from_numpy(F_all[:batch].copy()).requires_grad_()
+        W = W_all[:batch]
+        layers = {e: SolveLayer(prob, options(solver, args.k, e)) for e in ("petsc", "batched", "auto")}
+        _, u_p, g_p = call(layers["petsc"], F, W)          # warm-up and check
+        _, u_b, g_b = call(layers["batched"], F, W)
+        call(layers["auto"], F, W)
+        times = {"petsc": [], "batched": []}
+        loads = []
+        for rep in range(args.repeats):
+            order = ("petsc", "batched") if rep % 2 == 0 else ("batched", "petsc")
+            for e in order:
+                times[e].append(call(layers[e], F, W)[0])
+            loads.append(list(os.getloadavg()))
+        best = {e: min(t) for e, t in times.items()}
+        row = {"size": size, "dofs": prob.output_size, "solver": f"{solver}+jacobi" + ("(30)" if solver == "gmres" else ""),
+               "K": args.k, "B": batch, "seconds_min": best, "seconds_all": times,
+               "speedup_batched_over_petsc": best["petsc"] / best["batched"],
+               "per_repeat_ratios": [p / b for p, b in zip(times["petsc"], times["batched"])],
+               "max_rel_diff_u": rel(u_b, u_p), "max_rel_diff_grad_f": rel(g_b, g_p),
+               "auto_engine": layers["auto"].stats.last.engine, "load_average_per_repeat": loads}
+        rows.append(row)
+        print(f"{size:>6} {prob.output_size:>7} {row['solver']:>16} B={batch:<3} petsc {best['petsc']:8.3f}s batched "
+              f"{best['batched']:8.3f}s speedup {row['speedup_batched_over_petsc']:5.2f} "
+              f"diff u {row['max_rel_diff_u']:.1e} grad {row['max_rel_diff_grad_f']:.1e} auto {row['auto_engine']}",
+              flush=True)
+        for layer in layers.values():
+            layer.close()
+    return rows
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sizes", type=comma_list(str), default=["small", "large"])
+    parser.add_argument("--solvers", type=comma_list(str), default=["cg", "gmres"])
+    parser.add_argument("--k", type=int, default=200)
+    parser.add_argument("--batches", type=comma_list(int), default=[2, 4, 8, 32],
+                        help="batch sizes; all but the largest only for --small-batch-solvers")
+    parser.add_argument("--small-batch-solvers", type=comma_list(str), default=["cg"])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_krylov.json"))
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    rng = np.random.default_rng(0)
+    data = {"benchmark": "bench_krylov", "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
+            "machine": machine_info(), "target_speedup": TARGET, "statistic": "min over interleaved repeats",
+            "problem": "poisson on lshape, control f, g = 1 + x*y; one call = B forward + B transposed solves",
+            "results": []}
+    for size in args.sizes:
+        data["results"] += bench(size, args, rng)
+        data["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
+        write_json_atomically(data, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
