@@ -181,7 +181,7 @@ def fast_gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int,
     as :func:`fempdl.iterative.unrolled.gmres` (PETSc's KSPGMRES); R (n, B), returns X (n, B).
 
     The basis is kept sample-major, (B, m + 1, n), so that the Gram-Schmidt
-    products for all columns are two batched matrix-vector products."""
+    products for all columns are two batched matrix products."""
     n, batch = R.shape
     dtype = R.dtype
     m = min(restart, K)
@@ -207,13 +207,16 @@ def fast_gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int,
                 w.mul_(P)
             wt = w.T.contiguous()                                   # (B, n)
             basis = V[:, :j + 1]                                    # (B, j + 1, n)
-            h = torch.bmm(basis, wt[:, :, None])                    # (B, j + 1, 1)
-            wt[:, :, None].baddbmm_(basis.transpose(1, 2), h, alpha=-1.0)
+            # Row-vector products (1 x n times n x (j + 1)): several times faster in torch's
+            # CPU bmm than the column-vector form.
+            h = torch.bmm(wt[:, None, :], basis.transpose(1, 2))    # (B, 1, j + 1)
+            wt[:, None, :].baddbmm_(h, basis, alpha=-1.0)
+            h = h[:, 0, :]
             h_next = wt.norm(dim=1)
             newly = ~broken & (h_next <= 1e-14 * beta)
             pad = broken
             broken = broken | newly
-            H[:, :j + 1, j] = torch.where(pad[:, None], torch.zeros_like(h[:, :, 0]), h[:, :, 0])
+            H[:, :j + 1, j] = torch.where(pad[:, None], torch.zeros_like(h), h)
             H[:, j + 1, j] = torch.where(pad, torch.ones_like(h_next), torch.where(broken, torch.zeros_like(h_next), h_next))
             scale = torch.where(broken, torch.zeros_like(h_next), 1.0 / torch.where(broken, torch.ones_like(h_next), h_next))
             torch.mul(wt, scale[:, None], out=V[:, j + 1])
@@ -221,6 +224,6 @@ def fast_gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int,
         rhs[:, 0, 0] = beta
         Q, T = torch.linalg.qr(H)
         y = torch.linalg.solve_triangular(T, Q.transpose(1, 2) @ rhs, upper=True)   # (B, steps, 1)
-        X.add_(torch.bmm(V[:, :steps].transpose(1, 2), y)[:, :, 0].T)
+        X.add_(torch.bmm(y.transpose(1, 2), V[:, :steps])[:, 0, :].T)
         done += steps
     return X
