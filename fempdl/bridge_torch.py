@@ -31,6 +31,11 @@ output is (B, n) if any input is batched, else (n,), n = ``problem.output_size``
 Values are owned DOFs in DOLFINx's DOF order (``problem.dof_coordinates``).
 Computation is in float64; the output has the inputs' floating dtype (float64
 if they differ) and their device (CUDA tensors are solved on the CPU).
+
+In implicit mode the layer composes with torch.func (grad, vjp, jacrev; vmap
+folds the mapped dimension into the native batch: one solve call) and with
+torch.compile (each solve and each adjoint solve is one opaque operator, no
+graph break); see :mod:`fempdl.implicit`.
 """
 from __future__ import annotations
 
@@ -38,7 +43,7 @@ import time
 
 import torch
 
-from fempdl.implicit import ImplicitSolve, count_on_all_ranks
+from fempdl.implicit import ImplicitSolve, count_on_all_ranks, nonfinite_control_message, register_layer
 from fempdl.iterative.batched import BatchedEngine
 from fempdl.iterative.unrolled_path import UnrolledPath, unrolled_method
 from fempdl.ksp_adjoint import CumulativeStats, KSPOptions, warn_at_caller
@@ -109,6 +114,10 @@ class SolveLayer(torch.nn.Module):
         self.diff = diff
         self._unrolled = UnrolledPath(max_unrolled_values, memory_budget) if diff == "unrolled" else None
         self._system = LinearSystem(problem, options, batched_engine=BatchedEngine())
+        # Plain values for forward, so torch.compile traces it without entering the Problem.
+        self._sizes = {**{n: problem.control_size(n) for n in problem.control_names},
+                       INITIAL_GUESS: problem.output_size}
+        self._handle = register_layer(self)
 
     @property
     def system(self) -> LinearSystem:
@@ -162,16 +171,26 @@ class SolveLayer(torch.nn.Module):
             dtype = torch.float64
         device = tensors[0].device if tensors else torch.device("cpu")
         if self._unrolled is not None:
+            self._check_finite(names, tensors)
             t0 = time.perf_counter()
             out = self._unrolled.solve(self.system, {n: t.to(device="cpu", dtype=torch.float64)
                                                      for n, t in zip(names, tensors)}, batch)
             self.stats.layer_time += time.perf_counter() - t0
         else:
-            out = ImplicitSolve.apply(self, names, batch, *tensors)
+            # The operator checks the controls for NaN/inf and the float32 range of the solution.
+            keep = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+            out = ImplicitSolve.apply(self._handle, names, batch, keep, dtype != torch.float64, *tensors)
         out = out.to(device=device, dtype=dtype)
-        if dtype != torch.float64 and count_on_all_ranks(~torch.isfinite(out), self.problem):
+        if (self._unrolled is not None and dtype != torch.float64
+                and count_on_all_ranks(~torch.isfinite(out), self.problem)):
             self._report_overflow(dtype)
         return out if batched else out[0]
+
+    def _check_finite(self, names, tensors) -> None:
+        for name, t in zip(names, tensors):
+            bad = count_on_all_ranks(~torch.isfinite(t.detach()), self.problem)
+            if bad:
+                raise ValueError(nonfinite_control_message(name, bad))
 
     def _report_overflow(self, dtype) -> None:
         message = (f"the solution is finite in float64 but overflows {dtype}; pass float64 controls "
@@ -215,11 +234,12 @@ class SolveLayer(torch.nn.Module):
                 f"ksp={o.ksp_type}+{o.pc_type}, max_it={o.max_it}, diff={self.diff!r}")
 
     def _validate(self, controls: dict):
-        p = self.problem
-        unknown = [n for n in controls if n not in p.control_names and n != INITIAL_GUESS]
+        sizes = self._sizes
+        unknown = [n for n in controls if n not in sizes]
         if unknown:
-            raise ValueError(f"unknown control(s) {unknown}; this layer's controls are {list(p.control_names)}")
-        names = tuple(n for n in (*p.control_names, INITIAL_GUESS) if n in controls)
+            raise ValueError(f"unknown control(s) {unknown}; this layer's controls are "
+                             f"{[n for n in sizes if n != INITIAL_GUESS]}")
+        names = tuple(n for n in sizes if n in controls)
         tensors = [controls[n] for n in names]
         batch_sizes = {}
         for name, t in zip(names, tensors):
@@ -229,7 +249,7 @@ class SolveLayer(torch.nn.Module):
             if t.dtype not in _FLOAT_DTYPES:
                 raise TypeError(f"control {name!r} has dtype {t.dtype}; use float32 or float64 "
                                 "(e.g. tensor.double())")
-            n = p.output_size if name == INITIAL_GUESS else p.control_size(name)
+            n = sizes[name]
             if t.dim() not in (1, 2) or t.shape[-1] != n:
                 raise ValueError(
                     f"control {name!r} has shape {tuple(t.shape)}, expected (B, {n}) or ({n},): one value per "
@@ -239,10 +259,6 @@ class SolveLayer(torch.nn.Module):
                 if t.shape[0] == 0:
                     raise ValueError(f"control {name!r} has an empty batch (shape {tuple(t.shape)})")
                 batch_sizes[name] = t.shape[0]
-            bad = count_on_all_ranks(~torch.isfinite(t.detach()), p)
-            if bad:
-                raise ValueError(f"control {name!r} contains {bad} NaN/inf value(s); "
-                                 "check the upstream network or data")
         if len(set(batch_sizes.values())) > 1:
             raise ValueError(f"controls have different batch sizes {batch_sizes}; "
                              "pass (B, n) tensors with one B, or (n,) tensors shared by all samples")

@@ -4,76 +4,217 @@ Forward: A(m) u = b(m) by the layer's capped solver (K = ``max_it``). Backward:
 A(m)^T lam = dJ/du (BC entries zeroed, same solver and cap), then
 dJ/dm = -lam^T dF/dm for every control that requires grad, and, for a warm
 start x0, the adjoint residual dJ/du - A^T lam (:meth:`LinearSystem.adjoint`).
+
+Shapes: controls (B, n_m), or (n_m,) shared by the batch; u and dJ/du (B, n).
+Both solves are opaque torch operators (``fempdl::implicit_solve``,
+``fempdl::implicit_adjoint``) with fake (shape-only) kernels and vmap rules
+that fold a vmapped dimension into the native batch, so torch.func
+(grad, vjp, jacrev, vmap) and torch.compile see one op per solve.
 """
 from __future__ import annotations
 
+import itertools
+import sys
 import time
+import weakref
 
+import dolfinx
 import numpy as np
 import torch
-from torch.autograd.function import once_differentiable
+import torch._dynamo  # noqa: F401  (imported by a custom op's first call otherwise: 1-2 s inside a solve)
+from torch import Tensor
 
 from fempdl.system import INITIAL_GUESS
 
-__all__ = ["ImplicitSolve", "count_on_all_ranks"]
+# Importing dolfinx leaves the process's dlopen flags at RTLD_GLOBAL (its line that
+# restores them is commented out). torch.compile's CPU backend then loads every
+# compiled kernel with global symbols, all named ``kernel``, so a graph can run
+# another graph's kernel: silently wrong values and gradients. Restore the flags
+# dolfinx found (its own extension modules are loaded by now).
+if hasattr(dolfinx, "stored_dlopen_flags"):
+    sys.setdlopenflags(dolfinx.stored_dlopen_flags)
+
+__all__ = ["ImplicitSolve", "count_on_all_ranks", "register_layer", "nonfinite_control_message"]
+
+# Live layers by integer handle: the operators take the handle, not the layer
+# (an operator's arguments are tensors and plain values).
+_LAYERS: dict[int, weakref.ref] = {}
+_HANDLES = itertools.count(1)
 
 
+def register_layer(layer) -> int:
+    """A handle under which the operators find ``layer`` (dropped when it is garbage collected)."""
+    handle = next(_HANDLES)
+    _LAYERS[handle] = weakref.ref(layer, lambda _, h=handle: _LAYERS.pop(h, None))
+    return handle
+
+
+def _layer(handle: int):
+    ref = _LAYERS.get(handle)
+    layer = ref() if ref is not None else None
+    if layer is None:
+        raise RuntimeError(f"SolveLayer handle {handle} no longer refers to a live layer")
+    return layer
+
+
+def nonfinite_control_message(name: str, bad: int) -> str:
+    return f"control {name!r} contains {bad} NaN/inf value(s); check the upstream network or data"
+
+
+# ------------------------------------------------------------------ operators
+@torch.library.custom_op("fempdl::implicit_solve", mutates_args=())
+def implicit_solve(handle: int, names: str, batch: int, keep_matrices: bool, float32: bool,
+                   tensors: list[Tensor]) -> Tensor:
+    """U (batch, n) in float64 on the CPU; ``names`` comma-separated, one per tensor."""
+    layer = _layer(handle)
+    t0 = time.perf_counter()
+    names = _split(names)
+    for name, t in zip(names, tensors):
+        bad = count_on_all_ranks(~torch.isfinite(t), layer.problem)
+        if bad:
+            raise ValueError(nonfinite_control_message(name, bad))
+    shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
+    arrays = _batched_arrays(names, tensors, batch)
+    guess = arrays.pop(INITIAL_GUESS, None)
+    U = layer.system.solve(arrays, batch, shared, initial_guess=guess, keep_matrices=keep_matrices)
+    if float32 and count_on_all_ranks(~np.isfinite(U.astype(np.float32)), layer.problem):
+        layer._report_overflow(torch.float32)
+    layer.stats.layer_time += time.perf_counter() - t0
+    return torch.from_numpy(np.ascontiguousarray(U, dtype=np.float64))  # the layout register_fake promises
+
+
+@implicit_solve.register_fake
+def _(handle, names, batch, keep_matrices, float32, tensors):
+    n = _layer(handle).problem.output_size
+    return torch.empty((batch, n), dtype=torch.float64, device="cpu")
+
+
+@torch.library.custom_op("fempdl::implicit_adjoint", mutates_args=())
+def implicit_adjoint(handle: int, names: str, wanted: str, tensors: list[Tensor], u: Tensor,
+                     du: Tensor) -> list[Tensor]:
+    """dJ/dm (batch, n_m) float64 for each name in ``wanted`` (in ``names`` order), given u and du = dJ/du (batch, n)."""
+    layer = _layer(handle)
+    t0 = time.perf_counter()
+    names, wanted = _split(names), _split(wanted)
+    G = _to_numpy(du)
+    bad = count_on_all_ranks(~np.isfinite(G), layer.problem)
+    if bad:
+        raise ValueError(f"the gradient flowing back into SolveLayer contains {bad} NaN/inf "
+                         "value(s); the loss or the layers after this one produced them")
+    batch = G.shape[0]
+    shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
+    arrays = _batched_arrays(names, tensors, batch)
+    arrays.pop(INITIAL_GUESS, None)
+    grads = layer.system.adjoint(arrays, _to_numpy(u), G, [n for n in wanted if n != INITIAL_GUESS],
+                                 shared, initial_guess=INITIAL_GUESS in wanted)
+    layer.stats.layer_time += time.perf_counter() - t0
+    return [torch.from_numpy(np.ascontiguousarray(grads[n], dtype=np.float64)) for n in wanted]
+
+
+@implicit_adjoint.register_fake
+def _(handle, names, wanted, tensors, u, du):
+    sizes = {n: t.shape[-1] for n, t in zip(_split(names), tensors)}
+    return [torch.empty((du.shape[0], sizes[n]), dtype=torch.float64, device="cpu") for n in _split(wanted)]
+
+
+def _solve_vmap(info, in_dims, handle, names, batch, keep_matrices, float32, tensors):
+    V, dims = info.batch_size, in_dims[5]
+    if all(d is None for d in dims):
+        return implicit_solve(handle, names, batch, keep_matrices, float32, tensors), None
+    folded = [_fold(t, d, V, batch) for t, d in zip(tensors, dims)]
+    U = implicit_solve(handle, names, V * batch, keep_matrices, float32, folded)
+    return U.reshape(V, batch, U.shape[-1]), 0
+
+
+def _adjoint_vmap(info, in_dims, handle, names, wanted, tensors, u, du):
+    V = info.batch_size
+    out_v, grad_v = _fold3(u, in_dims[4], V), _fold3(du, in_dims[5], V)
+    batch = grad_v.shape[1]
+    folded = [_fold(t, d, V, batch) for t, d in zip(tensors, in_dims[3])]
+    grads = implicit_adjoint(handle, names, wanted, folded, out_v.reshape(V * batch, -1),
+                             grad_v.reshape(V * batch, -1))
+    return [g.reshape(V, batch, g.shape[-1]) for g in grads], [0] * len(grads)
+
+
+implicit_solve.register_vmap(_solve_vmap)
+implicit_adjoint.register_vmap(_adjoint_vmap)
+
+
+def _fold(t: Tensor, dim, V: int, batch: int) -> Tensor:
+    """One operand of a vmapped call as an operand of the native batch of V * batch samples.
+
+    A tensor that is shared, (n_m,), in every vmapped sample stays shared; otherwise
+    it becomes (V * batch, n_m), vmapped sample v owning rows v * batch ... (v + 1) * batch - 1."""
+    if dim is None:
+        if t.dim() == 1:
+            return t
+        return t.unsqueeze(0).expand(V, *t.shape).reshape(V * batch, t.shape[-1])
+    t = t.movedim(dim, 0)
+    if t.dim() == 2:   # shared within a vmapped sample, different across them
+        t = t.unsqueeze(1).expand(V, batch, t.shape[-1])
+    return t.reshape(V * batch, t.shape[-1])
+
+
+def _fold3(t: Tensor, dim, V: int) -> Tensor:
+    """A (batch, n) operand as (V, batch, n)."""
+    return t.unsqueeze(0).expand(V, *t.shape) if dim is None else t.movedim(dim, 0)
+
+
+# ------------------------------------------------------------------ autograd
 class ImplicitSolve(torch.autograd.Function):
-    """autograd.Function around the layer's LinearSystem; all non-tensor state lives in the layer."""
+    """The forward solve with the adjoint solve as its backward (setup_context style, so
+    torch.func transforms apply; vmap goes through the operators' vmap rules).
+
+    ``ImplicitSolve.apply(handle, names, batch, keep_matrices, float32, *tensors)``:
+    ``names`` a tuple with one control name per tensor, ``batch`` the native batch B."""
+
+    generate_vmap_rule = True
 
     @staticmethod
-    def forward(ctx, layer, names: tuple, batch: int, *tensors):
-        t0 = time.perf_counter()
-        shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
-        arrays = _batched_arrays(names, tensors, batch)
-        guess = arrays.pop(INITIAL_GUESS, None)
-        U = layer.system.solve(arrays, batch, shared, initial_guess=guess,
-                               keep_matrices=any(ctx.needs_input_grad[3:]))
-        out = torch.from_numpy(U)
+    def forward(handle: int, names: tuple, batch: int, keep_matrices: bool, float32: bool, *tensors):
+        return implicit_solve(handle, ",".join(names), batch, keep_matrices, float32, list(tensors))
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        handle, names, batch, _, _, *tensors = inputs
         # Saved through autograd so that an in-place change of an input or of the
         # output before backward raises autograd's error instead of corrupting
         # the gradient (backward re-assembles with the controls and u).
-        ctx.save_for_backward(*tensors, out)
-        ctx.layer, ctx.names, ctx.batch, ctx.shared = layer, names, batch, shared
-        ctx.inputs = [(t.shape, t.dtype, t.device) for t in tensors]
-        layer.stats.layer_time += time.perf_counter() - t0
-        return out
+        ctx.save_for_backward(*tensors, output)
+        ctx.handle, ctx.names = handle, names
+        ctx.inputs = [(t.dim(), t.dtype, t.device) for t in tensors]
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, grad_out):
-        t0 = time.perf_counter()
-        layer, names = ctx.layer, ctx.names
-        wanted = [n for n, need in zip(names, ctx.needs_input_grad[3:]) if need]
-        grads = {}
-        if wanted:
-            G = _to_numpy(grad_out)
-            bad = count_on_all_ranks(~np.isfinite(G), layer.problem)
-            if bad:
-                raise ValueError(f"the gradient flowing back into SolveLayer contains {bad} NaN/inf "
-                                 "value(s); the loss or the layers after this one produced them")
-            *tensors, out = ctx.saved_tensors
-            arrays = _batched_arrays(names, tensors, ctx.batch)
-            arrays.pop(INITIAL_GUESS, None)
-            grads = layer.system.adjoint(arrays, out.numpy(), G, [n for n in wanted if n != INITIAL_GUESS],
-                                         ctx.shared, initial_guess=INITIAL_GUESS in wanted)
-        out = []
-        for name, (shape, dtype, device) in zip(names, ctx.inputs):
+        # First order only (like once_differentiable): the adjoint operator gets
+        # detached operands, so under torch.func it sees plain or vmapped tensors.
+        needs = ctx.needs_input_grad[5:]
+        wanted = [n for n, need in zip(ctx.names, needs) if need]
+        if not wanted:
+            return (None,) * (5 + len(ctx.names))
+        *tensors, out = ctx.saved_tensors
+        grads = implicit_adjoint(ctx.handle, ",".join(ctx.names), ",".join(wanted),
+                                 [t.detach() for t in tensors], out.detach(), grad_out.detach())
+        grads = dict(zip(wanted, grads))
+        result = []
+        for name, (dim, dtype, device) in zip(ctx.names, ctx.inputs):
             g = grads.get(name)
-            if g is None:
-                out.append(None)
-                continue
-            g = torch.from_numpy(g)
-            g = g.sum(0) if len(shape) == 1 else g  # a shared (n,) control collects all samples
-            out.append(g.to(device=device, dtype=dtype))
-        layer.stats.layer_time += time.perf_counter() - t0
-        return (None, None, None, *out)
+            if g is not None:
+                g = g.sum(0) if dim == 1 else g  # a shared (n,) control collects all samples
+                g = g.to(device=device, dtype=dtype)
+            result.append(g)
+        return (None,) * 5 + tuple(result)
 
 
+# ------------------------------------------------------------------ helpers
 def count_on_all_ranks(mask, problem) -> int:
     """Number of True entries over all ranks: every rank must take the same branch
     (raise, or go on into collective solves)."""
     return problem.V.mesh.comm.allreduce(int(mask.sum()))
+
+
+def _split(names: str) -> list[str]:
+    return names.split(",") if names else []
 
 
 def _batched_arrays(names, tensors, batch: int) -> dict:
