@@ -22,13 +22,15 @@ import re
 import socket
 from pathlib import Path
 
+from fempdl.app.checkpoints import CHECKPOINT
+
 __all__ = ["LOCK", "ResumeError", "RunDirectoryError", "RunLock", "check_slug", "child", "fingerprint", "differences",
            "holds_run"]
 
 LOCK = ".lock"
 _SLUG = re.compile(r"[A-Za-z0-9._-]{1,128}")
 # Files whose presence means a directory holds a run.
-RUN_FILES = ("checkpoint.pt", "metrics.csv", "metrics.json")
+RUN_FILES = (CHECKPOINT, "metrics.csv", "metrics.json")
 
 
 class RunDirectoryError(RuntimeError):
