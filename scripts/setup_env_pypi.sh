@@ -39,9 +39,9 @@ fi
 
 stamp="$venv/.fempdl-installed"
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ "$0" -nt "$stamp" ] \
-   || ! "$venv/bin/python" -c "from mpi4py import MPI; import dolfinx, gmsh, torch, fempdl, pytest" >/dev/null 2>&1; then
+   || ! "$venv/bin/python" -c "from mpi4py import MPI; import dolfinx, gmsh, torch, fempdl, pytest, tensorboard" >/dev/null 2>&1; then
     echo "[setup] installing ${pkgs[*]} and fempdl into $venv"
     "$venv/bin/python" -m pip install -q --disable-pip-version-check "${pkgs[@]}"
-    "$venv/bin/python" -m pip install -q --disable-pip-version-check -e ".[test]"
+    "$venv/bin/python" -m pip install -q --disable-pip-version-check -e ".[test,tensorboard]"
     touch "$stamp"
 fi

@@ -12,12 +12,12 @@ import io
 import json
 import math
 import re
+import sys
 from pathlib import Path
 
 import pytest
 
-from fempdl.app import cli
-from fempdl.app import scene
+from fempdl.app import cli, runner, scene
 
 TRAIN, BATCH, EPOCHS = 16, 8, 6
 TINY = f"""
@@ -570,3 +570,26 @@ def test_validation_fields_are_what_the_metric_measures(tiny):
 def test_save_fields_refusals(argv, fragment, tiny, tiny_sip, tmp_path):
     code, _, stderr = call([a.format(sip=tiny_sip, tiny=tiny) for a in argv] + ["--out", tmp_path / "o"])
     assert code == 2 and fragment in stderr
+
+
+# ------------------------------------------------------------------ TensorBoard
+def test_run_tensorboard_writes_every_metric_as_scalars(tiny, tmp_path):
+    pytest.importorskip("tensorboard", reason="the tensorboard extra is not installed")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out = tmp_path / "out"
+    code, _, stderr = call(["run", tiny, "--k", "2", "--no-baseline", "--tensorboard", "--out", out, "--no-progress"])
+    assert code == 0, stderr
+    rows = metrics(out / "k2")
+    events = EventAccumulator(str(out / "k2" / "tensorboard"))
+    events.Reload()
+    for key in ("train_loss", "val_metric", "k", "total_iterations", "wall_time", "time_iterations"):
+        scalars = events.Scalars(key)
+        assert [s.step for s in scalars] == [row["epoch"] + 1 for row in rows]
+        assert [s.value for s in scalars] == pytest.approx([float(row[key]) for row in rows], rel=1e-6)
+
+
+def test_tensorboard_without_the_package_says_how_to_install_it(tiny, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)      # import fails as if not installed
+    with pytest.raises(ImportError, match=r"pip install 'fempdl\[tensorboard\]'"):
+        runner.run(scene.load(tiny), "fixed", 1, out_dir=tmp_path / "out", epochs=1, tensorboard=True)

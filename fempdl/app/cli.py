@@ -73,6 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--no-progress", action="store_true", help="hide progress bars")
     run.add_argument("--seed", type=int, help="network initialisation and minibatch order (default: the "
                                               "scene's data seed; the data stay the scene's)")
+    run.add_argument("--tensorboard", action="store_true",
+                     help="also write each run's metrics as TensorBoard scalars into RUN/tensorboard "
+                          "(needs pip install 'fempdl[tensorboard]')")
     run.add_argument("--save-fields", action="store_true",
                      help="after training, write validation predictions, references and errors to "
                           "fields.xdmf (ParaView) and fields.png in each run's directory")
@@ -259,7 +262,8 @@ def _command(args, sc, out: Path) -> int:
         return 2
     runs = {}
     baseline = None
-    common = {"progress": progress, "parallel": args.parallel, "seed": args.seed, "save": args.save_fields}
+    common = {"progress": progress, "parallel": args.parallel, "seed": args.seed, "save": args.save_fields,
+              "tensorboard": args.tensorboard}
     if not args.no_baseline or args.converged:
         baseline = runner.run(sc, "converged", out_dir=out / "converged",
                                    resume=_can_resume(args, out / "converged"), **common)
@@ -299,7 +303,8 @@ def _methods(args, sc, progress: bool, out: Path) -> int:
             return 2
         names = [sc.task] + ([] if args.no_baseline else [compare.BASELINE])
         runs = {name: runner.run_method(sc, name, out_dir=out / name, progress=progress,
-                                    resume=_can_resume(args, out / name)) for name in names}
+                                        resume=_can_resume(args, out / name), tensorboard=args.tensorboard)
+                for name in names}
         print(f"scene {sc.name}: {sc.description}")
         print(compare.table(sc, runs))
         print(f"metrics and checkpoints in {out}")

@@ -151,7 +151,8 @@ def run_settings(scene: Scene, **settings) -> dict:
 def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None = None, resume: bool = False,
         epochs: int | None = None, progress: bool = False, k_eps_value: int | None = None,
         stop_after: int | None = None, parallel: str | None = None,
-        comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None, save: bool = False) -> RunResult:
+        comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None, save: bool = False,
+        tensorboard: bool = False) -> RunResult:
     """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp").
 
     ``parallel`` ("data" or "mesh") trains on the ranks of ``comm`` together
@@ -159,7 +160,8 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
     sets the network initialisation and the minibatch order (default: the
     scene's data seed); the data are the scene's either way. ``save`` writes
     the validation fields after training (:func:`save_fields`, into
-    ``out_dir``; rank 0; not with ``parallel="mesh"``)."""
+    ``out_dir``; rank 0; not with ``parallel="mesh"``). ``tensorboard`` also
+    writes the metrics as TensorBoard scalars into ``out_dir``/tensorboard."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
     if save and (out_dir is None or scene.task not in FIELD_TASKS or parallel == "mesh"):
@@ -180,12 +182,12 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
         prdp = PRDP(task.layers, k0=p.k0, dk=p.dk, tau_step=p.tau_step, tau_stop=p.tau_stop,
                     delta=p.delta, ema_window=p.ema_window, k_cap=p.k_cap or keps,
                     guard=p.guard, growth=p.growth)
-    trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=_batch(scene),
-                      out_dir=out_dir, prdp=prdp, seed=scene.data.seed if seed is None else seed,
-                      progress=progress,
-                      stop_after=stop_after, stop_at=scene.optimizer.stop_at, parallel=parallel, comm=comm,
-                      settings=run_settings(scene, mode=mode, k=k, seed=seed))
     try:
+        trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=_batch(scene),
+                          out_dir=out_dir, prdp=prdp, seed=scene.data.seed if seed is None else seed,
+                          progress=progress, tensorboard=_board_dir(out_dir, tensorboard),
+                          stop_after=stop_after, stop_at=scene.optimizer.stop_at, parallel=parallel, comm=comm,
+                          settings=run_settings(scene, mode=mode, k=k, seed=seed))
         rows = trainer.run(resume=resume)
         if save and comm.rank == 0:
             save_fields(task, out_dir, title=f"{scene.name}, {mode}" + (f" K={k}" if k else ""))
@@ -195,23 +197,31 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
                      out_dir=None if out_dir is None else str(out_dir))
 
 
+def _board_dir(out_dir: Path | None, tensorboard: bool) -> Path | None:
+    if tensorboard and out_dir is None:
+        raise ValueError("tensorboard=True writes into out_dir/tensorboard: give out_dir")
+    return Path(out_dir) / "tensorboard" if tensorboard else None
+
+
 def _batch(scene: Scene) -> int:
     """The scene's mini-batch size; the inverse task has none (its one sample is its batch)."""
     return 1 if scene.optimizer.batch is None else scene.optimizer.batch
 
 
 def run_method(scene: Scene, method: str, *, out_dir: Path | None = None, resume: bool = False, epochs: int | None = None,
-        progress: bool = False, stop_after: int | None = None, stop_at_time: float | None = None) -> RunResult:
+        progress: bool = False, stop_after: int | None = None, stop_at_time: float | None = None,
+        tensorboard: bool = False) -> RunResult:
     """Train a sip or hig scene with ``method`` (its own, or "backprop"); metrics and checkpoints in ``out_dir``.
 
     ``stop_at_time`` ends the run once its training steps took that many
     seconds (a resumed run can so be extended to equal training time)."""
     task = METHOD_TASKS[scene.pde.type](scene, method)
-    trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=scene.optimizer.batch,
-                      out_dir=out_dir, seed=scene.data.seed, progress=progress, stop_after=stop_after,
-                      stop_at=scene.optimizer.stop_at, stop_at_time=stop_at_time,
-                      settings=run_settings(scene, method=method))
     try:
+        trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=scene.optimizer.batch,
+                          out_dir=out_dir, seed=scene.data.seed, progress=progress, stop_after=stop_after,
+                          tensorboard=_board_dir(out_dir, tensorboard),
+                          stop_at=scene.optimizer.stop_at, stop_at_time=stop_at_time,
+                          settings=run_settings(scene, method=method))
         rows = trainer.run(resume=resume)
     finally:
         task.close()

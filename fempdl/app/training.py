@@ -118,6 +118,9 @@ class Trainer:
             (the cost to reach a target accuracy is then the iterations used).
         stop_at_time: end training once the time in training steps reaches
             this many seconds (a comparison at equal training time).
+        tensorboard: a directory for TensorBoard event files: every metric row's
+            numbers as scalars per epoch (rank 0; needs the ``tensorboard``
+            package: ``pip install 'fempdl[tensorboard]'``). ``None``: none.
         parallel: ``None`` (serial), ``"data"`` or ``"mesh"`` (module docstring).
         comm: the ranks that train together in a parallel mode.
         settings: what defines the run beyond the Trainer's own arguments (the
@@ -138,6 +141,7 @@ class Trainer:
     stop_after: int | None = None
     stop_at: float | None = None
     stop_at_time: float | None = None
+    tensorboard: Path | None = None
     parallel: str | None = None
     comm: MPI.Comm = dataclasses.field(default_factory=lambda: MPI.COMM_WORLD)
     settings: dict | None = None
@@ -155,6 +159,7 @@ class Trainer:
         if self.out_dir is not None and self._writer:
             self.out_dir = Path(self.out_dir)
             self.out_dir.mkdir(parents=True, exist_ok=True)
+        self._board = tensorboard_writer(self.tensorboard) if self.tensorboard is not None and self._writer else None
 
     @property
     def k(self) -> int | None:
@@ -178,6 +183,8 @@ class Trainer:
                         (self.out_dir / name).unlink(missing_ok=True)
             return self._train(resume)
         finally:
+            if self._board is not None:
+                self._board.flush()
             if lock is not None:
                 lock.release()
 
@@ -213,6 +220,7 @@ class Trainer:
             bar.set_postfix(loss=f"{self.rows[-1]['train_loss']:.2e}", val=f"{metric:.2e}", K=k_used)
             self._save(epoch)
             self._log_epoch(self.rows[-1])
+            self._board_epoch(self.rows[-1])
             done += 1
             if self._reached_target() or (self.stop_after is not None and done >= self.stop_after):
                 break
@@ -226,6 +234,14 @@ class Trainer:
             _log.info("%sepoch %d/%d loss %.3e val %.3e K %s iterations %d wall %.1f s", run, row["epoch"] + 1,
                       self.epochs, row["train_loss"], row["val_metric"], row["k"], row["total_iterations"],
                       row["wall_time"], extra={"epoch": row["epoch"] + 1})
+
+    def _board_epoch(self, row: dict) -> None:
+        """The row's numbers as TensorBoard scalars at step epoch + 1."""
+        if self._board is not None:
+            for key, value in row.items():
+                if isinstance(value, (int, float)) and not isinstance(value, bool) and key != "epoch":
+                    self._board.add_scalar(key, value, row["epoch"] + 1)
+            self._board.flush()
 
     def _layer_seconds(self) -> dict:
         """The task's layers' time counters, summed over the layers."""
@@ -376,3 +392,13 @@ class Trainer:
         self._train_time = state.get("train_time", 0.0)
         self._times.update(state.get("times", {}))
         return state["epoch"] + 1
+
+
+def tensorboard_writer(directory: Path):
+    """A TensorBoard SummaryWriter on ``directory``, or an ImportError that says how to install it."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError as err:
+        raise ImportError(f"TensorBoard logging needs the tensorboard package ({err}); install it with "
+                          "pip install 'fempdl[tensorboard]', or train without it") from None
+    return SummaryWriter(log_dir=str(directory))
