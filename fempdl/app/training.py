@@ -1,52 +1,21 @@
 """The training loop: mini-batches, validation, PRDP, metrics files and resumable checkpoints.
 
-:class:`Trainer` runs epochs of optimizer steps (``task.train_step``, by default
-a step on ``task.loss(batch_indices)``) over shuffled mini-batches, then validates (the mean of
-``task.validation_errors``); it steps the PRDP controller (if any) with the
-validation metric and writes, after every epoch:
+:class:`Trainer` runs epochs of ``task.train_step`` over shuffled mini-batches
+of a task (:class:`fempdl.app.tasks.base.Task` says what a task provides),
+validates, steps the PRDP controller, and after every epoch writes
+``metrics.csv``/``metrics.json`` (one row per epoch: losses, K, cumulative
+iterations and times, and ``time_<part>`` for each of :data:`TIME_PARTS`,
+adding up to ``wall_time``) and ``checkpoint.pt`` (model, optimizer, scheduler,
+PRDP, layer counters, RNG states, rows). Every file is written atomically
+(:mod:`fempdl.app.checkpoints`), so an interrupted run keeps its last epoch;
+``run(resume=True)`` continues it with the same metrics as an uninterrupted
+run, and refuses a resume whose settings differ (:meth:`Trainer.fingerprint`).
 
-* ``metrics.csv`` and ``metrics.json``: one row per epoch with the train loss
-  (mean over the epoch's batches), the validation metric, the K used, the
-  cumulative forward and backward inner iterations of the task's layers, the
-  cumulative solve time, the cumulative time in training steps (without
-  validation), the total training time, and where that time went
-  (``time_<part>`` for each of :data:`TIME_PARTS`: solver iterations,
-  preconditioner set-up and factorisations, assembly, forming A^T, network
-  forward/backward with the optimizer, validation, and the rest; this rank's
-  seconds, adding up to ``wall_time``);
-* ``checkpoint.pt``: model, optimizer, LR scheduler, PRDP state, the layers'
-  cumulative counters, the RNG states (torch, numpy, Python, the shuffling
-  generator) and the metrics so far.
-
-Every file is written to a temporary file in the same directory and moved into
-place with ``os.replace`` (:mod:`fempdl.app.checkpoints`), so an interrupted run
-(Ctrl-C, a killed job) leaves the last completed epoch intact; the checkpoint
-before it is kept as ``checkpoint.prev.pt``. ``run(resume=True)`` restores all
-of it and continues; with the same settings the resumed run produces the same
-metrics as an uninterrupted one. The checkpoint is loaded with
-``weights_only=True`` (nothing in it is executed) and carries the run's
-fingerprint (:meth:`Trainer.fingerprint`): a resume with other settings is
-refused, naming what changed. The output directory is locked while a run
-trains in it (:mod:`fempdl.app.rundir`).
-
-A task (:class:`fempdl.app.runner.Task`) provides: ``model`` (nn.Module),
-``optimizer``, ``scheduler`` (or None), ``layers`` (the SolveLayers whose
-iterations are counted), ``train_size``, ``val_size``, ``loss(indices)`` (the
-mean over those samples), ``validation_errors(indices)`` (one per sample) and
-``train_step(indices)`` (one optimizer step in a serial run; the base class
-steps ``optimizer`` on ``loss``; a task with its own update, HIG's, replaces
-it), and may have ``start_epoch(epoch)`` (called before every epoch, e.g. to
-draw new training data).
-
-Under MPI (``parallel="data"`` or ``"mesh"``, :mod:`fempdl.parallel`) every
-rank runs this loop in step: in data mode each takes its shard of every batch
-and of the validation samples, and the metric rows count the iterations and
-solve time of all ranks; in mesh mode every rank works on every sample of a
-distributed mesh and the rows are rank 0's (the ranks' iterations are the same
-collective solves). The gradients are summed over the ranks before every
-optimizer step, K, the metric and the parameters are checked to agree after
-every epoch, and only rank 0 writes files (the checkpoint keeps each rank's
-layer counters, so a resumed run needs the same number of ranks).
+Under MPI (``parallel="data"`` or ``"mesh"``) every rank runs this loop in
+step: data mode shards every batch and the validation samples, mesh mode has
+every rank work on a distributed mesh; gradients are summed before every step,
+K, the metric and the parameters checked to agree after every epoch, and
+rank 0 writes the files.
 """
 from __future__ import annotations
 
