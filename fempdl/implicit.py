@@ -182,6 +182,9 @@ class ImplicitSolve(torch.autograd.Function):
         # the gradient (backward re-assembles with the controls and u).
         ctx.save_for_backward(*tensors, output)
         ctx.handle, ctx.names = handle, names
+        # The graph holds the layer alive until backward: the operators see only the
+        # handle, and a layer built inline (SolveLayer(p)(f=f)) has no other owner.
+        ctx.layer = _LAYERS[handle]() if handle in _LAYERS else None
         ctx.inputs = [(t.dim(), t.dtype, t.device) for t in tensors]
 
     @staticmethod

@@ -186,3 +186,18 @@ def test_compile_is_one_opaque_op_and_matches_eager(prob, layer):
     f2 = rand(2, nf, seed=2)
     torch.testing.assert_close(compiled(f2), model(f2), rtol=1e-12, atol=0)
     torch._dynamo.reset()
+
+
+def test_a_layer_built_inline_lives_until_its_backward(prob, layer):
+    """The graph keeps the layer: SolveLayer(p)(...) with no other owner still differentiates,
+    and gives the gradient of a layer that is kept."""
+    import gc
+
+    nf, nk, _ = sizes(prob)
+    kappa = 1.0 + rand(nk, seed=4)
+    f_inline, f_kept = (rand(nf, seed=5).requires_grad_(True) for _ in range(2))
+    loss = (SolveLayer(prob, "lu")(f=f_inline, kappa=kappa) ** 2).sum()
+    gc.collect()
+    loss.backward()
+    (layer(f=f_kept, kappa=kappa) ** 2).sum().backward()
+    assert torch.allclose(f_inline.grad, f_kept.grad, rtol=1e-12, atol=0)
