@@ -35,7 +35,7 @@ from fempdl.iterative.sparse import sparse_to_torch
 __all__ = ["BatchedEngine", "fast_cg", "fast_gmres"]
 
 _OWN_OPTIONS = frozenset({"ksp_richardson_scale"})
-CG_BLOCK_VALUES = 2 ** 19   # values per (n, c) CG block (4 MiB): measured best group size at 66k DOFs
+CG_GROUP = 8       # columns per batched CG group (scripts/bench_krylov.py: best at 4k and 66k DOFs)
 CG_MIN_BATCH = 8   # smallest batch where batched CG beat PETSc's loop (scripts/bench_krylov.py)
 
 
@@ -102,11 +102,10 @@ class BatchedEngine:
                 res = rhs if start is None else rhs - op @ start
                 P = self._dinv if precondition else None
                 if options.ksp_type == "cg":
-                    # Column groups whose (n, c) blocks stay cache-sized: CG's vector updates
-                    # then run from cache at the price of reading A once per group.
+                    # Groups of about CG_GROUP columns: CG's vector updates then run from cache
+                    # at the price of reading A once per group.
                     B = res.shape[1]
-                    c = max(4, round(CG_BLOCK_VALUES / res.shape[0]))
-                    c = -(-B // -(-B // c))                        # equal groups
+                    c = -(-B // -(-B // CG_GROUP))                 # equal groups
                     X = torch.cat([fast_cg(op, P, res[:, i:i + c].contiguous(), options.max_it)
                                    for i in range(0, res.shape[1], c)], dim=1)
                 else:
