@@ -175,11 +175,11 @@ class KSPOptions:
         engine: who runs the iterations of a layer's batch. ``"petsc"``: one KSP
             solve per sample (any KSP/PC, MPI). ``"batched"``: all samples at
             once, one sparse-times-dense product per iteration
-            (:mod:`fempdl.iterative.batched`; capped Richardson or CG with Jacobi or no
-            preconditioner, serial; used whenever the call's matrix is shared
-            by the batch). ``"auto"`` (default): batched for Richardson where
-            faster (B >= 2, and two or more torch threads or n * B <= 2^20),
-            PETSc otherwise (the rule is :meth:`BatchedEngine.faster_than_petsc`'s). ``SolveStats.engine`` reports which ran.
+            (:mod:`fempdl.iterative.batched`; capped Richardson, CG or GMRES with Jacobi
+            or no preconditioner, serial; used whenever the call's matrix is shared
+            by the batch). ``"auto"`` (default): batched where it is faster than
+            the PETSc loop (:meth:`BatchedEngine.faster_than_petsc`: Richardson
+            from B = 2, CG from B = 8, GMRES never), PETSc otherwise. ``SolveStats.engine`` reports which ran.
         adjoint_operator: how the transposed solve gets A^T. ``"transpose"``:
             KSPSolveTranspose on A (the preconditioner's transpose is applied).
             ``"assembled"``: an explicitly assembled A^T (PETSc's MatTranspose,
