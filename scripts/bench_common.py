@@ -4,6 +4,8 @@ from __future__ import annotations
 import json
 import os
 import platform
+import subprocess
+import sys
 from pathlib import Path
 
 # Before anything loads an OpenMP runtime: spinning threads would stall the other
@@ -57,6 +59,17 @@ def machine_info() -> dict:
 def write_json_atomically(data: dict, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     write_atomically(path, lambda p: p.write_text(json.dumps(data, indent=2)))
+
+
+def run_mpi_worker(script, ranks: int, worker_args: list, out: Path) -> dict:
+    """Run ``script`` with ``worker_args`` under ``mpirun -n ranks`` (root allowed) and read the
+    JSON its rank 0 wrote to ``out``; a failed job raises with the end of its stderr."""
+    command = [*_dolfinx.mpi_launcher(), "-n", str(ranks), sys.executable, str(script), *map(str, worker_args)]
+    env = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"}
+    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr[-3000:]}")
+    return json.loads(Path(out).read_text())
 
 
 def comma_list(kind):

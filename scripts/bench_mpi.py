@@ -31,8 +31,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -40,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench_common import comma_list, machine_info, write_json_atomically
+from bench_common import comma_list, machine_info, run_mpi_worker, write_json_atomically
 from fempdl import _dolfinx
 
 RANKS = (1, 2)
@@ -120,14 +118,9 @@ def run_worker(args) -> int:
 
 # ---------------------------------------------------------------- driver
 def launch(ranks: int, worker: str, args, out: Path, scene: str = "") -> dict:
-    command = [*_dolfinx.mpi_launcher(), "-n", str(ranks), sys.executable, __file__,
-               "--worker", worker, "--worker-out", str(out), "--h", str(args.h), "--layer-k", str(args.layer_k),
-               "--repeats", str(args.repeats), "--scene", scene, "--k", str(args.k), "--epochs", str(args.epochs)]
-    env = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"}
-    done = subprocess.run(command, env=env, capture_output=True, text=True)
-    if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr[-3000:]}")
-    return json.loads(out.read_text())
+    return run_mpi_worker(__file__, ranks, ["--worker", worker, "--worker-out", out, "--h", args.h,
+                                            "--layer-k", args.layer_k, "--repeats", args.repeats, "--scene", scene,
+                                            "--k", args.k, "--epochs", args.epochs], out)
 
 
 def main(argv=None) -> int:

@@ -22,14 +22,12 @@ import argparse
 import json
 import os
 import resource
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from bench_common import comma_list, machine_info, write_json_atomically
-from fempdl import _dolfinx
+from bench_common import comma_list, machine_info, run_mpi_worker, write_json_atomically
 
 RANKS = (1, 2)
 
@@ -80,14 +78,8 @@ def current_rss_mib() -> float:
 
 
 def launch(ranks: int, msh: Path, args, out: Path) -> dict:
-    command = [*_dolfinx.mpi_launcher(), "-n", str(ranks), sys.executable, __file__, "--worker",
-               "--msh", str(msh), "--worker-out", str(out), "--preset", args.preset, "--rtol", str(args.rtol),
-               "--repeats", str(args.repeats)]
-    env = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"}
-    done = subprocess.run(command, env=env, capture_output=True, text=True)
-    if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr[-3000:]}")
-    return json.loads(out.read_text())
+    return run_mpi_worker(__file__, ranks, ["--worker", "--msh", msh, "--worker-out", out, "--preset", args.preset,
+                                            "--rtol", args.rtol, "--repeats", args.repeats], out)
 
 
 def main(argv=None) -> int:
