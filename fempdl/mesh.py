@@ -42,21 +42,12 @@ import gmsh
 import numpy as np
 from mpi4py import MPI
 
-from fempdl import _dolfinx
+from fempdl import _dolfinx, meshgen
 from fempdl.resources import DEFAULT_MAX_CELLS, GEOMETRIES, bundled_meshes, estimated_cells
 
 __all__ = ["TaggedMesh", "as_tagged", "available", "load"]
 
 _T = TypeVar("_T")
-
-
-def _meshgen():
-    # Imported on first use: `import fempdl` imports this module, and a
-    # module-level import would make `python -m fempdl.meshgen` run meshgen
-    # twice (runpy warns about it).
-    from fempdl import meshgen
-
-    return meshgen
 
 
 @dataclass(frozen=True)
@@ -121,7 +112,7 @@ class TaggedMesh:
 
 def available() -> list[str]:
     """Names of the bundled meshes, for :func:`load`."""
-    return _meshgen().names()
+    return meshgen.names()
 
 
 def as_tagged(obj) -> TaggedMesh:
@@ -148,7 +139,7 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
         name_or_path: One of :func:`available`, or a path to a ``.msh`` file.
         comm: Communicator the mesh is distributed over.
         h: For a bundled name only: mesh the geometry at this size instead of
-            loading the committed file (sizes vs cell counts: :mod:`fempdl.meshgen`).
+            loading the committed file (sizes vs cell counts: the README's bundled-mesh table).
         rank: The rank that reads or meshes with gmsh.
         gdim: For a path only: geometric dimension; ``None`` takes the
             smallest that holds the node coordinates (all ``z = 0`` -> 2).
@@ -169,7 +160,7 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
         FileNotFoundError: the path does not exist.
     """
     _check_int_choice("rank", rank, range(comm.size))
-    h = _meshgen().check_h(h)
+    h = meshgen.check_h(h)
     if isinstance(name_or_path, str) and name_or_path in available():
         return _load_bundled(name_or_path, comm, h, rank, gdim, max_cells)
     path = _as_msh_path(name_or_path)
@@ -182,7 +173,6 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
 
 
 def _load_bundled(name: str, comm, h, rank, gdim, max_cells: int = DEFAULT_MAX_CELLS) -> TaggedMesh:
-    meshgen = _meshgen()
     bundled_gdim = meshgen.GEOMETRIC_DIM[name]
     if gdim is not None and gdim != bundled_gdim:
         raise ValueError(f"gdim applies to .msh files only; bundled mesh {name!r} has gdim "
@@ -196,7 +186,7 @@ def _load_bundled(name: str, comm, h, rank, gdim, max_cells: int = DEFAULT_MAX_C
         with importlib.resources.as_file(resource) as path:
             if not path.is_file():
                 raise FileNotFoundError(f"bundled mesh file {str(path)!r} is missing; regenerate it "
-                                        "with `python -m fempdl.meshgen` or reinstall fempdl")
+                                        "with `python scripts/regenerate_meshes.py` or reinstall fempdl")
             mesh, cell_tags, facet_tags = _read_msh(path, comm, rank, bundled_gdim)
     return TaggedMesh(mesh, cell_tags, facet_tags, name, meshgen.FACET_TAGS[name])
 
@@ -248,7 +238,7 @@ def _check_int_choice(arg: str, value, allowed) -> None:
 def _read_msh(path: Path, comm, rank: int, gdim: int | None) -> TaggedMesh:
     # Built on model_to_mesh: Debian's DOLFINx 0.5.2 gmshio.read_from_msh
     # fails with a NameError before returning.
-    with _meshgen().gmsh_session(active=comm.rank == rank):
+    with meshgen.gmsh_session(active=comm.rank == rank):
         found_gdim, labels = _run_on_rank(lambda: _open_msh(path, gdim), comm, rank)
         mesh, cell_tags, facet_tags = _dolfinx.model_to_mesh(gmsh.model, comm, rank, gdim=found_gdim)
     return TaggedMesh(mesh, cell_tags, facet_tags, str(path), labels)

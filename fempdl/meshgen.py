@@ -20,14 +20,13 @@ Every cell has tag ``CELL_TAG``; every exterior facet one tag of
 ``z = 1``, "sides" the four vertical faces. Every exterior facet carries
 exactly one facet tag; interior facets carry none.
 
-Cell and DOF counts per h are in the README (Bundled meshes). Regenerate the committed files with ``python -m fempdl.meshgen`` (options
+Cell and DOF counts per h are in the README (Bundled meshes). Regenerate the committed files with ``python scripts/regenerate_meshes.py`` (options
 ``--out DIR``, ``--name NAME``, ``--h H``). Meshing runs on one thread with
 the user's gmsh configuration files ignored, so the output is reproducible
 for a given gmsh version.
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
 import ctypes
 import math
@@ -313,23 +312,3 @@ def write_msh(name: str, path, h: float | None = None) -> Path:
         gmsh.option.setNumber("Mesh.Binary", 0)
         gmsh.write(str(path))
     return path
-
-
-def main(argv: list[str] | None = None) -> None:
-    """Command line: regenerate the bundled ``.msh`` files."""
-    parser = argparse.ArgumentParser(prog="python -m fempdl.meshgen", description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=BUNDLED_DIR,
-                        help="directory to write NAME.msh into (default: %(default)s)")
-    parser.add_argument("--name", choices=names(), action="append",
-                        help="mesh to write (repeatable; default: all)")
-    parser.add_argument("--h", type=float, default=None,
-                        help="mesh size (default: each mesh's bundled size)")
-    args = parser.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    for name in args.name or names():
-        path = write_msh(name, args.out / f"{name}.msh", h=args.h)
-        print(f"wrote {path}")
-
-
-if __name__ == "__main__":
-    main()

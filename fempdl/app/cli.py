@@ -31,8 +31,13 @@ import logging
 import sys
 from pathlib import Path
 
-from fempdl import __version__
-from fempdl.app import rundir
+from mpi4py import MPI
+
+from fempdl import __version__, parallel
+from fempdl.app import compare, rundir, runner, scene, tradeoff
+from fempdl.app.checkpoints import CheckpointError, remove_stale_temporaries
+from fempdl.app.scene import METHOD_TASKS
+from fempdl.app.training import CHECKPOINT
 
 DEFAULT_SCENE = "heat-emulator-2d"
 
@@ -122,10 +127,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from fempdl import parallel
-
-    from mpi4py import MPI
-
     parallel.abort_on_error()  # under mpirun: one rank's error ends the job, never a hang
     if args.command != "scenes":
         parallel.fit_threads(args.threads)
@@ -143,8 +144,6 @@ def main(argv=None) -> int:
 
 def _scenes(args) -> int:
     """``fempdl scenes``: the bundled scenes, one's TOML (``--show``) or the schema (``--schema``)."""
-    from fempdl.app import scene
-
     if args.schema:
         print(scene.schema_text())
         return 0
@@ -161,11 +160,6 @@ def _scenes(args) -> int:
 
 
 def _load_and_run(args) -> int:
-    from fempdl.app import scene
-    from fempdl.app.checkpoints import CheckpointError, remove_stale_temporaries
-
-    from mpi4py import MPI
-
     try:
         sc = scene.load(args.scene, args.set)
     except (scene.SceneError, FileNotFoundError) as err:
@@ -227,12 +221,6 @@ def _output_directory(args, sc) -> Path:
 
 def _command(args, sc, out: Path) -> int:
     """The run, tradeoff or compare command of a loaded scene, into ``out``."""
-    from fempdl.app import runner
-    from fempdl.app import tradeoff
-    from fempdl.app.scene import METHOD_TASKS
-
-    from mpi4py import MPI
-
     progress = not args.no_progress and sys.stderr.isatty()
     if (args.command == "compare") != (sc.task in METHOD_TASKS) and args.command != "run":
         use = "fempdl compare" if sc.task in METHOD_TASKS else "fempdl tradeoff"
@@ -289,9 +277,6 @@ def _command(args, sc, out: Path) -> int:
 
 def _methods(args, sc, progress: bool, out: Path) -> int:
     """`fempdl run` and `fempdl compare` on a sip or hig scene: its method and Adam with backpropagation."""
-    from fempdl.app import compare
-    from fempdl.app import runner
-
     if args.command == "run":
         if args.save_fields:
             print(f"fempdl: --save-fields writes the fields of PRDP scenes; the {sc.task} scene {sc.name!r} "
@@ -320,8 +305,6 @@ def _methods(args, sc, progress: bool, out: Path) -> int:
 
 def _can_resume(args, run_dir: Path) -> bool:
     """--resume continues every run that has a checkpoint (a finished run is not repeated)."""
-    from fempdl.app.training import CHECKPOINT
-
     return args.resume and (run_dir / CHECKPOINT).exists()
 
 
