@@ -25,6 +25,7 @@ from pathlib import Path
 from fempdl.app import runner, tasks
 from fempdl.app.runner import RunResult
 from fempdl.app.scene import Scene
+from fempdl.app.tradeoff import write_figure
 from fempdl.app.training import CHECKPOINT, write_atomically
 
 __all__ = ["compare", "compare_and_report", "summary", "summary_lines", "table", "write_report"]
@@ -169,5 +170,4 @@ def _plot(scene: Scene, runs: dict[str, RunResult], split: dict, path: Path) -> 
     axes[0].legend()
     fig.suptitle(f"{scene.name}: {split['method'].upper()} against Adam with backpropagation")
     fig.tight_layout()
-    write_atomically(path, lambda p: fig.savefig(p, format="png", dpi=120))
-    plt.close(fig)
+    write_figure(fig, path)

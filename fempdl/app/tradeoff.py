@@ -161,8 +161,7 @@ def plot_time_split(runs: dict[str, RunResult], path: Path, title: str) -> None:
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
     fig.tight_layout()
-    write_atomically(path, lambda p: fig.savefig(p, format="png", dpi=120))
-    plt.close(fig)
+    write_figure(fig, path)
 
 
 def _schedule_text(schedule: list[tuple[int, int]]) -> str:
@@ -194,8 +193,7 @@ def _plot_per_epoch(runs: dict[str, RunResult], path: Path, title: str) -> None:
         twin.set_ylabel("PRDP's K", color="tab:red")
     ax.legend(fontsize=8, loc="upper right")
     fig.tight_layout()
-    write_atomically(path, lambda p: fig.savefig(p, format="png", dpi=120))
-    plt.close(fig)
+    write_figure(fig, path)
 
 
 def _plot_against_cost(runs: dict[str, RunResult], path: Path, title: str) -> None:
@@ -215,8 +213,7 @@ def _plot_against_cost(runs: dict[str, RunResult], path: Path, title: str) -> No
     axes[0].legend(fontsize=8)
     fig.suptitle(f"{title}: error against cost")
     fig.tight_layout()
-    write_atomically(path, lambda p: fig.savefig(p, format="png", dpi=120))
-    plt.close(fig)
+    write_figure(fig, path)
 
 
 def summary_lines(split: dict) -> list[str]:
@@ -230,3 +227,10 @@ def summary_lines(split: dict) -> list[str]:
         f"wall time {100 * split['wall_time_savings']:.0f}%",
     ]
 
+
+def write_figure(fig, path: Path) -> None:
+    """Write ``fig`` as a PNG atomically (an interrupted write leaves no half file) and close it."""
+    import matplotlib.pyplot as plt
+
+    write_atomically(path, lambda p: fig.savefig(p, format="png", dpi=120))
+    plt.close(fig)
