@@ -593,3 +593,16 @@ def test_tensorboard_without_the_package_says_how_to_install_it(tiny, tmp_path, 
     monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)      # import fails as if not installed
     with pytest.raises(ImportError, match=r"pip install 'fempdl\[tensorboard\]'"):
         runner.run(scene.load(tiny), "fixed", 1, out_dir=tmp_path / "out", epochs=1, tensorboard=True)
+
+
+def test_each_log_line_appears_once_in_a_real_process(tiny, tmp_path):
+    """Importing dolfinx installs a stderr handler on the root logger; the command's lines
+    must not also go out through it."""
+    import subprocess
+
+    done = subprocess.run([sys.executable, "-m", "fempdl.app.cli", "run", str(tiny), "--k", "2", "--no-baseline",
+                           "--out", str(tmp_path), "--set", "data.train=8", "--set", "optimizer.epochs=3"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert [int(line["epoch"]) for line in _epoch_lines(done.stderr)] == [1, 2, 3]
+    assert "INFO:fempdl" not in done.stderr

@@ -195,14 +195,18 @@ def _library_log(every: int | None, rank: int):
     every = every or 1
     handler.addFilter(lambda record: getattr(record, "epoch", 0) % every == 0)
     logger = logging.getLogger("fempdl")
-    level = logger.level
+    level, propagate = logger.level, logger.propagate
     logger.addHandler(handler)
     logger.setLevel(min(level or logging.WARNING, logging.INFO))
+    # Not also through the root logger: importing dolfinx installs a stderr handler there,
+    # which would print every line a second time.
+    logger.propagate = False
     try:
         yield
     finally:
         logger.removeHandler(handler)
         logger.setLevel(level)
+        logger.propagate = propagate
 
 
 def _output_directory(args, sc) -> Path:
