@@ -70,8 +70,11 @@ class SolveLayer(torch.nn.Module):
             (f, u0) and one control the matrix is affine in (kappa), with zero
             Dirichlet values).
         max_unrolled_values: in unrolled mode, the number of floats the stored
-            iterates may take (about K * B * n * 2-5); above it the iterations
-            are checkpointed (recomputed in backward). ``None``: no bound.
+            iterates may take (``unrolled.stored_values``: about K * B * n * 3-5);
+            above it the iterations are checkpointed (about 2 sqrt(K) states
+            kept, recomputed in backward), and a call that cannot fit even so
+            is refused with a MemoryError naming the least bound that works
+            (``unrolled.checkpointed_values``). ``None``: no bound.
         memory_budget: in unrolled mode, the bytes the stored iterates may
             take at most; a call that would keep more is refused with a
             MemoryError before it starts. ``None``: half the memory available

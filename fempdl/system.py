@@ -277,8 +277,8 @@ class LinearSystem:
             return False  # e.g. the cap was lifted to max_it=None after construction
         if self.options.engine == "batched":
             return True
-        # Measured rules (scripts/bench_layer.py, scripts/bench_krylov.py), for both directions' solvers.
-        return all(self._batched.faster_than_petsc(batch, self.problem.output_size, opts.ksp_type)
+        # Measured rules (scripts/bench_floor.py, scripts/bench_krylov.py), for both directions' solvers.
+        return all(self._batched.faster_than_petsc(batch, opts.ksp_type)
                    for opts in (self.options, self.options.adjoint_options))
 
     def _batched_solve(self, R: np.ndarray, direction: str, initial_guess: np.ndarray | None = None) -> np.ndarray:

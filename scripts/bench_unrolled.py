@@ -44,9 +44,9 @@ Measured per (size, solver, K):
     the whole batch) against ``engine="petsc"`` (one KSP solve per sample);
     the ratio petsc / batched is the engine's speed-up.
 (3) at the largest K: unrolled with checkpointing, ``max_unrolled_values`` set
-    to a tenth of the stored size (the iterations then run in checkpointed
-    segments of about sqrt(K), recomputed in backward): its time and memory
-    over plain unrolled. Not for Jacobi, whose unrolled solve keeps no
+    to the least a checkpointed solve keeps (``unrolled.checkpointed_values``;
+    the iterations then run in segments of about sqrt(K), recomputed in
+    backward): its time and memory over plain unrolled. Not for Jacobi, whose unrolled solve keeps no
     per-iteration state (``stored_values`` is 0).
 
 Checks (on the warm-up calls; max over samples of ||a_i - b_i|| / ||b_i||,
@@ -150,7 +150,6 @@ from fempdl.resources import available_memory
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.meshgen)
 SOLVERS = ("jacobi", "cg")                      # Richardson+Jacobi, CG+Jacobi
 UNROLLED_METHOD = {"jacobi": "jacobi", "cg": "cg"}  # their fempdl.iterative.unrolled method names
-CHECKPOINT_FRACTION = 10        # checkpointed: max_unrolled_values = stored values / 10
 AGREEMENT_TOL = 1e-12           # relative; forward always, gradients for Jacobi
 ROUND_OFF = 1e-15               # relative perturbation of F that measures the output's round-off sensitivity
 SENSITIVITY_FACTOR = 10         # forward tolerance: max(AGREEMENT_TOL, this * that sensitivity)
@@ -200,7 +199,8 @@ def stored_bytes(solver: str, K: int, n: int, batch: int) -> int:
 
 
 def checkpoint_limit(solver: str, K: int, n: int, batch: int) -> int:
-    return unrolled.stored_values(UNROLLED_METHOD[solver], K, n, batch) // CHECKPOINT_FRACTION
+    """The least max_unrolled_values a checkpointed solve fits in."""
+    return unrolled.checkpointed_values(UNROLLED_METHOD[solver], K, n, batch)
 
 
 def make_layer(prob, solver: str, K: int, variant: str, batch: int) -> SolveLayer:
@@ -612,7 +612,7 @@ def main(argv=None) -> int:
                            "near 10 minutes"),
             "min_time_s": args.min_time, "max_repeats": MAX_REPEATS, "seed": args.seed,
             "statistic": STATISTIC, "memory_measured": args.memory,
-            "checkpoint_fraction": 1.0 / CHECKPOINT_FRACTION, "agreement_tolerance": AGREEMENT_TOL,
+            "checkpoint_limit": "unrolled.checkpointed_values", "agreement_tolerance": AGREEMENT_TOL,
             "problem": "poisson on lshape, control f, u = 0 on the whole boundary",
             "loss": "sum(u * W), W standard normal; F standard normal",
             "variants": {v: {"diff": d, "engine": e, "checkpointed": c} for v, (d, e, c) in VARIANTS.items()},
@@ -637,7 +637,7 @@ def main(argv=None) -> int:
     write_json_atomically(report, args.out)
     print(f"t u/i = unrolled / implicit time (default engine); m u/i = their peak-RSS increases (MiB columns), "
           f"stored = theoretical stored iterates (MiB); p/b = implicit engine='petsc' / engine='batched' time; "
-          f"ckpt = checkpointed unrolled (max_unrolled_values = stored / {CHECKPOINT_FRACTION}) over plain "
+          f"ckpt = checkpointed unrolled (max_unrolled_values = checkpointed_values) over plain "
           f"unrolled, at the largest K; du, dgrad = max relative difference unrolled vs implicit; times are "
           f"the {STATISTIC} over repeats (column 'reps'); torch threads {torch.get_num_threads()}; "
           f"took {report['duration_s']:.0f} s; wrote {args.out}")

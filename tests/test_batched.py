@@ -165,3 +165,29 @@ def test_auto_picks_batched_cg_where_measured_faster(lshape):
     gmres_layer = SolveLayer(prob, gmres(10, "auto"))
     gmres_layer(f=f)
     assert gmres_layer.stats.last.engine == "petsc"
+
+
+def test_richardson_sweep_matrix_follows_a_reassembled_matrix(lshape):
+    """The engine's fused sweep matrix I - D^-1 A is rebuilt when a shared kappa changes the matrix."""
+    prob = build("poisson", lshape)
+    layers = [SolveLayer(prob, jacobi(9, e)) for e in ("batched", "petsc")]
+    f = control_values(prob, "f", batch=3)
+    for seed in (1, 2):
+        kappa = control_values(prob, "kappa", batch=1, seed=seed)[0]
+        u_b, u_p = (layer(f=f, kappa=kappa) for layer in layers)
+        assert (u_b - u_p).abs().max() <= 1e-12 * u_p.abs().max()
+    assert layers[0].stats.solves_by_engine == {"batched": 6}
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_batched_solve_leaves_torch_threads_as_they_were(lshape, threads):
+    """Small sparse products run on one torch thread; the caller's setting comes back after the solve."""
+    prob = build("poisson", lshape)
+    layer = SolveLayer(prob, jacobi(5, "batched"))
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        layer(f=control_values(prob, "f", batch=2))
+        assert torch.get_num_threads() == threads
+    finally:
+        torch.set_num_threads(before)

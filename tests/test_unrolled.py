@@ -120,8 +120,9 @@ def test_checkpointing_gives_the_same_gradient(coarse_problems):
     w = torch.randn(4, prob.output_size, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
     opts = KSPOptions.preset("cg", max_it=25)
     full = grad_of(SolveLayer(prob, opts, diff="unrolled"), "u0", u0, w)
-    bounded = SolveLayer(prob, opts, diff="unrolled", max_unrolled_values=1000)
-    assert unrolled.stored_values("cg", 25, prob.output_size, 4) > 1000
+    least = unrolled.checkpointed_values("cg", 25, prob.output_size, 4)
+    assert unrolled.stored_values("cg", 25, prob.output_size, 4) > least
+    bounded = SolveLayer(prob, opts, diff="unrolled", max_unrolled_values=least)
     torch.testing.assert_close(grad_of(bounded, "u0", u0, w), full, rtol=1e-13, atol=1e-15)
 
 
@@ -169,8 +170,9 @@ def test_checkpointing_a_matrix_control_gives_the_same_gradient(coarse_problems)
     w = torch.randn(3, prob.output_size, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
     opts = KSPOptions(max_it=16)
     full = grad_of(SolveLayer(prob, opts, diff="unrolled"), "kappa", kappa, w)
-    assert unrolled.stored_values("jacobi", 16, prob.output_size, 3, matrix_grad=True) > 500
-    bounded = SolveLayer(prob, opts, diff="unrolled", max_unrolled_values=500)
+    least = unrolled.checkpointed_values("jacobi", 16, prob.output_size, 3, matrix_grad=True)
+    assert unrolled.stored_values("jacobi", 16, prob.output_size, 3, matrix_grad=True) > least
+    bounded = SolveLayer(prob, opts, diff="unrolled", max_unrolled_values=least)
     torch.testing.assert_close(grad_of(bounded, "kappa", kappa, w), full, rtol=1e-13, atol=1e-15)
 
 
@@ -236,3 +238,89 @@ def test_what_unrolled_mode_refuses(coarse_problems, coarse_lshape):
     theta_half = coarse_problems["heat-cn"]                       # kappa also in the right-hand side
     with pytest.raises(NotImplementedError, match=r"absent from the right-hand side"):
         SolveLayer(theta_half, KSPOptions(max_it=5), diff="unrolled")(kappa=control_values(theta_half, "kappa", 2))
+
+
+@pytest.mark.parametrize("pc,omega", [("jacobi", 1.0), ("jacobi", 0.7), ("none", 0.3)])
+def test_linear_richardson_on_a_constant_operator_matches_the_step_recurrence(pc, omega):
+    """On a constant SparseOperator, Richardson runs as fused sweeps X <- c + M X with a K-sweep
+    adjoint (one autograd node); forward and gradient equal autograd through the steps
+    X <- X + omega P (R - A X), which a plain torch matrix still takes."""
+    from fempdl.iterative.sparse import SparseOperator
+    rng = np.random.default_rng(0)
+    n, K = 40, 17
+    S = sp.diags([-1.0, 2.5, -1.2], [-1, 0, 1], shape=(n, n), format="csr") + sp.diags(rng.random(n))
+    P = torch.from_numpy(1.0 / S.diagonal())[:, None] if pc == "jacobi" else None
+    R = torch.from_numpy(rng.standard_normal((n, 3))).requires_grad_()
+    W = torch.from_numpy(rng.standard_normal((n, 3)))
+    fused = unrolled.solve("jacobi", SparseOperator.from_scipy(S), P, R, K, omega=omega)
+    steps = unrolled.solve("jacobi", sparse_to_torch(S), P, R, K, omega=omega)
+    assert len(_nodes(fused)) == 2 and len(_nodes(steps)) > K      # the map's node and R's accumulator
+    torch.testing.assert_close(fused, steps, rtol=1e-13, atol=1e-15)
+    g_fused, = torch.autograd.grad((fused * W).sum(), R)
+    g_steps, = torch.autograd.grad((steps * W).sum(), R)
+    torch.testing.assert_close(g_fused, g_steps, rtol=1e-13, atol=1e-15)
+    assert torch.autograd.gradcheck(
+        lambda r: unrolled.solve("jacobi", SparseOperator.from_scipy(S), P, r, K, omega=omega), (R,))
+
+
+def _nodes(t):
+    seen, todo = set(), [t.grad_fn]
+    while todo:
+        fn = todo.pop()
+        if fn is not None and fn not in seen:
+            seen.add(fn)
+            todo += [nxt for nxt, _ in fn.next_functions]
+    return seen
+
+
+@pytest.mark.parametrize("pc", ["jacobi", "none"])
+@pytest.mark.parametrize("K", [1, 7, 60])
+def test_reverse_cg_on_a_constant_operator_matches_autograd_through_the_steps(pc, K):
+    """CG on a constant SparseOperator runs with a hand-written reverse pass; its forward and
+    gradient equal autograd through the recurrences (a plain torch matrix), checkpointed or
+    not, with a zero column and K past convergence (n = 40)."""
+    from fempdl.iterative.sparse import SparseOperator
+    rng = np.random.default_rng(1)
+    n = 40
+    S = sp.diags([-1.0, 2.5, -1.2], [-1, 0, 1], shape=(n, n), format="csr") + sp.diags(rng.random(n))
+    S = (S + S.T).tocsr()
+    P = torch.from_numpy(1.0 / S.diagonal())[:, None] if pc == "jacobi" else None
+    R = torch.from_numpy(rng.standard_normal((n, 3)))
+    R[:, 1] = 0.0
+    R.requires_grad_()
+    W = torch.from_numpy(rng.standard_normal((n, 3)))
+    steps = unrolled.solve("cg", sparse_to_torch(S), P, R, K)
+    g_steps, = torch.autograd.grad((steps * W).sum(), R)
+    least = unrolled.checkpointed_values("cg", K, n, 3)
+    for max_values in (None, least):
+        op = SparseOperator.from_scipy(S)
+        X = unrolled.solve("cg", op, P, R, K, max_values=max_values)
+        assert type(X.grad_fn).__name__ == "ConstantOperatorCGBackward"
+        torch.testing.assert_close(X, steps, rtol=1e-12, atol=1e-14)
+        g, = torch.autograd.grad((X * W).sum(), R)
+        torch.testing.assert_close(g, g_steps, rtol=1e-10, atol=1e-13)
+        assert torch.all(X[:, 1] == 0) and torch.isfinite(g).all()
+    # (a zero column is solved from the start: a finite difference would leave that branch)
+    R_live = torch.from_numpy(rng.standard_normal((n, 2))).requires_grad_()
+    k = min(K, 7)
+    assert torch.autograd.gradcheck(lambda r: unrolled.solve("cg", SparseOperator.from_scipy(S), P, r, k,
+                                                             max_values=unrolled.checkpointed_values("cg", k, n, 2)),
+                                    (R_live,))
+
+
+def test_max_unrolled_values_is_a_bound_not_a_hint():
+    """A bound below what checkpointing can reach is refused with the least value that works;
+    GMRES, which is not checkpointed, is refused above its stored size."""
+    from fempdl.iterative.sparse import SparseOperator
+    n, K = 50, 36
+    op = SparseOperator.from_scipy(sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n), format="csr"))
+    R = torch.ones(n, 2, dtype=torch.float64, requires_grad=True)
+    least = unrolled.checkpointed_values("cg", K, n, 2)
+    assert least == (6 * 3 + 6 * 3) * n * 2                  # 6 segments of 6: starts + one segment's tapes
+    unrolled.solve("cg", op, None, R, K, max_values=least).sum().backward()
+    with pytest.raises(MemoryError, match=rf"max_unrolled_values={least - 1}: checkpointed, it keeps at least {least}"):
+        unrolled.solve("cg", op, None, R, K, max_values=least - 1)
+    with pytest.raises(MemoryError, match=r"gmres is not checkpointed and keeps \d+"):
+        unrolled.solve("gmres", op, None, R, K, max_values=1000)
+    with torch.no_grad():                                     # nothing kept: nothing to refuse
+        unrolled.solve("cg", op, None, R, K, max_values=1)

@@ -2,12 +2,14 @@
 
 For B right-hand sides stacked as the columns of R (n, B), K iterations of
 
-    X_0 = 0,   X_{k+1} = X_k + omega D^{-1} (R - A X_k)
+    X_0 = 0,   X_{k+1} = X_k + omega D^{-1} (R - A X_k) = c + M X_k,
+    M = I - omega D^{-1} A,   c = omega D^{-1} R
 
-(and the same with A^T for the transposed solve) are exactly what PETSc's
-KSPRICHARDSON + PCJACOBI computes column by column, with the same operations
-in the same order per entry; only the summation order inside a sparse row
-product may differ, so the iterates agree to round-off. CG and GMRES(m) run
+(and the same with A^T for the transposed solve) are what PETSc's
+KSPRICHARDSON + PCJACOBI computes column by column. The engine runs the
+second form: one fused sparse product per iteration that reads X and c and
+writes the next iterate, the least memory traffic a Jacobi sweep can have
+(``scripts/bench_floor.py``); the iterates agree with PETSc's to round-off. CG and GMRES(m) run
 the recurrences of PETSc's KSPCG and KSPGMRES (classical Gram-Schmidt, as
 :mod:`fempdl.iterative.unrolled`) in place and without autograd
 (:func:`fast_cg`, :func:`fast_gmres`): whole-block operations, no loop over
@@ -31,6 +33,7 @@ from petsc4py import PETSc
 from fempdl.iterative.unrolled import _SOLVED
 from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
 from fempdl.iterative.sparse import sparse_to_torch
+from fempdl.iterative.sweeps import column_groups, richardson, sweep_matrix, threads_for, torch_threads
 
 __all__ = ["BatchedEngine", "fast_cg", "fast_gmres"]
 
@@ -44,6 +47,7 @@ class BatchedEngine:
 
     def __init__(self):
         self._A = self._At = self._dinv = None
+        self._sweeps = {}   # (transpose, jacobi, omega) -> M = I - omega P A (or A^T), torch CSR
 
     @staticmethod
     def unsupported_reason(options: KSPOptions, comm_size: int) -> str | None:
@@ -64,25 +68,33 @@ class BatchedEngine:
         return None
 
     @staticmethod
-    def faster_than_petsc(batch: int, n: int, ksp_type: str = "richardson") -> bool:
-        """Measured rules. Richardson (scripts/bench_layer.py): batching pays from
-        B = 2 when torch has two or more threads, or on one thread while the
-        (n, B) iterate stays cache-sized. CG (scripts/bench_krylov.py): from
-        B = 8. GMRES never: its batched Gram-Schmidt streams B Krylov bases
+    def faster_than_petsc(batch: int, ksp_type: str = "richardson") -> bool:
+        """Measured rules. Richardson (scripts/bench_floor.py): from B = 2, at 4k
+        and 66k DOFs, on one thread and on two. CG (scripts/bench_krylov.py):
+        from B = 8. GMRES never: its batched Gram-Schmidt streams B Krylov bases
         from memory where PETSc's one basis stays in cache."""
         if ksp_type == "richardson":
-            return batch >= 2 and (torch.get_num_threads() >= 2 or batch * n <= 2 ** 20)
+            return batch >= 2
         return ksp_type == "cg" and batch >= CG_MIN_BATCH
 
     def load(self, A: PETSc.Mat) -> None:
         """Copy the current entries of ``A`` (call again after it is reassembled)."""
         S = petsc_to_scipy(A)
         d = S.diagonal()
-        index = np.int32 if S.nnz < 2 ** 31 - 1 else np.int64
-        self._A = sparse_to_torch(S, index)
-        self._At = sparse_to_torch(S.T.tocsr(), index)
+        self._S = S
+        self._A = sparse_to_torch(S)
+        self._At = sparse_to_torch(S.T.tocsr())
         safe = np.where(d != 0.0, d, 1.0)  # PCJACOBI's treatment of a zero diagonal
         self._dinv = torch.from_numpy(1.0 / safe)[:, None]
+        self._sweeps.clear()
+
+    def _sweep_matrix(self, transpose: bool, jacobi: bool, omega: float) -> torch.Tensor:
+        """M = I - omega P A (A^T when ``transpose``), P = D^{-1} or I, built once per matrix and setting."""
+        key = (transpose, jacobi, omega)
+        if key not in self._sweeps:
+            scale = omega * (self._dinv[:, 0].numpy() if jacobi else np.ones(self._S.shape[0]))
+            self._sweeps[key] = sparse_to_torch(sweep_matrix(self._S.T.tocsr() if transpose else self._S, scale))
+        return self._sweeps[key]
 
     def solve(self, R: np.ndarray, options: KSPOptions, *, transpose: bool = False,
               X0: np.ndarray | None = None) -> tuple[np.ndarray, float]:
@@ -96,28 +108,22 @@ class BatchedEngine:
         start = None if X0 is None else torch.from_numpy(np.array(X0.T))
         scale = float(options.petsc_options.get("ksp_richardson_scale", 1.0))
         precondition = options.pc_type == "jacobi"
-        with torch.no_grad():
-            if options.ksp_type in ("cg", "gmres"):
-                # A warm start is the K-step solve of the residual equation, as in PETSc.
-                res = rhs if start is None else rhs - op @ start
-                P = self._dinv if precondition else None
-                if options.ksp_type == "cg":
-                    # Groups of about CG_GROUP columns: CG's vector updates then run from cache
-                    # at the price of reading A once per group.
-                    B = res.shape[1]
-                    c = -(-B // -(-B // CG_GROUP))                 # equal groups
-                    X = torch.cat([fast_cg(op, P, res[:, i:i + c].contiguous(), options.max_it)
-                                   for i in range(0, res.shape[1], c)], dim=1)
-                else:
-                    X = fast_gmres(op, P, res, options.max_it, options.gmres_restart or 30)
-                if start is not None:
-                    X.add_(start)
+        if options.ksp_type == "richardson":
+            M = self._sweep_matrix(transpose, precondition, scale)
+            X = richardson(M, rhs * (self._dinv * scale if precondition else scale), options.max_it, start)
+            return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0
+        # A warm start is the K-step solve of the residual equation, as in PETSc.
+        width = min(CG_GROUP, rhs.shape[1]) if options.ksp_type == "cg" else rhs.shape[1]
+        with torch.no_grad(), torch_threads(threads_for(op.values().numel(), width)):
+            res = rhs if start is None else rhs - op @ start
+            P = self._dinv if precondition else None
+            if options.ksp_type == "cg":
+                X = torch.cat([fast_cg(op, P, res[:, i:i + w].contiguous(), options.max_it)
+                               for i, w in column_groups(res.shape[1], CG_GROUP)], dim=1)
             else:
-                # In place: nothing is differentiated here, so no iterate needs keeping.
-                step = (self._dinv if precondition else torch.ones_like(self._dinv)) * scale
-                X = torch.zeros_like(rhs) if start is None else start
-                for _ in range(options.max_it):
-                    X.addcmul_(step, rhs - op @ X)
+                X = fast_gmres(op, P, res, options.max_it, options.gmres_restart or 30)
+            if start is not None:
+                X.add_(start)
         return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0
 
     def matmul(self, X: np.ndarray, *, transpose: bool = False) -> np.ndarray:
@@ -132,7 +138,9 @@ class BatchedEngine:
 # KSPGMRES) for all columns at once, with whole-block torch operations only.
 
 def _column_dots(X: torch.Tensor, Y: torch.Tensor, buf: torch.Tensor) -> torch.Tensor:
-    """sum_i X[i, b] Y[i, b] for every column b of (n, B) blocks (``buf``: scratch (n, B))."""
+    """sum_i X[i, b] Y[i, b] for every column b of (n, B) blocks (``buf``: scratch (n, B)).
+
+    Multiply into scratch, then sum: faster inside the CG loop than torch.linalg.vecdot."""
     return torch.mul(X, Y, out=buf).sum(0)
 
 

@@ -14,9 +14,12 @@ import torch
 __all__ = ["sparse_to_torch", "SparseOperator"]
 
 
-def sparse_to_torch(M: sp.csr_matrix, index_dtype=np.int64) -> torch.Tensor:
-    """A scipy CSR matrix as a float64 torch CSR tensor (copies); ``np.int32``
-    indices spare torch's CPU SpMM a conversion of the indices per product."""
+def sparse_to_torch(M: sp.csr_matrix, index_dtype=None) -> torch.Tensor:
+    """A scipy CSR matrix as a float64 torch CSR tensor (copies). Indices are int32
+    where they fit (``index_dtype=None``), which spares torch's CPU sparse product a
+    conversion of the indices per product."""
+    if index_dtype is None:
+        index_dtype = np.int32 if max(M.nnz, *M.shape) < 2 ** 31 - 1 else np.int64
     with warnings.catch_warnings():
         # torch flags CSR support as beta; sparse @ dense used here is stable.
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
@@ -54,6 +57,12 @@ class SparseOperator:
         if not torch.is_grad_enabled() or not X.requires_grad:
             return self.A @ X
         return _ConstantSparseMatMul.apply(X, self.A, self.At)
+
+    def to_scipy(self) -> sp.csr_matrix:
+        """A as a scipy CSR matrix (copies)."""
+        A = self.A
+        return sp.csr_matrix((A.values().numpy(), A.col_indices().numpy(), A.crow_indices().numpy()),
+                             shape=tuple(A.shape))
 
     @classmethod
     def from_scipy(cls, M: sp.spmatrix) -> "SparseOperator":

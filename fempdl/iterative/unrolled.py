@@ -22,13 +22,18 @@ or has fallen by 1e-20 from its start (far past double precision), its step
 lengths are 0 and the column stays where it is; forward values and gradients
 stay finite. Up to that point the iterate is PETSc's.
 
-Memory: autograd keeps ``stored_values`` floats (a few K n B). With
+On a constant operator (right-hand-side controls) Richardson runs as fused
+sweeps whose adjoint is K transposed sweeps, and CG with a hand-written
+reverse pass (:mod:`fempdl.iterative.reverse_cg`); a matrix control goes
+through autograd, step by step.
+
+Memory: the backward pass needs ``stored_values`` floats (a few K n B). With
 ``max_values`` set below that, the iterations run in segments of about
-sqrt(K) iterations that build no graph in the forward pass (one autograd node
-per segment, holding the segment's starting state) and are recomputed one at
-a time during the backward pass, so about 2 sqrt(K) states are stored instead
-of K (``checkpointed_values``; recomputation is exact: the iteration is
-deterministic). A solve whose stored values would exceed the memory budget
+sqrt(K) iterations that keep only their starting state in the forward pass
+and are recomputed one at a time during the backward pass, so about 2 sqrt(K)
+states are stored instead of K (``checkpointed_values``, which must then fit
+in ``max_values``; recomputation is exact: the iteration is deterministic). A
+solve whose stored values would exceed the memory budget
 (:func:`fempdl.resources.memory_budget`, half the available memory) is
 refused before it starts, with the estimate and the ways out.
 """
@@ -36,9 +41,14 @@ from __future__ import annotations
 
 import copy
 import math
+import weakref
 
+import numpy as np
 import torch
 
+from fempdl.iterative import sweeps
+from fempdl.iterative.reverse_cg import ConstantOperatorCG
+from fempdl.iterative.sparse import SparseOperator, sparse_to_torch
 from fempdl.resources import format_bytes, memory_budget
 
 __all__ = ["solve", "METHODS", "stored_values", "checkpointed_values"]
@@ -79,23 +89,24 @@ class _SteepestDescent:
 
 
 class _ConjugateGradient:
+    # State (X, r, p, beta = r.z, floor): a column counts as solved once r.z has fallen below
+    # floor = 1e-40 |r0.z0| (1e-20 in the preconditioned residual norm), as the batched engine's CG.
     def init(self, A, P, R, omega):
         z = R if P is None else P * R
         beta = (R * z).sum(0)
-        # (X, r, z, p, beta); the first step uses p = z.
-        return (torch.zeros_like(R), R, z, z, beta)
+        return (torch.zeros_like(R), R, z, beta, _SOLVED * beta.detach().abs())
 
     def step(self, A, P, R, omega, state):
-        X, r, z, p, beta = state
-        rr0 = (R * R).sum(0).detach()
+        X, r, p, beta, floor = state
+        solved = beta.detach().abs() <= floor
         w = A @ p
-        a = _safe_ratio(beta, (p * w).sum(0), (r * r).sum(0) <= _SOLVED * rr0)
+        a = _safe_ratio(beta, (p * w).sum(0), solved)
         X = X + a * p
         r = r - a * w
         z = r if P is None else P * r
         beta_new = (r * z).sum(0)
-        p = z + _safe_ratio(beta_new, beta, (r * r).sum(0) <= _SOLVED * rr0) * p
-        return (X, r, z, p, beta_new)
+        p = z + _safe_ratio(beta_new, beta, solved | (beta_new.detach().abs() <= floor)) * p
+        return (X, r, p, beta_new, floor)
 
 
 METHODS = {"jacobi": _Jacobi(), "steepest_descent": _SteepestDescent(), "cg": _ConjugateGradient()}
@@ -154,12 +165,11 @@ def gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int, rest
     return X
 
 
-# Floats autograd keeps per iteration, in units of n * B, with a constant operator
-# and with one whose entries are differentiated (a matrix control), counted
-# with saved-tensor hooks. Jacobi with a constant operator keeps nothing: it is
-# linear in X, fempdl.iterative.sparse.SparseOperator keeps no operand, and its step
-# tensor is built once.
-_STORED_PER_ITERATION = {"jacobi": (0, 2), "steepest_descent": (2, 2), "cg": (4, 4), "gmres": (4, 5)}
+# Floats kept for the backward pass per iteration, in units of n * B, with a constant
+# operator and with one whose entries are differentiated (a matrix control), counted
+# with saved-tensor hooks. With a constant operator Jacobi keeps nothing (its map is
+# linear: _LinearRichardson) and CG three blocks (fempdl.iterative.reverse_cg).
+_STORED_PER_ITERATION = {"jacobi": (0, 2), "steepest_descent": (2, 2), "cg": (3, 4), "gmres": (4, 5)}
 
 
 def stored_values(method: str, K: int, n: int, batch: int, *, matrix_grad: bool = False) -> int:
@@ -171,7 +181,7 @@ def stored_values(method: str, K: int, n: int, batch: int, *, matrix_grad: bool 
 
 
 # Vectors (n, B) in a method's state: what a checkpointed segment keeps at its start.
-_STATE_VECTORS = {"jacobi": 1, "steepest_descent": 2, "cg": 4}
+_STATE_VECTORS = {"jacobi": 1, "steepest_descent": 2, "cg": 3}
 
 
 def _segment_length(K: int) -> int:
@@ -184,6 +194,38 @@ def checkpointed_values(method: str, K: int, n: int, batch: int, *, matrix_grad:
     segment = _segment_length(K)
     starts = math.ceil(K / segment) * _STATE_VECTORS[method] * n * batch
     return starts + stored_values(method, segment, n, batch, matrix_grad=matrix_grad)
+
+
+class _LinearRichardson(torch.autograd.Function):
+    """X_K = sum_{j<K} M^j c for c = scale R: K sweeps X <- c + M X, M = I - scale A.
+
+    The map is linear in R, so its vector-Jacobian product is K sweeps with M^T,
+    scaled: scale sum_{j<K} (M^T)^j G. Nothing per iteration is kept, and the
+    backward costs what the forward does."""
+
+    @staticmethod
+    def forward(ctx, R, M, Mt, scale, K):
+        ctx.Mt, ctx.scale, ctx.K = Mt, scale, K
+        return sweeps.richardson(M, R * scale, K)
+
+    @staticmethod
+    def backward(ctx, G):
+        return sweeps.richardson(ctx.Mt, G.contiguous(), ctx.K) * ctx.scale, None, None, None, None
+
+
+# SparseOperator -> (P, omega, M, M^T): the sweep matrices of a constant operator, for its latest P and omega.
+_SWEEP_MATRICES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _sweep_pair(A: SparseOperator, P: torch.Tensor | None, omega: float) -> tuple:
+    """(M, M^T) as torch CSR for M = I - omega P A, rebuilt when P (by identity) or omega change."""
+    kept = _SWEEP_MATRICES.get(A)
+    if kept is None or kept[0] is not P or kept[1] != omega:
+        S = A.to_scipy()
+        M = sweeps.sweep_matrix(S, omega * (P[:, 0].numpy() if P is not None else np.ones(S.shape[0])))
+        kept = (P, omega, sparse_to_torch(M), sparse_to_torch(M.T.tocsr()))
+        _SWEEP_MATRICES[A] = kept
+    return kept[2:]
 
 
 class _Segment(torch.autograd.Function):
@@ -211,6 +253,19 @@ class _Segment(torch.autograd.Function):
         found = iter(torch.autograd.grad([o for o, _ in used], wanted, [g for _, g in used], allow_unused=True)
                      if used and wanted else [None] * len(wanted))
         return (None, None, *[next(found) if t.requires_grad else None for t in inputs])
+
+
+def _check_bound(method: str, K: int, R: torch.Tensor, matrix_grad: bool, max_values: int) -> None:
+    """Refuse a solve that would keep more than ``max_values`` floats even when checkpointed."""
+    n, batch = R.shape
+    least = checkpointed_values(method, K, n, batch, matrix_grad=matrix_grad) if method in _STATE_VECTORS else None
+    if least is not None and least <= max_values:
+        return
+    how = (f"checkpointed, it keeps at least {least} ({format_bytes(8 * least)} in float64)" if least is not None
+           else f"{method} is not checkpointed and keeps {stored_values(method, K, n, batch, matrix_grad=matrix_grad)}")
+    raise MemoryError(f"diff='unrolled' with {method}, K={K}, n={n}, B={batch} cannot keep within "
+                      f"max_unrolled_values={max_values}: {how}; raise max_unrolled_values, pass fewer samples "
+                      f"per call, or use diff='implicit' (stores nothing per iteration)")
 
 
 def _check_memory(method: str, K: int, R: torch.Tensor, matrix_grad: bool, checkpointed: bool,
@@ -243,13 +298,19 @@ def solve(method: str, A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor,
 
     A warm start is the K-step solve of the residual equation, X0 + S_K(R - A X0),
     which is what PETSc's Krylov methods do with a nonzero initial guess; autograd
-    differentiates the dependence on X0 exactly. GMRES is not checkpointed (its
-    state is a whole Krylov basis).
+    differentiates the dependence on X0 exactly. On a constant
+    :class:`~fempdl.iterative.sparse.SparseOperator` with a constant P, Richardson
+    runs as fused sweeps whose adjoint is K transposed sweeps (nothing kept), and
+    CG with a hand-written reverse pass (:mod:`fempdl.iterative.reverse_cg`).
+
+    ``max_values`` bounds the floats kept for the backward pass: above it the
+    iterations are checkpointed (about 2 sqrt(K) states kept, each segment
+    recomputed once). GMRES is not checkpointed (its state is a whole Krylov basis).
 
     Raises:
-        MemoryError: with gradients on, the iterates to keep (``stored_values``,
-            or ``checkpointed_values`` when ``max_values`` is below it) exceed
-            ``memory_budget`` bytes (default: half the available memory).
+        MemoryError: with gradients on, the values to keep exceed ``max_values``
+            even when checkpointed, or exceed ``memory_budget`` bytes (default:
+            half the available memory).
     """
     if X0 is not None:
         return X0 + solve(method, A, P, R - A @ X0, K, omega=omega, restart=restart, max_values=max_values,
@@ -260,9 +321,20 @@ def solve(method: str, A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor,
     stored = stored_values(method, K, *R.shape, matrix_grad=matrix_grad)
     checkpointed = method != "gmres" and max_values is not None and stored > max_values
     if torch.is_grad_enabled():
+        if checkpointed or (max_values is not None and stored > max_values):
+            _check_bound(method, K, R, matrix_grad, max_values)
         _check_memory(method, K, R, matrix_grad, checkpointed, memory_budget)
     if method == "gmres":
         return gmres(A, P, R, K, restart)
+    constant = isinstance(A, SparseOperator) and not (P is not None and P.requires_grad) \
+        and not isinstance(omega, torch.Tensor)
+    if method == "jacobi" and constant:
+        # The K-step map is linear in R, with a K-sweep adjoint.
+        M, Mt = _sweep_pair(A, P, omega)
+        return _LinearRichardson.apply(R, M, Mt, omega if P is None else P * omega, K)
+    if method == "cg" and constant:
+        return ConstantOperatorCG.apply(R, A.A, A.At, P, K, _segment_length(K) if checkpointed else K, _SOLVED,
+                                        torch.is_grad_enabled() and R.requires_grad)
     impl = METHODS[method]
     if method == "jacobi":
         # One step tensor for all iterations: omega D^{-1}, or omega alone.

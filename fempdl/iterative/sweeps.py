@@ -1,0 +1,78 @@
+"""Fused Richardson sweeps on torch CSR matrices: X <- c + M X for whole (n, B) blocks.
+
+Richardson with a diagonal preconditioner P (D^-1 for Jacobi, or I) and damping
+omega, X <- X + omega P (R - A X), is the sweep X <- c + M X with
+
+    M = I - omega P A,   c = omega P R.
+
+One fused sparse product per sweep (read X and c, write the next iterate into a
+second buffer) is the least memory traffic such a sweep can have
+(``scripts/bench_floor.py``). Columns run in groups of about
+:data:`GROUP` so that a group's iterates stay in cache, and small products run
+on one torch thread (waking a second one per product costs more than it saves).
+"""
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+__all__ = ["sweep_matrix", "richardson", "column_groups", "torch_threads", "threads_for", "GROUP"]
+
+GROUP = 8   # columns per group (scripts/bench_floor.py: a group's iterates stay in cache at 66k DOFs)
+# Below this many multiply-adds per sparse product (nonzeros x group width), one torch
+# thread is faster than two: 4k and 16k DOFs ran faster on one, 66k on two (scripts/bench_floor.py).
+PARALLEL_MIN_WORK = 2_000_000
+
+
+def sweep_matrix(S: sp.csr_matrix, scale: np.ndarray) -> sp.csr_matrix:
+    """M = I - diag(scale) S (scipy CSR, sorted indices); scale (n,)."""
+    M = (sp.identity(S.shape[0], format="csr") - sp.diags(scale) @ S).tocsr()
+    M.sort_indices()
+    return M
+
+
+def column_groups(batch: int, size: int = GROUP) -> list[tuple[int, int]]:
+    """(start, width) of about ``size`` columns each, equal widths: a group's iterates stay
+    in cache, at the price of reading the matrix once per group."""
+    width = -(-batch // -(-batch // size))
+    return [(i, min(width, batch - i)) for i in range(0, batch, width)]
+
+
+@contextlib.contextmanager
+def torch_threads(count: int | None):
+    """torch's intra-op threads set to ``count`` inside the block (None: unchanged)."""
+    before = torch.get_num_threads()
+    if count is None or count == before:
+        yield
+        return
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def threads_for(nnz: int, width: int) -> int | None:
+    """1 when a sparse product of ``nnz`` entries on ``width`` columns is too small to share, else None."""
+    return 1 if nnz * width < PARALLEL_MIN_WORK else None
+
+
+def richardson(M: torch.Tensor, c: torch.Tensor, K: int, X0: torch.Tensor | None = None) -> torch.Tensor:
+    """K sweeps X <- c + M X from X0 (or 0) for c (n, B), column group by column group; returns X (n, B).
+
+    No autograd: two buffers per group, nothing kept."""
+    groups = column_groups(c.shape[1])
+    with torch.no_grad(), torch_threads(threads_for(M.values().numel(), groups[0][1])):
+        out = []
+        for i, width in groups:
+            cg = c[:, i:i + width].contiguous()
+            X = torch.zeros_like(cg) if X0 is None else X0[:, i:i + width].clone()
+            Y = torch.empty_like(cg)
+            for _ in range(K):
+                torch.addmm(cg, M, X, out=Y)
+                X, Y = Y, X
+            out.append(X)
+        return out[0] if len(out) == 1 else torch.cat(out, dim=1)
