@@ -7,9 +7,9 @@ omega, X <- X + omega P (R - A X), is the sweep X <- c + M X with
 
 One fused sparse product per sweep (read X and c, write the next iterate into a
 second buffer) is the least memory traffic such a sweep can have
-(``scripts/bench_floor.py``). Columns run in groups of about
-:data:`GROUP` so that a group's iterates stay in cache, and small products run
-on one torch thread (waking a second one per product costs more than it saves).
+(``scripts/bench_floor.py``). Columns run in groups of about :data:`GROUP`
+per thread so that a group's iterates stay in cache, and small products run on
+one torch thread (waking a second one per product costs more than it saves).
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ import torch
 
 __all__ = ["sweep_matrix", "richardson", "column_groups", "torch_threads", "threads_for", "GROUP"]
 
-GROUP = 8   # columns per group (scripts/bench_floor.py: a group's iterates stay in cache at 66k DOFs)
+GROUP = 8   # columns per group and torch thread (scripts/bench_floor.py: best at 66k DOFs on 1 and 2 threads)
 # Below this many multiply-adds per sparse product (nonzeros x group width), one torch
 # thread is faster than two: 4k and 16k DOFs ran faster on one, 66k on two (scripts/bench_floor.py).
 PARALLEL_MIN_WORK = 2_000_000
@@ -63,9 +63,13 @@ def threads_for(nnz: int, width: int) -> int | None:
 def richardson(M: torch.Tensor, c: torch.Tensor, K: int, X0: torch.Tensor | None = None) -> torch.Tensor:
     """K sweeps X <- c + M X from X0 (or 0) for c (n, B), column group by column group; returns X (n, B).
 
-    No autograd: two buffers per group, nothing kept."""
-    groups = column_groups(c.shape[1])
-    with torch.no_grad(), torch_threads(threads_for(M.values().numel(), groups[0][1])):
+    A group has :data:`GROUP` columns per torch thread (each thread's rows of the
+    group's iterates stay in its cache). No autograd: two buffers per group, nothing kept."""
+    threads = torch.get_num_threads()
+    if threads_for(M.values().numel(), min(c.shape[1], GROUP * threads)) == 1:
+        threads = 1
+    groups = column_groups(c.shape[1], GROUP * threads)
+    with torch.no_grad(), torch_threads(threads):
         out = []
         for i, width in groups:
             cg = c[:, i:i + width].contiguous()
