@@ -70,7 +70,7 @@ class SolveLayer(torch.nn.Module):
             (f, u0) and one control the matrix is affine in (kappa), with zero
             Dirichlet values).
         max_unrolled_values: in unrolled mode, the number of floats the stored
-            iterates may take (``unrolled.stored_values``: about K * B * n * 3-5);
+            iterates may take (``unrolled.stored_values``: up to about K * B * n * 5);
             above it the iterations are checkpointed (about 2 sqrt(K) states
             kept, recomputed in backward), and a call that cannot fit even so
             is refused with a MemoryError naming the least bound that works

@@ -1,6 +1,6 @@
 """Benchmark: a 3D Poisson layer at scale, forward + backward, on 1 and 2 MPI ranks.
 
-The bundled unit box meshed at each ``--h`` (default 0.022 and 0.0098: about
+The bundled unit box meshed at each ``--h`` (default 0.022 and 0.009: about
 1e5 and 1e6 P1 DOFs; meshed once into a temporary .msh file, outside the
 timing), Poisson with the source as the control, the ``--preset`` solver
 (default "amg": CG + BoomerAMG, or GAMG without hypre) to ``--rtol``. Timed
@@ -84,7 +84,7 @@ def launch(ranks: int, msh: Path, args, out: Path) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--h", type=comma_list(float), default=[0.022, 0.0098], help="box mesh sizes")
+    parser.add_argument("--h", type=comma_list(float), default=[0.022, 0.009], help="box mesh sizes")
     parser.add_argument("--preset", default="amg")
     parser.add_argument("--rtol", type=float, default=1e-8)
     parser.add_argument("--repeats", type=int, default=3)

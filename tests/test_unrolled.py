@@ -300,27 +300,50 @@ def test_reverse_cg_on_a_constant_operator_matches_autograd_through_the_steps(pc
         g, = torch.autograd.grad((X * W).sum(), R)
         torch.testing.assert_close(g, g_steps, rtol=1e-10, atol=1e-13)
         assert torch.all(X[:, 1] == 0) and torch.isfinite(g).all()
-    # (a zero column is solved from the start: a finite difference would leave that branch)
+    # Checkpointed (K = 30 stores more than its least bound), away from the zero column's branch.
     R_live = torch.from_numpy(rng.standard_normal((n, 2))).requires_grad_()
-    k = min(K, 7)
-    assert torch.autograd.gradcheck(lambda r: unrolled.solve("cg", SparseOperator.from_scipy(S), P, r, k,
-                                                             max_values=unrolled.checkpointed_values("cg", k, n, 2)),
-                                    (R_live,))
+    least = unrolled.checkpointed_values("cg", 30, n, 2)
+    assert unrolled.stored_values("cg", 30, n, 2) > least
+    assert torch.autograd.gradcheck(lambda r: unrolled.solve("cg", SparseOperator.from_scipy(S), P, r, 30,
+                                                             max_values=least), (R_live,))
 
 
-def test_max_unrolled_values_is_a_bound_not_a_hint():
-    """A bound below what checkpointing can reach is refused with the least value that works;
-    GMRES, which is not checkpointed, is refused above its stored size."""
+@pytest.mark.parametrize("scale", [1e-100, 1e100])
+def test_reverse_cg_gradient_does_not_depend_on_the_scale_of_the_right_hand_side(scale):
+    """X_K(s R) = s X_K(R), so the gradient of W.X_K at s R is the one at R; no square of a step
+    quantity may overflow or underflow on the way (it did with beta^2 and gamma^2)."""
     from fempdl.iterative.sparse import SparseOperator
-    n, K = 50, 36
-    op = SparseOperator.from_scipy(sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n), format="csr"))
-    R = torch.ones(n, 2, dtype=torch.float64, requires_grad=True)
-    least = unrolled.checkpointed_values("cg", K, n, 2)
-    assert least == (6 * 3 + 6 * 3) * n * 2                  # 6 segments of 6: starts + one segment's tapes
-    unrolled.solve("cg", op, None, R, K, max_values=least).sum().backward()
-    with pytest.raises(MemoryError, match=rf"max_unrolled_values={least - 1}: checkpointed, it keeps at least {least}"):
-        unrolled.solve("cg", op, None, R, K, max_values=least - 1)
-    with pytest.raises(MemoryError, match=r"gmres is not checkpointed and keeps \d+"):
-        unrolled.solve("gmres", op, None, R, K, max_values=1000)
-    with torch.no_grad():                                     # nothing kept: nothing to refuse
-        unrolled.solve("cg", op, None, R, K, max_values=1)
+    rng = np.random.default_rng(2)
+    n = 30
+    S = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n), format="csr")
+    P = torch.from_numpy(1.0 / S.diagonal())[:, None]
+    R = torch.from_numpy(rng.standard_normal((n, 2)))
+    W = torch.from_numpy(rng.standard_normal((n, 2)))
+    grads = []
+    for s in (1.0, scale):
+        x = (s * R).requires_grad_()
+        (unrolled.solve("cg", SparseOperator.from_scipy(S), P, x, 12) * W).sum().backward()
+        grads.append(x.grad)
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-12, atol=0)
+
+
+def test_second_derivatives_through_constant_operator_solves():
+    """The constant-operator paths (Richardson's linear map, whose adjoint is the same map with
+    M^T; CG's reverse pass, which falls back to autograd through the steps under create_graph)
+    give the Hessian-vector products of autograd through the steps, also when the loss depends
+    on R by another path too."""
+    from fempdl.iterative.sparse import SparseOperator
+    rng = np.random.default_rng(3)
+    n = 20
+    S = sp.diags([-1.0, 2.5, -1.3], [-1, 0, 1], shape=(n, n), format="csr")
+    P = torch.from_numpy(1.0 / S.diagonal())[:, None]
+    R0, V = (torch.from_numpy(rng.standard_normal((n, 2))) for _ in range(2))
+
+    def hvp(method, A):
+        R = R0.clone().requires_grad_()
+        loss = (unrolled.solve(method, A, P, R, 9, omega=0.8) ** 3).sum() + (R ** 3).sum()
+        g, = torch.autograd.grad(loss, R, create_graph=True)
+        return torch.autograd.grad((g * V).sum(), R)[0]
+    for method in ("jacobi", "cg"):
+        torch.testing.assert_close(hvp(method, SparseOperator.from_scipy(S)), hvp(method, sparse_to_torch(S)),
+                                   rtol=1e-12, atol=1e-13)

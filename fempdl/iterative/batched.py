@@ -17,7 +17,7 @@ columns. PCJACOBI replaces a zero diagonal entry by 1, and so does this engine.
 
 The operator is a torch CSR copy of the assembled PETSc matrix (serial only,
 int32 indices), refreshed when the matrix is reassembled. When batching pays
-is :meth:`BatchedEngine.faster_than_petsc` (measured: ``scripts/bench_layer.py``,
+is :meth:`BatchedEngine.faster_than_petsc` (measured: ``scripts/bench_floor.py``,
 ``scripts/bench_krylov.py``).
 
 This module knows PETSc and torch, nothing of UFL.
@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from petsc4py import PETSc
 
-from fempdl.iterative.unrolled import _SOLVED
+from fempdl.iterative.columns import SOLVED, column_dots, guarded_ratio
 from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
 from fempdl.iterative.sparse import sparse_to_torch
 from fempdl.iterative.sweeps import column_groups, richardson, sweep_matrix, threads_for, torch_threads
@@ -112,9 +112,10 @@ class BatchedEngine:
             M = self._sweep_matrix(transpose, precondition, scale)
             X = richardson(M, rhs * (self._dinv * scale if precondition else scale), options.max_it, start)
             return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0
-        # A warm start is the K-step solve of the residual equation, as in PETSc.
-        width = min(CG_GROUP, rhs.shape[1]) if options.ksp_type == "cg" else rhs.shape[1]
-        with torch.no_grad(), torch_threads(threads_for(op.values().numel(), width)):
+        # A warm start is the K-step solve of the residual equation, as in PETSc. CG's small
+        # groups may run on one thread; GMRES's batched Gram-Schmidt keeps them all.
+        threads = threads_for(op.values().numel(), min(CG_GROUP, rhs.shape[1])) if options.ksp_type == "cg" else None
+        with torch.no_grad(), torch_threads(threads):
             res = rhs if start is None else rhs - op @ start
             P = self._dinv if precondition else None
             if options.ksp_type == "cg":
@@ -137,22 +138,9 @@ class BatchedEngine:
 # They run the recurrences of fempdl.iterative.unrolled (PETSc's KSPCG and
 # KSPGMRES) for all columns at once, with whole-block torch operations only.
 
-def _column_dots(X: torch.Tensor, Y: torch.Tensor, buf: torch.Tensor) -> torch.Tensor:
-    """sum_i X[i, b] Y[i, b] for every column b of (n, B) blocks (``buf``: scratch (n, B)).
-
-    Multiply into scratch, then sum: faster inside the CG loop than torch.linalg.vecdot."""
-    return torch.mul(X, Y, out=buf).sum(0)
-
-
 def _spmm(A: torch.Tensor, X: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
     """out = A @ X; ``A @ X`` would zero-fill a result and copy it once more."""
     return torch.addmm(out, A, X, beta=0.0, out=out)
-
-
-def _ratio(num: torch.Tensor, den: torch.Tensor, solved: torch.Tensor) -> torch.Tensor:
-    """num / den per column, 0 where den == 0 or the column is solved (it then stays put)."""
-    zero = (den == 0) | solved
-    return torch.where(zero, torch.zeros_like(num), num / torch.where(zero, torch.ones_like(den), den))
 
 
 def fast_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int) -> torch.Tensor:
@@ -160,25 +148,25 @@ def fast_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int) ->
 
     One SpMM and two column-dot passes per iteration. A column counts as solved
     once its preconditioned residual product r.z has fallen by 1e-40 from its
-    start (unrolled uses r.r; both lie far past double precision)."""
+    start, as in the unrolled CG (:mod:`fempdl.iterative.columns`)."""
     X = torch.zeros_like(R)
     r = R.clone()
     buf = torch.empty_like(R)
     z = r if P is None else P * r
     p = z.clone()
-    beta = _column_dots(r, z, buf)
-    floor = _SOLVED * beta.abs()
+    beta = column_dots(r, z, buf)
+    floor = SOLVED * beta.abs()
     w = torch.zeros_like(R)
     for _ in range(K):
         solved = beta.abs() <= floor
         _spmm(A, p, w)
-        a = _ratio(beta, _column_dots(p, w, buf), solved)
+        a = guarded_ratio(beta, column_dots(p, w, buf), solved)
         X.addcmul_(p, a)
         r.addcmul_(w, a, value=-1.0)
         if P is not None:
             torch.mul(P, r, out=z)
-        beta_new = _column_dots(r, z, buf)
-        torch.addcmul(z, p, _ratio(beta_new, beta, solved), out=p)
+        beta_new = column_dots(r, z, buf)
+        torch.addcmul(z, p, guarded_ratio(beta_new, beta, solved), out=p)
         beta = beta_new
     return X
 

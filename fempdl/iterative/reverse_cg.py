@@ -28,21 +28,13 @@ from __future__ import annotations
 
 import torch
 
+from fempdl.iterative.columns import column_dots, guarded_ratio
+
 __all__ = ["ConstantOperatorCG"]
-
-
-def _guarded(active: torch.Tensor, num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
-    """num / den where ``active``, else 0."""
-    return torch.where(active, num / torch.where(active, den, torch.ones_like(den)), torch.zeros_like(num))
 
 
 def _precondition(P: torch.Tensor | None, v: torch.Tensor) -> torch.Tensor:
     return v if P is None else P * v
-
-
-def _dots(X: torch.Tensor, Y: torch.Tensor, buf: torch.Tensor) -> torch.Tensor:
-    """Column dot products of (n, B) blocks, through the scratch block ``buf``."""
-    return torch.mul(X, Y, out=buf).sum(0)
 
 
 def _forward_step(A, P, r, p, beta, floor, buf, zbuf, out=None):
@@ -53,34 +45,36 @@ def _forward_step(A, P, r, p, beta, floor, buf, zbuf, out=None):
     w, r_new, p_new = out if out is not None else (torch.empty_like(p) for _ in range(3))
     solved = beta.abs() <= floor
     torch.addmm(w, A, p, beta=0.0, out=w)
-    gamma = _dots(p, w, buf)
-    act_a = ~(solved | (gamma == 0))
-    a = _guarded(act_a, beta, gamma)
+    gamma = column_dots(p, w, buf)
+    still_a = ~(solved | (gamma == 0))                     # where a = beta / gamma, else a = 0
+    a = guarded_ratio(beta, gamma, ~still_a)
     torch.addcmul(r, w, a, value=-1.0, out=r_new)
     z = r_new if P is None else torch.mul(P, r_new, out=zbuf)
-    beta_new = _dots(r_new, z, buf)
-    act_b = ~(solved | (beta_new.abs() <= floor) | (beta == 0))
-    b = _guarded(act_b, beta_new, beta)
+    beta_new = column_dots(r_new, z, buf)
+    still_b = ~(solved | (beta_new.abs() <= floor) | (beta == 0))   # where b = beta' / beta
+    b = guarded_ratio(beta_new, beta, ~still_b)
     torch.addcmul(z, p, b, out=p_new)
-    return (a, r_new, p_new, beta_new), (p, w, r_new, beta, gamma, a, b, beta_new, act_a, act_b)
+    return (a, r_new, p_new, beta_new), (p, w, r_new, beta, gamma, a, b, still_a, still_b)
 
 
 def _reverse_step(At, P, G, tape, r_bar, p_bar, beta_bar, buf, spare):
     """Adjoints of (r, p, beta) before a step from those after it (X's adjoint is G).
 
     In place: ``r_bar`` becomes the new r^, ``spare`` the new p^ (the old ``p_bar``
-    is the next step's spare); ``buf`` is scratch. Returns (r^, p^, beta^, spare)."""
-    p, w, r_new, beta, gamma, a, b, beta_new, act_a, act_b = tape
-    b_bar = _dots(p_bar, p, buf)
-    beta_new_bar = beta_bar + _guarded(act_b, b_bar, beta)
-    beta_prev_bar = -_guarded(act_b, b_bar * beta_new, beta * beta)
+    is the next step's spare); ``buf`` is scratch. Returns (r^, p^, beta^, spare).
+    The quotients use the step lengths a and b themselves (beta' / beta^2 = b / beta),
+    so that no square of beta or gamma can overflow or underflow."""
+    p, w, r_new, beta, gamma, a, b, still_a, still_b = tape
+    b_bar = column_dots(p_bar, p, buf)
+    beta_new_bar = beta_bar + guarded_ratio(b_bar, beta, ~still_b)
+    beta_prev_bar = -guarded_ratio(b_bar * b, beta, ~still_b)
     torch.addcmul(p_bar, r_new, 2.0 * beta_new_bar, out=buf)
     if P is not None:
         buf.mul_(P)
     r_bar.add_(buf)                                             # r^ = r'^ + P (p'^ + 2 beta'^ r')
-    a_bar = _dots(G, p, buf) - _dots(r_bar, w, buf)
-    beta_prev_bar = beta_prev_bar + _guarded(act_a, a_bar, gamma)
-    gamma_bar = -_guarded(act_a, a_bar * beta, gamma * gamma)
+    a_bar = column_dots(G, p, buf) - column_dots(r_bar, w, buf)
+    beta_prev_bar = beta_prev_bar + guarded_ratio(a_bar, gamma, ~still_a)
+    gamma_bar = -guarded_ratio(a_bar * a, gamma, ~still_a)
     torch.mul(p, gamma_bar, out=buf).addcmul_(r_bar, a, value=-1.0)              # w^
     torch.addmm(spare, At, buf, beta=0.0, out=spare)                             # A^T w^
     spare.addcmul_(p_bar, b).addcmul_(G, a).addcmul_(w, gamma_bar)
@@ -93,57 +87,69 @@ class ConstantOperatorCG(torch.autograd.Function):
     ``keep=False``: none, for a solve nothing will differentiate).
 
     The kept blocks go through ``save_for_backward`` (saved-tensor hooks see them);
-    the per-column scalars are attributes. A recomputed segment writes its tapes
-    into one set of blocks reused for every segment."""
+    the per-column scalars are attributes. Steps whose tapes are not kept, and
+    recomputed segments, write into blocks reused from step to step. A backward
+    pass that builds a graph (``create_graph=True``) runs ``steps(R)``, the same
+    map in differentiable torch operations, instead, so that derivatives of any
+    order are right."""
 
     @staticmethod
-    def forward(ctx, R, A, At, P, K: int, segment: int, solved_fraction: float, keep: bool = True):
-        # keep=False (nothing will be differentiated): no tape is kept.
-        segment = segment if keep else K + 1
+    def forward(ctx, R, A, At, P, K: int, segment: int, solved_fraction: float, keep: bool, steps):
+        keep_all = keep and segment >= K
         with torch.no_grad():
             r, p = R, _precondition(P, R)
             beta = (r * p).sum(0)
             floor = solved_fraction * beta.abs()
             X = torch.zeros_like(R)
             buf, zbuf = torch.empty_like(R), torch.empty_like(R)
+            ring = None if keep_all else [[torch.empty_like(R) for _ in range(3)] for _ in range(2)]
             blocks, scalars = [], []
             for k in range(K):
-                if segment < K and k % segment == 0:
-                    blocks += [r, p]
+                if keep and not keep_all and k % segment == 0:
+                    blocks += [r.clone(), p.clone()]      # the ring's blocks are overwritten later
                     scalars.append(beta)
-                (a, r, p, beta), tape = _forward_step(A, P, r, p, beta, floor, buf, zbuf)
+                (a, r, p, beta), tape = _forward_step(A, P, r, p, beta, floor, buf, zbuf,
+                                                      None if keep_all else ring[k % 2])
                 X.addcmul_(tape[0], a)
-                if keep and segment >= K:
+                if keep_all:
                     blocks += tape[:3]                    # p_k is the previous step's p'
                     scalars.append(tape[3:])
         ctx.A, ctx.At, ctx.P, ctx.K, ctx.segment = A, At, P, K, segment
-        ctx.floor, ctx.scalars = floor, scalars
+        ctx.floor, ctx.scalars, ctx.steps = floor, scalars, steps
         ctx.save_for_backward(R, *blocks)
         return X
 
     @staticmethod
     def backward(ctx, G):
         R, *blocks = ctx.saved_tensors
+        if torch.is_grad_enabled():                       # create_graph=True
+            X = ctx.steps(R)
+            return torch.autograd.grad(X, R, G, create_graph=True)[0], None, None, None, None, None, None, None, None
         A, At, P, K, segment = ctx.A, ctx.At, ctx.P, ctx.K, ctx.segment
-        with torch.no_grad():
-            G = G.contiguous()
-            r_bar, p_bar, spare = torch.zeros_like(G), torch.zeros_like(G), torch.empty_like(G)
-            buf, zbuf = torch.empty_like(G), torch.empty_like(G)
-            beta_bar = torch.zeros(G.shape[1], dtype=G.dtype)
-            if segment >= K:                              # every tape kept
-                segments = [[(*blocks[3 * k:3 * k + 3], *ctx.scalars[k]) for k in range(K)]]
-            else:
-                segments = range(len(ctx.scalars))
-                pool = [[torch.empty_like(G) for _ in range(3)] for _ in range(segment)]
-            for tapes in reversed(segments):
-                if isinstance(tapes, int):                # recompute segment j's tapes from its start
-                    j = tapes
-                    r, p, beta = blocks[2 * j], blocks[2 * j + 1], ctx.scalars[j]
-                    tapes = []
-                    for i in range(min(segment, K - j * segment)):
-                        (_, r, p, beta), tape = _forward_step(A, P, r, p, beta, ctx.floor, buf, zbuf, pool[i])
-                        tapes.append(tape)
-                for tape in reversed(tapes):
-                    r_bar, p_bar, beta_bar, spare = _reverse_step(At, P, G, tape, r_bar, p_bar, beta_bar, buf, spare)
-            R_bar = r_bar + _precondition(P, p_bar + 2.0 * beta_bar * R)
-        return R_bar, None, None, None, None, None, None, None
+        G = G.contiguous()
+        r_bar, p_bar, spare = torch.zeros_like(G), torch.zeros_like(G), torch.empty_like(G)
+        buf, zbuf = torch.empty_like(G), torch.empty_like(G)
+        beta_bar = torch.zeros(G.shape[1], dtype=G.dtype)
+        if segment >= K:                                  # every tape kept
+            segments = [[(*blocks[3 * k:3 * k + 3], *ctx.scalars[k]) for k in range(K)]]
+        else:
+            segments = range(len(ctx.scalars))
+            pool = [[torch.empty_like(G) for _ in range(3)] for _ in range(segment)]
+        for tapes in reversed(segments):
+            if isinstance(tapes, int):                    # recompute segment j's tapes from its start
+                j = tapes
+                r, p, beta = blocks[2 * j], blocks[2 * j + 1], ctx.scalars[j]
+                tapes = []
+                for i in range(min(segment, K - j * segment)):
+                    (_, r, p, beta), tape = _forward_step(A, P, r, p, beta, ctx.floor, buf, zbuf, pool[i])
+                    tapes.append(tape)
+            for tape in reversed(tapes):
+                r_bar, p_bar, beta_bar, spare = _reverse_step(At, P, G, tape, r_bar, p_bar, beta_bar, buf, spare)
+        del segments, tapes, spare, buf, zbuf
+        if segment < K:
+            del pool
+        # R^ = r^ + P (p^ + 2 beta^ R), in place
+        p_bar.addcmul_(R, 2.0 * beta_bar)
+        if P is not None:
+            p_bar.mul_(P)
+        return r_bar.add_(p_bar), None, None, None, None, None, None, None, None

@@ -59,7 +59,7 @@ class SparseOperator:
         return _ConstantSparseMatMul.apply(X, self.A, self.At)
 
     def to_scipy(self) -> sp.csr_matrix:
-        """A as a scipy CSR matrix (copies)."""
+        """A as a scipy CSR matrix (sharing the tensors' memory)."""
         A = self.A
         return sp.csr_matrix((A.values().numpy(), A.col_indices().numpy(), A.crow_indices().numpy()),
                              shape=tuple(A.shape))

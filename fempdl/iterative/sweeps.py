@@ -73,7 +73,7 @@ def richardson(M: torch.Tensor, c: torch.Tensor, K: int, X0: torch.Tensor | None
         out = []
         for i, width in groups:
             cg = c[:, i:i + width].contiguous()
-            X = torch.zeros_like(cg) if X0 is None else X0[:, i:i + width].clone()
+            X = torch.zeros_like(cg) if X0 is None else X0[:, i:i + width].clone(memory_format=torch.contiguous_format)
             Y = torch.empty_like(cg)
             for _ in range(K):
                 torch.addmm(cg, M, X, out=Y)

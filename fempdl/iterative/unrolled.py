@@ -47,24 +47,12 @@ import numpy as np
 import torch
 
 from fempdl.iterative import sweeps
+from fempdl.iterative.columns import SOLVED, guarded_ratio
 from fempdl.iterative.reverse_cg import ConstantOperatorCG
 from fempdl.iterative.sparse import SparseOperator, sparse_to_torch
 from fempdl.resources import format_bytes, memory_budget
 
 __all__ = ["solve", "METHODS", "stored_values", "checkpointed_values"]
-
-
-# A column counts as solved once its residual norm has fallen by 1e-20 (far past
-# double precision): its step lengths are then 0. Continuing would only push the
-# squared norms in the step-length ratios towards underflow, where their
-# derivatives (num / den^2) overflow.
-_SOLVED = 1e-40
-
-
-def _safe_ratio(num: torch.Tensor, den: torch.Tensor, solved: torch.Tensor | None = None) -> torch.Tensor:
-    """num / den per column, and 0 where den == 0 or the column is ``solved`` (finite gradients)."""
-    zero = den == 0 if solved is None else (den == 0) | solved
-    return torch.where(zero, torch.zeros_like(num), num / torch.where(zero, torch.ones_like(den), den))
 
 
 class _Jacobi:
@@ -84,7 +72,7 @@ class _SteepestDescent:
         X, r = state
         Ar = A @ r
         rr = (r * r).sum(0)
-        alpha = _safe_ratio(rr, (r * Ar).sum(0), rr <= _SOLVED * (R * R).sum(0).detach())
+        alpha = guarded_ratio(rr, (r * Ar).sum(0), rr <= SOLVED * (R * R).sum(0).detach())
         return (X + alpha * r, r - alpha * Ar)
 
 
@@ -94,18 +82,18 @@ class _ConjugateGradient:
     def init(self, A, P, R, omega):
         z = R if P is None else P * R
         beta = (R * z).sum(0)
-        return (torch.zeros_like(R), R, z, beta, _SOLVED * beta.detach().abs())
+        return (torch.zeros_like(R), R, z, beta, SOLVED * beta.detach().abs())
 
     def step(self, A, P, R, omega, state):
         X, r, p, beta, floor = state
         solved = beta.detach().abs() <= floor
         w = A @ p
-        a = _safe_ratio(beta, (p * w).sum(0), solved)
+        a = guarded_ratio(beta, (p * w).sum(0), solved)
         X = X + a * p
         r = r - a * w
         z = r if P is None else P * r
         beta_new = (r * z).sum(0)
-        p = z + _safe_ratio(beta_new, beta, solved | (beta_new.detach().abs() <= floor)) * p
+        p = z + guarded_ratio(beta_new, beta, solved | (beta_new.detach().abs() <= floor)) * p
         return (X, r, p, beta_new, floor)
 
 
@@ -188,12 +176,17 @@ def _segment_length(K: int) -> int:
     return max(1, int(math.sqrt(K)))
 
 
+# (n, B) work blocks a backward pass holds besides the stored iterates (CG's reverse pass:
+# the adjoints of r and p, a spare, two scratch blocks and the gradient).
+_WORK_BLOCKS = 6
+
+
 def checkpointed_values(method: str, K: int, n: int, batch: int, *, matrix_grad: bool = False) -> int:
     """Float values a checkpointed K-step solve keeps at most: the starting state of every segment plus,
-    during the backward pass, one segment's stored iterates."""
+    during the backward pass, one segment's stored iterates and the pass's work blocks."""
     segment = _segment_length(K)
     starts = math.ceil(K / segment) * _STATE_VECTORS[method] * n * batch
-    return starts + stored_values(method, segment, n, batch, matrix_grad=matrix_grad)
+    return starts + stored_values(method, segment, n, batch, matrix_grad=matrix_grad) + _WORK_BLOCKS * n * batch
 
 
 class _LinearRichardson(torch.autograd.Function):
@@ -205,12 +198,13 @@ class _LinearRichardson(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, R, M, Mt, scale, K):
-        ctx.Mt, ctx.scale, ctx.K = Mt, scale, K
+        ctx.M, ctx.Mt, ctx.scale, ctx.K = M, Mt, scale, K
         return sweeps.richardson(M, R * scale, K)
 
     @staticmethod
     def backward(ctx, G):
-        return sweeps.richardson(ctx.Mt, G.contiguous(), ctx.K) * ctx.scale, None, None, None, None
+        # The adjoint is the same kind of map (M^T for M), so derivatives of any order follow.
+        return ctx.scale * _LinearRichardson.apply(G, ctx.Mt, ctx.M, 1.0, ctx.K), None, None, None, None
 
 
 # SparseOperator -> (P, omega, M, M^T): the sweep matrices of a constant operator, for its latest P and omega.
@@ -318,10 +312,13 @@ def solve(method: str, A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor,
     if method != "gmres" and method not in METHODS:
         raise ValueError(f"method must be one of {sorted(METHODS) + ['gmres']}, got {method!r}")
     matrix_grad = bool(getattr(A, "requires_grad", False))
-    stored = stored_values(method, K, *R.shape, matrix_grad=matrix_grad)
+    # Besides the iterates, a backward pass holds R and a few work blocks.
+    stored = stored_values(method, K, *R.shape, matrix_grad=matrix_grad) + (1 + _WORK_BLOCKS) * R.numel()
     checkpointed = method != "gmres" and max_values is not None and stored > max_values
-    if torch.is_grad_enabled():
-        if checkpointed or (max_values is not None and stored > max_values):
+    differentiated = torch.is_grad_enabled() and any(
+        isinstance(t, torch.Tensor) and t.requires_grad for t in (R, P, omega, getattr(A, "values", None)))
+    if differentiated:
+        if max_values is not None and stored > max_values:
             _check_bound(method, K, R, matrix_grad, max_values)
         _check_memory(method, K, R, matrix_grad, checkpointed, memory_budget)
     if method == "gmres":
@@ -333,8 +330,13 @@ def solve(method: str, A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor,
         M, Mt = _sweep_pair(A, P, omega)
         return _LinearRichardson.apply(R, M, Mt, omega if P is None else P * omega, K)
     if method == "cg" and constant:
-        return ConstantOperatorCG.apply(R, A.A, A.At, P, K, _segment_length(K) if checkpointed else K, _SOLVED,
-                                        torch.is_grad_enabled() and R.requires_grad)
+        return ConstantOperatorCG.apply(R, A.A, A.At, P, K, _segment_length(K) if checkpointed else K, SOLVED,
+                                        differentiated, lambda R: _steps("cg", A, P, R, K, omega))
+    return _steps(method, A, P, R, K, omega, checkpointed and differentiated)
+
+
+def _steps(method: str, A, P, R: torch.Tensor, K: int, omega, checkpointed: bool = False) -> torch.Tensor:
+    """K steps of ``method`` in differentiable torch operations (checkpointed in segments of about sqrt(K))."""
     impl = METHODS[method]
     if method == "jacobi":
         # One step tensor for all iterations: omega D^{-1}, or omega alone.
@@ -346,7 +348,7 @@ def solve(method: str, A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor,
             s = impl.step(A, P, R, omega, s)
         return s
 
-    if not checkpointed or not torch.is_grad_enabled():
+    if not checkpointed:
         return run(K, *state)[0]
     # The operands that need gradients pass through _Segment as inputs; an operator's
     # differentiable entries are its ``values`` (fempdl.bridge_torch's matrix controls).

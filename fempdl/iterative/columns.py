@@ -1,0 +1,27 @@
+"""Per-column operations on (n, B) blocks, shared by the batched and unrolled iterations.
+
+A column counts as solved once its preconditioned residual product r.z has
+fallen below :data:`SOLVED` times its start (1e-20 in the norm, far past double
+precision): its step lengths are then 0, so that no 0/0 occurs and squared
+norms never underflow into overflowing derivatives.
+"""
+from __future__ import annotations
+
+import torch
+
+__all__ = ["SOLVED", "guarded_ratio", "column_dots"]
+
+SOLVED = 1e-40
+
+
+def guarded_ratio(num: torch.Tensor, den: torch.Tensor, zero: torch.Tensor | None = None) -> torch.Tensor:
+    """num / den per column, 0 where den == 0 or ``zero`` is set (finite values and gradients)."""
+    zero = den == 0 if zero is None else (den == 0) | zero
+    return torch.where(zero, torch.zeros_like(num), num / torch.where(zero, torch.ones_like(den), den))
+
+
+def column_dots(X: torch.Tensor, Y: torch.Tensor, buf: torch.Tensor) -> torch.Tensor:
+    """sum_i X[i, b] Y[i, b] for every column b, through the scratch block ``buf`` (n, B).
+
+    Multiply into scratch, then sum: faster inside the CG loops than torch.linalg.vecdot."""
+    return torch.mul(X, Y, out=buf).sum(0)
