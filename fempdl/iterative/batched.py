@@ -32,7 +32,7 @@ from petsc4py import PETSc
 
 from fempdl.iterative.columns import SOLVED, column_dots, guarded_ratio
 from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
-from fempdl.iterative.sparse import sparse_to_torch
+from fempdl.iterative.sparse import sparse_to_torch, torch_to_scipy
 from fempdl.iterative.sweeps import column_groups, richardson, sweep_matrix, threads_for, torch_threads
 
 __all__ = ["BatchedEngine", "fast_cg", "fast_gmres"]
@@ -81,7 +81,6 @@ class BatchedEngine:
         """Copy the current entries of ``A`` (call again after it is reassembled)."""
         S = petsc_to_scipy(A)
         d = S.diagonal()
-        self._S = S
         self._A = sparse_to_torch(S)
         self._At = sparse_to_torch(S.T.tocsr())
         safe = np.where(d != 0.0, d, 1.0)  # PCJACOBI's treatment of a zero diagonal
@@ -92,8 +91,9 @@ class BatchedEngine:
         """M = I - omega P A (A^T when ``transpose``), P = D^{-1} or I, built once per matrix and setting."""
         key = (transpose, jacobi, omega)
         if key not in self._sweeps:
-            scale = omega * (self._dinv[:, 0].numpy() if jacobi else np.ones(self._S.shape[0]))
-            self._sweeps[key] = sparse_to_torch(sweep_matrix(self._S.T.tocsr() if transpose else self._S, scale))
+            S = torch_to_scipy(self._At if transpose else self._A)
+            scale = omega * (self._dinv[:, 0].numpy() if jacobi else np.ones(S.shape[0]))
+            self._sweeps[key] = sparse_to_torch(sweep_matrix(S, scale))
         return self._sweeps[key]
 
     def solve(self, R: np.ndarray, options: KSPOptions, *, transpose: bool = False,

@@ -11,7 +11,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-__all__ = ["sparse_to_torch", "SparseOperator"]
+__all__ = ["sparse_to_torch", "torch_to_scipy", "SparseOperator"]
 
 
 def sparse_to_torch(M: sp.csr_matrix, index_dtype=None) -> torch.Tensor:
@@ -26,6 +26,12 @@ def sparse_to_torch(M: sp.csr_matrix, index_dtype=None) -> torch.Tensor:
         return torch.sparse_csr_tensor(
             torch.from_numpy(M.indptr.astype(index_dtype)), torch.from_numpy(M.indices.astype(index_dtype)),
             torch.from_numpy(M.data.astype(np.float64)), size=M.shape, check_invariants=False)
+
+
+def torch_to_scipy(T: torch.Tensor) -> sp.csr_matrix:
+    """A torch CSR tensor as a scipy CSR matrix (sharing its memory)."""
+    return sp.csr_matrix((T.values().numpy(), T.col_indices().numpy(), T.crow_indices().numpy()),
+                         shape=tuple(T.shape))
 
 
 class _ConstantSparseMatMul(torch.autograd.Function):
@@ -60,9 +66,7 @@ class SparseOperator:
 
     def to_scipy(self) -> sp.csr_matrix:
         """A as a scipy CSR matrix (sharing the tensors' memory)."""
-        A = self.A
-        return sp.csr_matrix((A.values().numpy(), A.col_indices().numpy(), A.crow_indices().numpy()),
-                             shape=tuple(A.shape))
+        return torch_to_scipy(self.A)
 
     @classmethod
     def from_scipy(cls, M: sp.spmatrix) -> "SparseOperator":
