@@ -13,10 +13,13 @@ vector-Jacobian product of that map, step by step backwards, with adjoints
 (r^, p^, beta^) and X^ = G throughout (X only accumulates):
 
     b^ = p'^.p,            p^ = b p'^ + a G + gamma^ w + A^T w^,
-    beta'^ += b^ / beta,   beta^ = -b^ beta' / beta^2 + a^ / gamma,
+    beta'^ += b^ / beta,   beta^ = -b^ b / beta + a^ / gamma,
     r^ = r'^ + P (p'^ + 2 beta'^ r'),
-    a^ = G.p - r^.w,       gamma^ = -a^ beta / gamma^2,
-    w^ = -a r^ + gamma^ p,
+    a^ = G.p - r^.w,       gamma^ = -a^ a / gamma,
+    w^ = -a r^ + gamma^ p
+
+(beta' / beta^2 written as b / beta and beta / gamma^2 as a / gamma: no square
+can overflow or underflow),
 
 and finally R^ = r^ + P p^ + 2 beta^ P R. A step keeps p, w and r' (three
 (n, B) blocks) where autograd keeps four and allocates about twice as many
@@ -61,9 +64,7 @@ def _reverse_step(At, P, G, tape, r_bar, p_bar, beta_bar, buf, spare):
     """Adjoints of (r, p, beta) before a step from those after it (X's adjoint is G).
 
     In place: ``r_bar`` becomes the new r^, ``spare`` the new p^ (the old ``p_bar``
-    is the next step's spare); ``buf`` is scratch. Returns (r^, p^, beta^, spare).
-    The quotients use the step lengths a and b themselves (beta' / beta^2 = b / beta),
-    so that no square of beta or gamma can overflow or underflow."""
+    is the next step's spare); ``buf`` is scratch. Returns (r^, p^, beta^, spare)."""
     p, w, r_new, beta, gamma, a, b, still_a, still_b = tape
     b_bar = column_dots(p_bar, p, buf)
     beta_new_bar = beta_bar + guarded_ratio(b_bar, beta, ~still_b)
