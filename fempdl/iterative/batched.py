@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from petsc4py import PETSc
 
-from fempdl.iterative.columns import SOLVED, column_dots, guarded_ratio
+from fempdl.iterative.columns import SOLVED, column_dots, guarded_ratio, spmm_into
 from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
 from fempdl.iterative.sparse import sparse_to_torch, torch_to_scipy
 from fempdl.iterative.sweeps import column_groups, richardson, sweep_matrix, threads_for, torch_threads
@@ -92,8 +92,7 @@ class BatchedEngine:
         key = (transpose, jacobi, omega)
         if key not in self._sweeps:
             S = torch_to_scipy(self._At if transpose else self._A)
-            scale = omega * (self._dinv[:, 0].numpy() if jacobi else np.ones(S.shape[0]))
-            self._sweeps[key] = sparse_to_torch(sweep_matrix(S, scale))
+            self._sweeps[key] = sparse_to_torch(sweep_matrix(S, omega, self._dinv[:, 0].numpy() if jacobi else None))
         return self._sweeps[key]
 
     def solve(self, R: np.ndarray, options: KSPOptions, *, transpose: bool = False,
@@ -138,11 +137,6 @@ class BatchedEngine:
 # They run the recurrences of fempdl.iterative.unrolled (PETSc's KSPCG and
 # KSPGMRES) for all columns at once, with whole-block torch operations only.
 
-def _spmm(A: torch.Tensor, X: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
-    """out = A @ X; ``A @ X`` would zero-fill a result and copy it once more."""
-    return torch.addmm(out, A, X, beta=0.0, out=out)
-
-
 def fast_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int) -> torch.Tensor:
     """K steps of preconditioned CG (KSPCG's recurrences) from X = 0 for R (n, B); returns X (n, B).
 
@@ -159,7 +153,7 @@ def fast_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int) ->
     w = torch.zeros_like(R)
     for _ in range(K):
         solved = beta.abs() <= floor
-        _spmm(A, p, w)
+        spmm_into(A, p, w)
         a = guarded_ratio(beta, column_dots(p, w, buf), solved)
         X.addcmul_(p, a)
         r.addcmul_(w, a, value=-1.0)
@@ -187,7 +181,7 @@ def fast_gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int,
     done = 0
     while done < K:
         steps = min(restart, K - done)
-        _spmm(A, X, w)
+        spmm_into(A, X, w)
         r = R - w
         if P is not None:
             r.mul_(P)
@@ -197,7 +191,7 @@ def fast_gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int,
         H = torch.zeros(batch, steps + 1, steps, dtype=dtype)
         for j in range(steps):
             v.copy_(V[:, j].T)
-            _spmm(A, v, w)
+            spmm_into(A, v, w)
             if P is not None:
                 w.mul_(P)
             wt = w.T.contiguous()                                   # (B, n)

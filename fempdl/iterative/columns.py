@@ -1,4 +1,5 @@
-"""Per-column operations on (n, B) blocks, shared by the batched and unrolled iterations.
+"""Per-column operations on (n, B) blocks, and a sparse product into a given block:
+what the batched and the unrolled iterations share.
 
 A column counts as solved once its preconditioned residual product r.z has
 fallen below :data:`SOLVED` times its start (1e-20 in the norm, far past double
@@ -9,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["SOLVED", "guarded_ratio", "column_dots"]
+__all__ = ["SOLVED", "guarded_ratio", "column_dots", "spmm_into"]
 
 SOLVED = 1e-40
 
@@ -25,3 +26,8 @@ def column_dots(X: torch.Tensor, Y: torch.Tensor, buf: torch.Tensor) -> torch.Te
 
     Multiply into scratch, then sum: faster inside the CG loops than torch.linalg.vecdot."""
     return torch.mul(X, Y, out=buf).sum(0)
+
+
+def spmm_into(A: torch.Tensor, X: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+    """out = A @ X for a torch CSR A; ``A @ X`` would zero-fill a new result and copy it once more."""
+    return torch.addmm(out, A, X, beta=0.0, out=out)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import torch
 
-from fempdl.iterative.columns import column_dots, guarded_ratio
+from fempdl.iterative.columns import column_dots, guarded_ratio, spmm_into
 
 __all__ = ["ConstantOperatorCG"]
 
@@ -47,7 +47,7 @@ def _forward_step(A, P, r, p, beta, floor, buf, zbuf, out=None):
     blocks) or new ones; ``buf`` and ``zbuf`` are scratch."""
     w, r_new, p_new = out if out is not None else (torch.empty_like(p) for _ in range(3))
     solved = beta.abs() <= floor
-    torch.addmm(w, A, p, beta=0.0, out=w)
+    spmm_into(A, p, w)
     gamma = column_dots(p, w, buf)
     still_a = ~(solved | (gamma == 0))                     # where a = beta / gamma, else a = 0
     a = guarded_ratio(beta, gamma, ~still_a)
@@ -77,7 +77,7 @@ def _reverse_step(At, P, G, tape, r_bar, p_bar, beta_bar, buf, spare):
     beta_prev_bar = beta_prev_bar + guarded_ratio(a_bar, gamma, ~still_a)
     gamma_bar = -guarded_ratio(a_bar * a, gamma, ~still_a)
     torch.mul(p, gamma_bar, out=buf).addcmul_(r_bar, a, value=-1.0)              # w^
-    torch.addmm(spare, At, buf, beta=0.0, out=spare)                             # A^T w^
+    spmm_into(At, buf, spare)                                                     # A^T w^
     spare.addcmul_(p_bar, b).addcmul_(G, a).addcmul_(w, gamma_bar)
     return r_bar, spare, beta_prev_bar, p_bar
 

@@ -27,8 +27,9 @@ GROUP = 8   # columns per group and torch thread (scripts/bench_floor.py: best a
 PARALLEL_MIN_WORK = 2_000_000
 
 
-def sweep_matrix(S: sp.csr_matrix, scale: np.ndarray) -> sp.csr_matrix:
-    """M = I - diag(scale) S (scipy CSR, sorted indices); scale (n,)."""
+def sweep_matrix(S: sp.csr_matrix, omega: float, dinv: np.ndarray | None) -> sp.csr_matrix:
+    """M = I - omega P S (scipy CSR, sorted indices) for P = diag(dinv) (n,), or I when ``dinv`` is None."""
+    scale = omega * (np.ones(S.shape[0]) if dinv is None else dinv)
     M = (sp.identity(S.shape[0], format="csr") - sp.diags(scale) @ S).tocsr()
     M.sort_indices()
     return M

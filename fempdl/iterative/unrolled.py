@@ -43,7 +43,6 @@ import copy
 import math
 import weakref
 
-import numpy as np
 import torch
 
 from fempdl.iterative import sweeps
@@ -215,8 +214,7 @@ def _sweep_pair(A: SparseOperator, P: torch.Tensor | None, omega: float) -> tupl
     """(M, M^T) as torch CSR for M = I - omega P A, rebuilt when P (by identity) or omega change."""
     kept = _SWEEP_MATRICES.get(A)
     if kept is None or kept[0] is not P or kept[1] != omega:
-        S = A.to_scipy()
-        M = sweeps.sweep_matrix(S, omega * (P[:, 0].numpy() if P is not None else np.ones(S.shape[0])))
+        M = sweeps.sweep_matrix(A.to_scipy(), omega, None if P is None else P[:, 0].numpy())
         kept = (P, omega, sparse_to_torch(M), sparse_to_torch(M.T.tocsr()))
         _SWEEP_MATRICES[A] = kept
     return kept[2:]
