@@ -15,7 +15,11 @@ Two parts, both on the scene's physics (:class:`fempdl.marker_flow.MarkerFlow`):
   the validation velocity error (x space, relative L2) and marker error (y
   space, relative L2). Summary: the ratios SIP / Adam at equal iterations and at
   equal training time, whether SIP's error still falls over its last 20% of
-  iterations, the seconds per iteration of both.
+  iterations, the seconds per iteration of both;
+* the oracle: the same network and optimizer trained on the proxy loss with
+  the true velocity as its target, i.e. SIP with an inverse that returns the
+  truth. No inverse can give SIP better targets, so its error after
+  ``--iterations`` bounds what SIP can reach there.
 
 With ``--baseline-lr`` only the baseline runs, for ``--iterations`` at each
 learning rate given (the check that the comparison's Adam rate is not a weak
@@ -42,7 +46,7 @@ import torch  # noqa: E402
 
 from fempdl.app import scene  # noqa: E402
 from fempdl.app.tasks.marker import MarkerInversionTask  # noqa: E402
-from fempdl.sip import LinearisedGaussNewton  # noqa: E402
+from fempdl.sip import LinearisedGaussNewton, proxy_loss  # noqa: E402
 
 from bench_common import comma_list, machine_info, write_json_atomically  # noqa: E402
 
@@ -105,10 +109,21 @@ def _iterations_to(curve, targets) -> dict:
     return {str(t): next((i + 1 for i, c in enumerate(curve) if c["marker_error"] <= t), None) for t in targets}
 
 
+class OracleTask(MarkerInversionTask):
+    """SIP with an inverse that returns the true velocity: the proxy loss against v0."""
+
+    def __init__(self, scene):
+        super().__init__(scene, "sip")
+
+    def loss(self, idx) -> torch.Tensor:
+        return proxy_loss(self.model(self.train["inputs"][idx]), self.train["v0"][idx]) / len(idx)
+
+
 def train(sc, method: str, iterations: int, every: int, time_budget: float | None = None,
           max_iterations: int | None = None) -> dict:
-    """Train the scene's network with ``method``; the curve of (iteration, time, x error, y error)."""
-    task = MarkerInversionTask(sc, method)
+    """Train the scene's network with ``method`` ("sip", "backprop" or "oracle"); the curve of
+    (iteration, time, x error, y error)."""
+    task = OracleTask(sc) if method == "oracle" else MarkerInversionTask(sc, method)
     steps = math.ceil(task.train_size / sc.optimizer.batch)
     batches = [torch.arange(i, min(i + sc.optimizer.batch, task.train_size))
                for i in range(0, task.train_size, sc.optimizer.batch)]
@@ -196,7 +211,7 @@ def main(argv=None) -> int:
         result["learning_rate_sweep"] = {}
         for method, (section, rates) in sweeps.items():
             for lr in rates or []:
-                swept = dataclasses.replace(sc, **{section: {**getattr(sc, section), "lr": lr}})
+                swept = dataclasses.replace(sc, **{section: dataclasses.replace(getattr(sc, section), lr=lr)})
                 result["learning_rate_sweep"][f"{method} {lr:g}"] = train(swept, method, iterations, args.every)
                 write_json_atomically(result, args.out)
         result["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
@@ -214,7 +229,9 @@ def main(argv=None) -> int:
         adam = train(sc, "backprop", iterations, args.every, time_budget=sip["rows"][-1]["train_time"],
                      max_iterations=args.max_factor * iterations)
         result["training"]["adam"] = adam
+        result["training"]["oracle"] = train(sc, "oracle", iterations, args.every)
         result["summary"] = summary(sip, adam, iterations)
+        result["summary"]["oracle_velocity_error"] = result["training"]["oracle"]["rows"][-1]["velocity_error"]
         print(result["summary"], flush=True)
     result["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
     write_json_atomically(result, args.out)

@@ -1,6 +1,8 @@
 """The marker inverse problem: the rollout P(v0) -> m_T, its gradients and caps, and the Gauss-Newton inverse."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -199,7 +201,8 @@ def test_the_bundled_sip_flow_scenes_parse_with_the_marker_keys():
     for name in ("sip-flow", "sip-flow-full"):
         sc = scene.load(name)
         assert sc.pde.type == "marker" and sc.pde.degree == 2 and sc.sip.inverse == "gauss-newton"
-        assert set(sc.as_dict()["marker"]) == {"steps", "smoothing", "speed", "shape", "width", "placement", "prior"}
+        assert set(sc.as_dict()["marker"]) == {"steps", "smoothing", "speed", "shape", "width", "placement", "prior",
+                                                   "inputs"}
     assert scene.load("sip-poisson").marker is None
 
 
@@ -211,6 +214,8 @@ def test_the_bundled_sip_flow_scenes_parse_with_the_marker_keys():
      "[marker] applies to [pde] type 'marker' only"),
     (lambda t: t.replace("kappa = 0.01", "kappa = 0.01\ntheta = 0.5"), "[pde] theta do(es) not apply to pde 'marker'"),
     (lambda t: t.replace("width = 0.3", 'shape = "ring"'), "[marker] shape must be one of ['blob', 'band']"),
+    (lambda t: t.replace("width = 0.3", 'inputs = "whitened"'),
+     "[marker] inputs must be one of ['standardized', 'raw']"),
 ])
 def test_scene_errors_name_the_marker_keys(edit, fragment):
     with pytest.raises(scene.SceneError) as err:
@@ -241,6 +246,20 @@ def test_marker_task_data_and_a_sip_step(tiny_flow_scene):
         task.train_step(idx)
     assert float(task.loss(idx).detach()) < first
     assert task.validation_errors(torch.arange(3)).shape == (3,) and task.marker_errors(torch.arange(3)).shape == (3,)
+    task.close()
+
+
+def test_the_marker_network_standardizes_its_inputs_by_the_first_training_draw(tiny_flow_scene):
+    task = MarkerInversionTask(tiny_flow_scene, "backprop")
+    standardize, inputs = task.model[0], task.train["inputs"]
+    z = standardize(inputs)
+    varying = inputs.std(dim=0) >= standardize.scale.max() * 1e-2
+    torch.testing.assert_close(z.mean(dim=0), torch.zeros_like(z[0]), atol=1e-12, rtol=0)
+    torch.testing.assert_close(z.std(dim=0)[varying], torch.ones(int(varying.sum()), dtype=torch.float64))
+    task.close()
+    raw = dataclasses.replace(tiny_flow_scene, marker=dataclasses.replace(tiny_flow_scene.marker, inputs="raw"))
+    task = MarkerInversionTask(raw, "backprop")
+    assert isinstance(task.model[0], torch.nn.Linear)                   # the plain MLP, no input transform
     task.close()
 
 

@@ -1,7 +1,8 @@
 """Networks on DOF vectors: a plain MLP, a residual MLP and a graph convolution over the mesh.
 
 :func:`mlp` maps (B, n_in) to (B, n_out) (an observation to a source, in the
-SIP and HIG tasks). The other two map a batch of fields (B, n) on the owned
+SIP and HIG tasks); :class:`Standardize` in front of it centres and scales
+its inputs by statistics of training samples. The other two map a batch of fields (B, n) on the owned
 DOFs of a space to (B, n) and learn a correction: ``u + net(u)``, so an
 untrained network is close to the identity (one heat step changes a field
 only a little).
@@ -21,7 +22,7 @@ import torch
 
 from fempdl.iterative.sparse import SparseOperator, sparse_to_torch
 
-__all__ = ["ResidualMLP", "GraphConvNet", "mlp", "normalised_adjacency"]
+__all__ = ["ResidualMLP", "GraphConvNet", "Standardize", "mlp", "normalised_adjacency"]
 
 
 def mlp(n_in: int, n_out: int, hidden: int, layers: int, activation=torch.nn.GELU) -> torch.nn.Sequential:
@@ -32,6 +33,36 @@ def mlp(n_in: int, n_out: int, hidden: int, layers: int, activation=torch.nn.GEL
         blocks += [torch.nn.Linear(a, b), activation()]
     blocks.append(torch.nn.Linear(widths[-1], n_out))
     return torch.nn.Sequential(*blocks)
+
+
+class Standardize(torch.nn.Module):
+    """x -> (x - mean) / scale per input feature, from samples (N, n) of the inputs.
+
+    scale is each feature's standard deviation, floored at ``relative_floor``
+    times the largest one: a feature that hardly varies in the samples (a
+    marker value far from where markers go) is not blown up into noise, and a
+    constant feature maps to 0. Raw fields share a large common mode and
+    spread over orders of magnitude between DOFs; centring and scaling them
+    conditions the first layer, which is what a first-order optimizer needs.
+    The statistics are buffers: fixed, and saved with the model.
+    """
+
+    def __init__(self, samples: torch.Tensor, relative_floor: float = 1e-2):
+        super().__init__()
+        if samples.ndim != 2 or samples.shape[0] < 2:
+            raise ValueError(f"Standardize needs samples of shape (N >= 2, n), got {tuple(samples.shape)}")
+        if not torch.isfinite(samples).all():
+            raise ValueError("Standardize got non-finite samples")
+        if not 0.0 < relative_floor <= 1.0:
+            raise ValueError(f"relative_floor must be in (0, 1], got {relative_floor}")
+        std = samples.std(dim=0)
+        largest = float(std.max())
+        floor = relative_floor * largest if largest > 0.0 else 1.0
+        self.register_buffer("mean", samples.mean(dim=0).detach().clone())
+        self.register_buffer("scale", std.clamp_min(floor).detach().clone())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.mean.to(x.dtype)) / self.scale.to(x.dtype)
 
 
 class ResidualMLP(torch.nn.Module):
