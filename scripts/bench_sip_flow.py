@@ -1,6 +1,6 @@
 """Benchmark: the marker inverse problem (scene sip-flow), SIP against Adam with backpropagation.
 
-Two parts, both on the scene's physics (:class:`fempdl.marker_flow.MarkerFlow`):
+On the scene's physics (:class:`fempdl.marker_flow.MarkerFlow`):
 
 * single problems: ``--problems`` held-out problems solved from x = 0 by damped
   Gauss-Newton (the SIP inverse, ``--gn-cg`` CG iterations per step) and by
@@ -26,12 +26,13 @@ Two parts, both on the scene's physics (:class:`fempdl.marker_flow.MarkerFlow`):
 
 With ``--baseline-lr`` only the baseline runs, for ``--iterations`` at each
 learning rate given (the check that the comparison's Adam rate is not a weak
-one); ``--sip-lr`` does the same for SIP.
+one); ``--sip-lr`` does the same for SIP. ``--set section.key=value`` changes
+the scene as the command line's ``--set`` does (e.g. ``marker.inputs=raw``).
 
 Torch runs on one thread; OpenMP threads wait passively. Output:
 ``bench-results/bench_sip_flow.json`` (``--out``), with the machine record
 (load averages at start and end).
-Run: ``python scripts/bench_sip_flow.py`` (about 30 minutes on 2 cores).
+Run: ``python scripts/bench_sip_flow.py`` (about 20 minutes on an idle machine).
 """
 from __future__ import annotations
 
@@ -222,11 +223,13 @@ def main(argv=None) -> int:
                         help="only train the baseline, at each of these Adam learning rates")
     parser.add_argument("--sip-lr", type=comma_list(float), default=None,
                         help="only train SIP, at each of these Adam learning rates")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="override a scene value (repeatable)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", type=Path, default=Path("bench-results/bench_sip_flow.json"))
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    sc = scene.load(args.scene)
+    sc = scene.load(args.scene, args.set)
     steps = math.ceil(sc.data.train / sc.optimizer.batch)
     iterations = args.iterations or sc.optimizer.epochs * steps
     result = {"machine": machine_info(), "scene": sc.as_dict(), "command": " ".join(sys.argv)}

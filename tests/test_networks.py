@@ -57,9 +57,13 @@ def test_standardize_centres_and_scales_each_feature_with_a_floor_for_still_ones
 
 
 @pytest.mark.parametrize("samples, floor, fragment", [
-    (torch.zeros(1, 3), 0.01, "samples of shape (N >= 2, n)"),
+    (torch.zeros(1, 3), 0.01, "samples of shape (N >= 2, n >= 1)"),
+    (torch.zeros(5), 0.01, "samples of shape (N >= 2, n >= 1), got (5,)"),
+    (torch.zeros(4, 0), 0.01, "samples of shape (N >= 2, n >= 1), got (4, 0)"),
     (torch.tensor([[0.0, float("nan")], [1.0, 2.0]]), 0.01, "non-finite"),
+    (torch.tensor([[0.0, float("inf")], [1.0, 2.0]]), 0.01, "non-finite"),
     (torch.zeros(4, 3), 0.0, "relative_floor must be in (0, 1]"),
+    (torch.zeros(4, 3), 1.5, "relative_floor must be in (0, 1]"),
 ])
 def test_standardize_refuses_unusable_samples(samples, floor, fragment):
     with pytest.raises(ValueError, match=re.escape(fragment)):

@@ -256,6 +256,17 @@ def test_the_marker_network_standardizes_its_inputs_by_the_first_training_draw(t
     varying = inputs.std(dim=0) >= standardize.scale.max() * 1e-2
     torch.testing.assert_close(z.mean(dim=0), torch.zeros_like(z[0]), atol=1e-12, rtol=0)
     torch.testing.assert_close(z.std(dim=0)[varying], torch.ones(int(varying.sum()), dtype=torch.float64))
+    # fixed once built: new training draws and steps leave the statistics alone, and a resumed model
+    # (its state_dict into a fresh task) maps inputs exactly as the trained one does
+    mean, scale = standardize.mean.clone(), standardize.scale.clone()
+    task.start_epoch(1)
+    task.train_step(torch.arange(4))
+    assert torch.equal(standardize.mean, mean) and torch.equal(standardize.scale, scale)
+    resumed = MarkerInversionTask(tiny_flow_scene, "backprop")
+    resumed.model.load_state_dict(task.model.state_dict())
+    probe = task.val["inputs"]
+    assert torch.equal(resumed.model(probe), task.model(probe))
+    resumed.close()
     task.close()
     raw = dataclasses.replace(tiny_flow_scene, marker=dataclasses.replace(tiny_flow_scene.marker, inputs="raw"))
     task = MarkerInversionTask(raw, "backprop")

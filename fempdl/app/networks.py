@@ -49,8 +49,8 @@ class Standardize(torch.nn.Module):
 
     def __init__(self, samples: torch.Tensor, relative_floor: float = 1e-2):
         super().__init__()
-        if samples.ndim != 2 or samples.shape[0] < 2:
-            raise ValueError(f"Standardize needs samples of shape (N >= 2, n), got {tuple(samples.shape)}")
+        if samples.ndim != 2 or samples.shape[0] < 2 or samples.shape[1] < 1:
+            raise ValueError(f"Standardize needs samples of shape (N >= 2, n >= 1), got {tuple(samples.shape)}")
         if not torch.isfinite(samples).all():
             raise ValueError("Standardize got non-finite samples")
         if not 0.0 < relative_floor <= 1.0:

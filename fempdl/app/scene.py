@@ -153,7 +153,7 @@ class MarkerConfig:
     prior: float = _key(float, 1e-4, doc="Tikhonov prior of the Gauss-Newton inverse", minimum=0.0)
     placement: str = _key(str, "random", doc="central: the node farthest from the walls",
                           choices=("random", "central"))
-    inputs: str = _key(str, "standardized", doc="the network's inputs (m0, m_T): standardized by the first "
+    inputs: str = _key(str, "standardized", doc="the network's inputs (m0, m_T): standardized by the initial "
                        "training draw, or raw", choices=("standardized", "raw"))
 
 

@@ -14,9 +14,9 @@ observation y = m_T = P(g, m0) after ``[marker] steps`` steps of ``[pde] dt``.
 The network (an MLP, ``[network]``) maps (m0, m_T), (B, 2 n_m), to a raw
 velocity x (B, n_v); the physics projects it, so only Pi x matters. With
 ``[marker] inputs = "standardized"`` (the default) a
-:class:`fempdl.app.networks.Standardize` built from the first training draw
-centres and scales the inputs first: raw, they share a large common mode, and
-both methods' Adam then fits the network several times slower. Training:
+:class:`fempdl.app.networks.Standardize` built from the task's initial training
+draw centres and scales the inputs first: raw marker values share a large
+common mode, and both methods then learn far slower (README, sip-flow). Training:
 
 * ``"sip"``: proxy loss 1/2 ||x - stopgrad(x*)||^2 (mean over samples), x*
   from one damped Gauss-Newton step of :class:`fempdl.sip.LinearisedGaussNewton`
