@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import dataclasses
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -280,3 +282,26 @@ def test_compare_runs_sip_flow_against_adam(tiny_flow_scene, tmp_path):
     assert split["method"] == "sip" and split["iterations"] == 2
     assert len(runs["backprop"].rows) >= 2 and split["ratio_equal_iterations"] > 0
     assert all(0 < row["val_metric"] < 2 for r in runs.values() for row in r.rows)
+
+
+def test_the_benchmark_references_draw_the_training_samples_and_fit_the_truth(tiny_flow_scene):
+    """scripts/bench_sip_flow.py: the least-squares reference fits the samples the iterations draw, and
+    the oracle is the proxy loss against the true velocity, which its steps lower."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    try:
+        import bench_sip_flow
+    finally:
+        sys.path.pop(0)
+    reference = bench_sip_flow.least_squares_reference(tiny_flow_scene, iterations=3)
+    assert reference["training_samples"] == 3 * tiny_flow_scene.data.train          # one batch per epoch
+    assert 0.0 < reference["velocity_error"] < 1.5
+    oracle = bench_sip_flow.OracleTask(tiny_flow_scene)
+    idx = torch.arange(4)
+    with torch.no_grad():
+        expected = 0.5 * ((oracle.model(oracle.train["inputs"]) - oracle.train["v0"]) ** 2).sum() / 4
+    first = float(oracle.loss(idx).detach())
+    assert first == pytest.approx(float(expected), rel=1e-12)
+    for _ in range(20):
+        oracle.train_step(idx)
+    assert float(oracle.loss(idx).detach()) < 0.75 * first
+    oracle.close()

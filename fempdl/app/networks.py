@@ -2,10 +2,10 @@
 
 :func:`mlp` maps (B, n_in) to (B, n_out) (an observation to a source, in the
 SIP and HIG tasks); :class:`Standardize` in front of it centres and scales
-its inputs by statistics of training samples. The other two map a batch of fields (B, n) on the owned
-DOFs of a space to (B, n) and learn a correction: ``u + net(u)``, so an
-untrained network is close to the identity (one heat step changes a field
-only a little).
+its inputs by statistics of training samples. The other two map a batch of
+fields (B, n) on the owned DOFs of a space to (B, n) and learn a correction:
+``u + net(u)``, so an untrained network is close to the identity (one heat
+step changes a field only a little).
 
 The graph network uses the mesh's connectivity: two DOFs are neighbours when
 they share a cell, i.e. when the assembled stiffness matrix couples them.
