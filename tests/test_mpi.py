@@ -74,7 +74,7 @@ def test_an_error_on_one_rank_ends_the_job_instead_of_hanging():
     assert "unreachable" not in done.stdout
 
 
-@pytest.fixture(scope="module", params=["data", "mesh"])
+@pytest.fixture(scope="module", params=["data", "mesh", "mesh-warm"])
 def training_results(request, tmp_path_factory):
     """Rows of the tiny scene trained in one parallel mode, on 1 rank and on 2."""
     out = tmp_path_factory.mktemp(f"training-{request.param}")
@@ -103,7 +103,8 @@ def test_parallel_training_follows_the_serial_run(training_results):
     # Serial and parallel runs take the same solves and the same PRDP decisions; K really moved.
     for key in ("k", "forward_iterations", "backward_iterations"):
         assert [row[key] for row in split] == [row[key] for row in serial], key
-    assert len({row["k"] for row in serial}) >= 2
+    # Warm-started, the tiny inverse improves at every step and PRDP never needs to refine.
+    assert len({row["k"] for row in serial}) >= (1 if mode == "mesh-warm" else 2)
     assert results[2]["k_eps"] == results[1]["k_eps"]
 
 

@@ -443,7 +443,7 @@ def test_strings_are_never_evaluated(tmp_path):
     assert not marker.exists()
 
 
-def test_warm_start_is_for_time_steppers_only():
+def test_warm_start_applies_to_the_inverse_task_and_is_off_unless_set():
     text = """
 [scene]
 name = "inv"
@@ -458,7 +458,8 @@ theta_init = [2.0]
 [solver]
 warm_start = true
 """
-    with pytest.raises(SceneError, match=r"\[solver\] warm_start do\(es\) not apply to task 'inverse'"):
-        scene.parse(text)
+    assert scene.parse(text).solver.warm_start is True
     parsed = scene.parse(text.replace("warm_start = true", ""))
-    assert parsed.solver.warm_start is None and "warm_start" not in parsed.as_dict()["solver"]
+    assert parsed.solver.warm_start is False and parsed.as_dict()["solver"]["warm_start"] is False
+    with pytest.raises(SceneError, match=r"\[solver\] warm_start must be of type bool"):
+        scene.parse(text.replace("warm_start = true", 'warm_start = "yes"'))

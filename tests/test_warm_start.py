@@ -171,3 +171,61 @@ class _ModelWithLayer(torch.nn.Module):
         super().__init__()
         self.scale = torch.nn.Parameter(torch.ones(1, dtype=torch.float64))
         self.layer = SolveLayer(problem, KSPOptions(max_it=3))
+
+
+# ------------------------------------------------------------------ the inverse task's warm start
+def _inverse_scene(warm: bool, epochs: int):
+    from fempdl.app import scene
+    return scene.load("poisson-inverse", [f"solver.warm_start={str(warm).lower()}", f"optimizer.epochs={epochs}"])
+
+
+def test_a_warm_started_inverse_converges_at_a_cap_where_a_cold_one_stalls():
+    """At K = 25 Richardson-Jacobi iterations per solve (K_eps = 477), gradient descent on the source
+    amplitude from the last step's solution reaches a relative error of ~1e-6 in 300 steps; from zero each
+    capped solve has the same large error every step, and the amplitude settles where it cancels it."""
+    from fempdl.app import runner
+    warm = runner.run(_inverse_scene(True, 300), "fixed", 25, k_eps_value=477)
+    cold = runner.run(_inverse_scene(False, 300), "fixed", 25, k_eps_value=477)
+    assert warm.total_iterations == cold.total_iterations == 300 * 2 * 25     # forward + adjoint, 25 each
+    assert warm.final_metric < 1e-5 and cold.final_metric > 0.1, (warm.final_metric, cold.final_metric)
+
+
+def test_a_resumed_warm_started_inverse_continues_from_the_saved_solution(tmp_path):
+    from fempdl.app import checkpoints, runner
+    from fempdl.app.training import CHECKPOINT
+    sc = _inverse_scene(True, 40)
+    whole = runner.run(sc, "fixed", 25, out_dir=tmp_path / "whole", k_eps_value=477)
+    runner.run(sc, "fixed", 25, out_dir=tmp_path / "split", k_eps_value=477, stop_after=15)
+    state = checkpoints.load(tmp_path / "split" / CHECKPOINT)
+    (saved,) = state["task_state_by_rank"]
+    assert saved["last_solution"].shape[-1] == 408 and torch.isfinite(saved["last_solution"]).all()
+    assert saved["coordinates"].shape == (408, 3)
+    resumed = runner.run(sc, "fixed", 25, out_dir=tmp_path / "split", k_eps_value=477, resume=True)
+    keys = ("epoch", "train_loss", "val_metric", "forward_iterations")
+    assert [[row[k] for k in keys] for row in resumed.rows] == [[row[k] for k in keys] for row in whole.rows]
+
+
+def test_the_inverse_task_state_is_placed_by_coordinates_and_refuses_foreign_entries():
+    from fempdl.app import runner
+    from fempdl.app.tasks.inverse import InverseTask
+    sc = _inverse_scene(True, 1)
+    task = InverseTask(sc, runner.solver_options(sc, 5))
+    task.train_step(torch.arange(1))
+    state = task.state_dict()
+    solution = state["last_solution"].clone()
+    # Saved by two ranks in another order: each DOF's value is found again by its coordinates.
+    order = torch.randperm(408, generator=torch.Generator().manual_seed(0))
+    halves = [{"last_solution": solution[..., order[:200]], "coordinates": state["coordinates"][order[:200]]},
+              {"last_solution": solution[..., order[200:]], "coordinates": state["coordinates"][order[200:]]}]
+    task.last_solution = None
+    task.load_state_dict(halves)
+    assert torch.equal(task.last_solution, solution)
+    with pytest.raises(ValueError, match=r"holds 'last_solution' and 'coordinates', got \['u'\]"):
+        task.load_state_dict([{"u": torch.zeros(3)}])
+    with pytest.raises(ValueError, match="the saved solution has 7 values at 408 points"):
+        task.load_state_dict([{"last_solution": torch.zeros(7), "coordinates": state["coordinates"]}])
+    with pytest.raises(ValueError, match="does not lie on this mesh"):
+        task.load_state_dict([{"last_solution": solution, "coordinates": state["coordinates"] + 0.01}])
+    task.load_state_dict([{}, {}])                                    # an old checkpoint: a cold first step
+    assert task.last_solution is None and task.state_dict() == {}
+    task.close()

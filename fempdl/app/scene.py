@@ -211,7 +211,8 @@ class SolverConfig:
     diff: str = _key(str, "implicit", doc="how gradients pass the solve (unrolled: jacobi or cg)",
                      choices=("implicit", "unrolled"))
     warm_start: bool | None = _key(bool, False, doc="start the capped solve from the state being advanced "
-                                                    "(emulator, hybrid)")
+                                                    "(emulator, hybrid) or from the last step's solution "
+                                                    "(inverse)")
     lag_preconditioner: bool = _key(bool, False, doc="per-sample matrices share the first sample's "
                                                      "preconditioner within a call")
 
@@ -269,7 +270,7 @@ _INVERSION_DATA = {"truths", "noise", "resample"}
 # Keys a task or PDE type does not use: setting them is an error, not a silent no-op; they are None in the scene.
 _NOT_FOR = {
     ("task", "inverse"): {"data": {"train", "validation", "modes", "rollout"} | _INVERSION_DATA,
-                          "optimizer": {"batch"}, "solver": {"warm_start"}},
+                          "optimizer": {"batch"}},
     ("task", "emulator"): {"data": _INVERSION_DATA},
     ("task", "hybrid"): {"data": _INVERSION_DATA},
     ("task", "sip"): {"data": {"k_eps_rtol", "rollout"}},

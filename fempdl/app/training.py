@@ -291,6 +291,7 @@ class Trainer:
         if self.out_dir is None:
             return
         layer_stats = self.comm.gather([dataclasses.asdict(layer.stats) for layer in self.task.layers])
+        task_states = self.comm.gather(self.task.state_dict())
         if not self._writer:
             return
         write_atomically(self.out_dir / "metrics.json", lambda p: p.write_text(json.dumps(self.rows, indent=1)))
@@ -309,6 +310,7 @@ class Trainer:
             "prdp": None if self.prdp is None else self.prdp.state_dict(),
             "k": self.k,
             "layer_stats_by_rank": layer_stats,
+            "task_state_by_rank": task_states,
             "rng": checkpoints.rng_state(self._shuffle),
             "fingerprint": self.fingerprint(),
         }
@@ -352,6 +354,8 @@ class Trainer:
             for key, value in saved.items():
                 if key != "last":
                     setattr(layer.stats, key, value)
+        # Checkpoints written before tasks kept state hold none: the task starts from its initial state.
+        self.task.load_state_dict(state.get("task_state_by_rank", [{}] * self.comm.size))
         checkpoints.restore_rng(state["rng"], self._shuffle)
         self.rows = list(state["rows"])
         self._elapsed = state["elapsed"]

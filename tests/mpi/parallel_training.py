@@ -1,6 +1,6 @@
 """Run under mpirun (any number of ranks, 1 included): a tiny scene trained with
-``parallel=argv[1]`` ("data": the heat emulator, "mesh": the Poisson inverse
-problem). Rank 0 writes to the JSON file argv[2]: the metric rows of a full
+``parallel=argv[1]`` ("data": the heat emulator, "mesh": the Poisson inverse, "mesh-warm": it
+with warm-started solves). Rank 0 writes to the JSON file argv[2]: the metric rows of a full
 run, those of a run stopped after 3 epochs and resumed, the K schedule every
 rank saw, and the message of a deliberately failed agreement check."""
 from __future__ import annotations
@@ -72,12 +72,15 @@ ema_window = 1
 
 mode, out = sys.argv[1], Path(sys.argv[2])
 comm = MPI.COMM_WORLD
-sc = scene.parse(EMULATOR if mode == "data" else INVERSE)
+# "mesh-warm": the inverse with warm-started solves, whose last solution each rank keeps and saves.
+WARM_INVERSE = INVERSE.replace("[prdp]", "[solver]\nwarm_start = true\n[prdp]")
+sc = scene.parse({"data": EMULATOR, "mesh": INVERSE, "mesh-warm": WARM_INVERSE}[mode])
 with tempfile.TemporaryDirectory() as tmp:
     run_dir = Path(comm.bcast(tmp if comm.rank == 0 else None))   # one directory, seen by every rank
-    full = runner.run(sc, "prdp", parallel=mode)
-    runner.run(sc, "prdp", parallel=mode, out_dir=run_dir, stop_after=3, k_eps_value=full.k_eps)
-    resumed = runner.run(sc, "prdp", parallel=mode, out_dir=run_dir, resume=True, k_eps_value=full.k_eps)
+    parallel_mode = mode.partition("-")[0]
+    full = runner.run(sc, "prdp", parallel=parallel_mode)
+    runner.run(sc, "prdp", parallel=parallel_mode, out_dir=run_dir, stop_after=3, k_eps_value=full.k_eps)
+    resumed = runner.run(sc, "prdp", parallel=parallel_mode, out_dir=run_dir, resume=True, k_eps_value=full.k_eps)
     written = json.loads((run_dir / "metrics.json").read_text()) if comm.rank == 0 else None
     comm.barrier()   # every rank is done with the directory before rank 0 removes it
 try:

@@ -31,10 +31,23 @@ class Task:
     ``train_step(idx)`` is one step of ``optimizer`` on ``loss(idx)``; a task
     whose optimizer makes its own update (HIG, :mod:`fempdl.app.tasks.inversion`)
     replaces it. A task may also define ``start_epoch(epoch)``, which the
-    Trainer calls before every epoch (to draw new training data).
+    Trainer calls before every epoch (to draw new training data). State a
+    task carries from step to step outside its model (a warm start's last
+    solution) goes through ``state_dict()`` (this rank's) and
+    ``load_state_dict(states)`` (every rank's, as saved: a resumed run's mesh
+    may be partitioned differently), so that a resumed run continues.
     """
 
     val_size = 1
+
+    def state_dict(self) -> dict:
+        """This rank's state outside the model and optimizer (tensors and plain values); none by default."""
+        return {}
+
+    def load_state_dict(self, states: list) -> None:
+        """Restore from the states every rank saved (one dict per rank)."""
+        if any(states):
+            raise ValueError(f"{type(self).__name__} keeps no state, got {[sorted(s) for s in states]}")
 
     def train_step(self, idx) -> float:
         """One optimizer step on the samples ``idx``; returns the loss."""

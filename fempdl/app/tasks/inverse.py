@@ -1,8 +1,10 @@
 """The inverse task (the PRDP paper's Poisson inverse problem): gradient descent on source amplitudes."""
 from __future__ import annotations
 
+import numpy as np
 import torch
 from mpi4py import MPI
+from scipy.spatial import cKDTree
 
 from fempdl import forms, mesh
 from fempdl.app.scene import Scene
@@ -23,6 +25,13 @@ class _Theta(torch.nn.Module):
 
 class InverseTask(Task):
     """Gradient descent on the source amplitudes theta through the capped Poisson layer.
+
+    With ``[solver] warm_start`` each step's capped solve starts from the
+    previous step's solution (a constant: the gradient is exact for the K-step
+    map from it). theta moves little per step, so K iterations from there go
+    much further than K from zero, and the iterates converge over the steps.
+    The solution is the task's state (:meth:`state_dict`): a resumed run
+    continues from it.
 
     With ``comm`` of more than one rank the mesh is distributed over it: the
     layer, the modes and the reference hold each rank's owned DOFs, the nMSE
@@ -46,13 +55,51 @@ class InverseTask(Task):
         reference.close()
         self.layer = SolveLayer(self.problem, options, diff=scene.solver.diff)
         self.layers = [self.layer]
+        self.warm_start = bool(scene.solver.warm_start)
+        self.last_solution = None                        # the last warm-started solve's output
         self.model = _Theta(scene.inverse.theta_init)
         self.optimizer, self.scheduler = make_optimizer(self.model.parameters(), scene.optimizer.type,
                                                         scene.optimizer.lr, scene.optimizer.decay)
 
     def loss(self, idx) -> torch.Tensor:
-        u = self.layer(f=self.modes @ self.model.theta)
+        if self.warm_start and self.last_solution is not None:
+            u = self.layer(f=self.modes @ self.model.theta, initial_guess=self.last_solution)
+        else:
+            u = self.layer(f=self.modes @ self.model.theta)
+        if self.warm_start:
+            self.last_solution = u.detach().clone()
         return nmse(u, self.u_ref, self.comm)
+
+    def state_dict(self) -> dict:
+        """The last solution on this rank's owned DOFs, with their coordinates (which place it on any partition)."""
+        if self.last_solution is None:
+            return {}
+        return {"last_solution": self.last_solution,
+                "coordinates": torch.as_tensor(self.problem.dof_coordinates())}
+
+    def load_state_dict(self, states: list) -> None:
+        """This rank's part of the saved solution, matched to its DOFs by coordinates."""
+        for state in states:
+            unknown = set(state) - {"last_solution", "coordinates"}
+            if unknown:
+                raise ValueError(f"InverseTask state holds 'last_solution' and 'coordinates', got {sorted(unknown)}")
+        saved = [state for state in states if state]
+        if not saved:
+            self.last_solution = None                    # saved before the first step, or by an older fempdl
+            return
+        values = torch.cat([state["last_solution"].reshape(-1) for state in saved]).to(torch.float64)
+        points = torch.cat([state["coordinates"] for state in saved]).to(torch.float64).numpy()
+        ours = self.problem.dof_coordinates()
+        if len(points) != len(values) or points.shape[1:] != ours.shape[1:]:
+            raise ValueError(f"the saved solution has {len(values)} values at {len(points)} points; expected one "
+                             f"value per point of dimension {ours.shape[1]}")
+        distance, index = cKDTree(points).query(ours)
+        size = float(np.ptp(points, axis=0).max()) if len(points) else 1.0
+        if len(ours) and distance.max() > 1e-10 * size:
+            raise ValueError(f"the saved solution does not lie on this mesh: a DOF is {distance.max():.3g} from "
+                             "every saved point (a different mesh or mesh size?)")
+        leading = tuple(saved[0]["last_solution"].shape[:-1])              # the layer's batch shape, if any
+        self.last_solution = values[torch.as_tensor(index)].reshape(*leading, -1)
 
     def validation_errors(self, idx) -> torch.Tensor:
         err = self.model.theta - self.theta_ref
