@@ -198,8 +198,9 @@ def test_a_resumed_warm_started_inverse_continues_from_the_saved_solution(tmp_pa
     runner.run(sc, "fixed", 25, out_dir=tmp_path / "split", k_eps_value=477, stop_after=15)
     state = checkpoints.load(tmp_path / "split" / CHECKPOINT)
     (saved,) = state["task_state_by_rank"]
-    assert saved["last_solution"].shape[-1] == 408 and torch.isfinite(saved["last_solution"]).all()
-    assert saved["coordinates"].shape == (408, 3)
+    n = saved["coordinates"].shape[0]                       # the mesh's vertices (gmsh versions differ)
+    assert n > 300 and saved["coordinates"].shape == (n, 3)
+    assert saved["last_solution"].shape[-1] == n and torch.isfinite(saved["last_solution"]).all()
     resumed = runner.run(sc, "fixed", 25, out_dir=tmp_path / "split", k_eps_value=477, resume=True)
     keys = ("epoch", "train_loss", "val_metric", "forward_iterations")
     assert [[row[k] for k in keys] for row in resumed.rows] == [[row[k] for k in keys] for row in whole.rows]
@@ -214,7 +215,8 @@ def test_the_inverse_task_state_is_placed_by_coordinates_and_refuses_foreign_ent
     state = task.state_dict()
     solution = state["last_solution"].clone()
     # Saved by two ranks in another order: each DOF's value is found again by its coordinates.
-    order = torch.randperm(408, generator=torch.Generator().manual_seed(0))
+    n = task.problem.output_size
+    order = torch.randperm(n, generator=torch.Generator().manual_seed(0))
     halves = [{"last_solution": solution[..., order[:200]], "coordinates": state["coordinates"][order[:200]]},
               {"last_solution": solution[..., order[200:]], "coordinates": state["coordinates"][order[200:]]}]
     task.last_solution = None
@@ -222,7 +224,7 @@ def test_the_inverse_task_state_is_placed_by_coordinates_and_refuses_foreign_ent
     assert torch.equal(task.last_solution, solution)
     with pytest.raises(ValueError, match=r"holds 'last_solution' and 'coordinates', got \['u'\]"):
         task.load_state_dict([{"u": torch.zeros(3)}])
-    with pytest.raises(ValueError, match="the saved solution has 7 values at 408 points"):
+    with pytest.raises(ValueError, match=f"the saved solution has 7 values at {n} points"):
         task.load_state_dict([{"last_solution": torch.zeros(7), "coordinates": state["coordinates"]}])
     with pytest.raises(ValueError, match="does not lie on this mesh"):
         task.load_state_dict([{"last_solution": solution, "coordinates": state["coordinates"] + 0.01}])
