@@ -175,8 +175,10 @@ class _ModelWithLayer(torch.nn.Module):
 
 # ------------------------------------------------------------------ the inverse task's warm start
 def _inverse_scene(warm: bool, epochs: int):
+    """poisson-inverse for ``epochs`` steps, none cut short by the scene's stop_at."""
     from fempdl.app import scene
-    return scene.load("poisson-inverse", [f"solver.warm_start={str(warm).lower()}", f"optimizer.epochs={epochs}"])
+    return scene.load("poisson-inverse", [f"solver.warm_start={str(warm).lower()}", f"optimizer.epochs={epochs}",
+                                          "optimizer.stop_at=1e-14"])
 
 
 def test_a_warm_started_inverse_converges_at_a_cap_where_a_cold_one_stalls():
@@ -228,6 +230,27 @@ def test_the_inverse_task_state_is_placed_by_coordinates_and_refuses_foreign_ent
         task.load_state_dict([{"last_solution": torch.zeros(7), "coordinates": state["coordinates"]}])
     with pytest.raises(ValueError, match="does not lie on this mesh"):
         task.load_state_dict([{"last_solution": solution, "coordinates": state["coordinates"] + 0.01}])
+    twice = torch.cat([state["coordinates"][:1], state["coordinates"][:-1]])          # one point lost, one doubled
+    with pytest.raises(ValueError, match=f"{n} saved points for {n} DOFs"):
+        task.load_state_dict([{"last_solution": solution, "coordinates": twice}])
     task.load_state_dict([{}, {}])                                    # an old checkpoint: a cold first step
     assert task.last_solution is None and task.state_dict() == {}
     task.close()
+
+
+def test_an_inverse_checkpoint_from_before_warm_starts_resumes_cold(tmp_path):
+    """A checkpoint written before the inverse task took [solver] warm_start has neither the key in its
+    fingerprint nor task state; it ran cold, so a cold run resumes it to the uninterrupted result."""
+    from fempdl.app import checkpoints, rundir, runner
+    from fempdl.app.training import CHECKPOINT
+    sc = _inverse_scene(False, 20)
+    whole = runner.run(sc, "fixed", 25, out_dir=tmp_path / "whole", k_eps_value=477)
+    runner.run(sc, "fixed", 25, out_dir=tmp_path / "old", k_eps_value=477, stop_after=8)
+    state = checkpoints.load(tmp_path / "old" / CHECKPOINT)
+    del state["fingerprint"]["run.scene.solver.warm_start"], state["task_state_by_rank"]
+    checkpoints.save(tmp_path / "old", state)
+    warm = _inverse_scene(True, 20)                       # it is not a warm-started run's checkpoint
+    with pytest.raises(rundir.ResumeError, match=r"run.scene.solver.warm_start: '<absent>' -> True"):
+        runner.run(warm, "fixed", 25, out_dir=tmp_path / "old", k_eps_value=477, resume=True)
+    resumed = runner.run(sc, "fixed", 25, out_dir=tmp_path / "old", k_eps_value=477, resume=True)
+    assert [row["val_metric"] for row in resumed.rows] == [row["val_metric"] for row in whole.rows]

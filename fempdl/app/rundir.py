@@ -167,8 +167,12 @@ def fingerprint(**parts) -> dict:
     return out
 
 
-def differences(saved: dict, current: dict, allowed: tuple = ()) -> list[str]:
-    """``"key: saved -> now"`` for every key of the two fingerprints that differs and is not ``allowed``."""
+def differences(saved: dict, current: dict, allowed: tuple = (), absent_means: dict | None = None) -> list[str]:
+    """``"key: saved -> now"`` for every key of the two fingerprints that differs and is not ``allowed``.
+
+    ``absent_means``: keys added to the fingerprint later, with the value a run
+    written before them had (a checkpoint without the key behaves so)."""
+    old = {**(absent_means or {}), **saved}
     keys = sorted(set(saved) | set(current))
     return [f"{key}: {saved.get(key, '<absent>')!r} -> {current.get(key, '<absent>')!r}" for key in keys
-            if key not in allowed and saved.get(key, "<absent>") != current.get(key, "<absent>")]
+            if key not in allowed and old.get(key, "<absent>") != current.get(key, "<absent>")]

@@ -6,7 +6,7 @@ validates, steps the PRDP controller, and after every epoch writes
 ``metrics.csv``/``metrics.json`` (one row per epoch: losses, K, cumulative
 iterations and times, and ``time_<part>`` for each of :data:`TIME_PARTS`,
 adding up to ``wall_time``) and ``checkpoint.pt`` (model, optimizer, scheduler,
-PRDP, layer counters, RNG states, rows). Every file is written atomically
+PRDP, layer counters, each rank's task state, RNG states, rows). Every file is written atomically
 (:mod:`fempdl.app.checkpoints`), so an interrupted run keeps its last epoch;
 ``run(resume=True)`` continues it with the same metrics as an uninterrupted
 run, and refuses a resume whose settings differ (:meth:`Trainer.fingerprint`).
@@ -43,6 +43,9 @@ __all__ = ["Trainer", "nmse", "sample_nmse", "write_atomically", "CheckpointErro
 # Fingerprint keys a resumed run may change: the run's length, which --epochs and an
 # equal-training-time extension (fempdl.app.compare) move.
 RESUMABLE_CHANGES = ("run.scene.optimizer.epochs", "run.epochs")
+# Fingerprint keys that came later, with what a checkpoint written before them ran with.
+KEYS_ADDED_LATER = {"run.scene.solver.warm_start": False,      # the inverse task's solves started from zero
+                    "run.scene.marker.inputs": "raw"}           # the marker network took raw inputs
 PARALLEL_MODES = ("data", "mesh")
 _log = logging.getLogger(__name__)
 
@@ -291,7 +294,7 @@ class Trainer:
         if self.out_dir is None:
             return
         layer_stats = self.comm.gather([dataclasses.asdict(layer.stats) for layer in self.task.layers])
-        task_states = self.comm.gather(self.task.state_dict())
+        task_states = self.comm.gather(getattr(self.task, "state_dict", dict)())
         if not self._writer:
             return
         write_atomically(self.out_dir / "metrics.json", lambda p: p.write_text(json.dumps(self.rows, indent=1)))
@@ -329,7 +332,7 @@ class Trainer:
             raise FileNotFoundError(f"resume: no checkpoint {CHECKPOINT} in {self.out_dir}; "
                                     "start the run without resume first")
         state = checkpoints.load(path)
-        changed = rundir.differences(state["fingerprint"], self.fingerprint(), RESUMABLE_CHANGES)
+        changed = rundir.differences(state["fingerprint"], self.fingerprint(), RESUMABLE_CHANGES, KEYS_ADDED_LATER)
         if changed:
             raise rundir.ResumeError(
                 f"resume: {path} was written by a different run; changed since: {'; '.join(changed)}. A resume "
@@ -355,7 +358,11 @@ class Trainer:
                 if key != "last":
                     setattr(layer.stats, key, value)
         # Checkpoints written before tasks kept state hold none: the task starts from its initial state.
-        self.task.load_state_dict(state.get("task_state_by_rank", [{}] * self.comm.size))
+        task_states = state.get("task_state_by_rank", [{}] * self.comm.size)
+        if hasattr(self.task, "load_state_dict"):
+            self.task.load_state_dict(task_states)
+        elif any(task_states):
+            raise ValueError(f"{path} holds task state that {type(self.task).__name__} cannot take (no load_state_dict)")
         checkpoints.restore_rng(state["rng"], self._shuffle)
         self.rows = list(state["rows"])
         self._elapsed = state["elapsed"]

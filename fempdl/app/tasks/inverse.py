@@ -27,8 +27,8 @@ class InverseTask(Task):
     """Gradient descent on the source amplitudes theta through the capped Poisson layer.
 
     With ``[solver] warm_start`` each step's capped solve starts from the
-    previous step's solution (a constant: the gradient is exact for the K-step
-    map from it). theta moves little per step, so K iterations from there go
+    previous step's solution (a constant: the gradient is the layer's for the
+    K-step map from it, as from zero). theta moves little per step, so K iterations from there go
     much further than K from zero, and the iterates converge over the steps.
     The solution is the task's state (:meth:`state_dict`): a resumed run
     continues from it.
@@ -95,9 +95,12 @@ class InverseTask(Task):
                              f"value per point of dimension {ours.shape[1]}")
         distance, index = cKDTree(points).query(ours)
         size = float(np.ptp(points, axis=0).max()) if len(points) else 1.0
-        if len(ours) and distance.max() > 1e-10 * size:
-            raise ValueError(f"the saved solution does not lie on this mesh: a DOF is {distance.max():.3g} from "
-                             "every saved point (a different mesh or mesh size?)")
+        owned = self.comm.allreduce(len(ours))
+        if owned != len(points) or len(np.unique(index)) != len(index) or \
+                (len(ours) and distance.max() > 1e-10 * size):
+            raise ValueError(f"the saved solution does not lie on this mesh: {len(points)} saved points for "
+                             f"{owned} DOFs, the farthest DOF {distance.max() if len(ours) else 0.0:.3g} from its "
+                             "point (a different mesh or mesh size?)")
         leading = tuple(saved[0]["last_solution"].shape[:-1])              # the layer's batch shape, if any
         self.last_solution = values[torch.as_tensor(index)].reshape(*leading, -1)
 
