@@ -15,7 +15,8 @@ import argparse
 import numpy as np
 import torch
 from mpi4py import MPI
-from fempdl import forms, mesh, parallel
+from fempdl import forms, mesh
+from fempdl.core import parallel
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 

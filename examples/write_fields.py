@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from fempdl import forms, io, mesh
+from fempdl import forms, mesh
+from fempdl.core import io
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 

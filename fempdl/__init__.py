@@ -1,11 +1,16 @@
 """fempdl: finite-element PDE solves (DOLFINx + PETSc) as differentiable PyTorch layers.
 
-Public names::
+Public names, in one line::
 
-    from fempdl import Problem, forms, mesh
-    from fempdl.ksp_adjoint import KSPOptions, CappedSolver, SolveStats
-    from fempdl.bridge_torch import SolveLayer
+    from fempdl import Problem, SolveLayer, KSPOptions, PRDP, SolverFailedError, forms, mesh
+
+They load on first use, so ``import fempdl`` (and ``fempdl --help``) does not pay
+for DOLFINx and torch until a name needs them. The package's floors, bottom to
+top: ``core`` and ``forms`` (FEniCSx), ``solve`` and ``ksp_adjoint`` (PETSc),
+``iterative`` (torch-only K-step maths), ``layer`` and ``bridge_torch`` (the
+torch layer), ``methods`` (PRDP, SIP, HIG), ``app`` (scenes and the command).
 """
+import importlib
 import logging
 import os
 
@@ -15,14 +20,40 @@ import os
 # user set wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-# The version shim first: it loads MPI before DOLFINx, which PyPI's DOLFINx needs.
-from fempdl import _dolfinx  # noqa: F401  isort: skip
-from fempdl import forms, mesh
-from fempdl.problem import Problem
-
 # Library messages (epoch lines, PRDP refinements, K_eps) go to the "fempdl" logger;
 # an application shows them with logging.basicConfig(level=logging.INFO).
 logging.getLogger("fempdl").addHandler(logging.NullHandler())
 
 __version__ = "0.1.0"
-__all__ = ["Problem", "forms", "mesh", "__version__"]
+
+# Public name -> the module that defines it (imported on first access).
+_PUBLIC = {
+    "Problem": "fempdl.core.problem",
+    "SolveLayer": "fempdl.bridge_torch",
+    "KSPOptions": "fempdl.solve.options",
+    "CappedSolver": "fempdl.ksp_adjoint",
+    "SolveStats": "fempdl.solve.stats",
+    "CumulativeStats": "fempdl.solve.stats",
+    "SolverFailedError": "fempdl.solve.stats",
+    "SolverWarning": "fempdl.solve.stats",
+    "PRDP": "fempdl.methods.prdp",
+    "PRDPSettings": "fempdl.methods.prdp",
+}
+_SUBMODULES = {"forms": "fempdl.forms", "mesh": "fempdl.core.mesh", "io": "fempdl.core.io"}
+
+__all__ = sorted(_PUBLIC) + sorted(_SUBMODULES) + ["__version__"]
+
+
+def __getattr__(name: str):
+    if name in _PUBLIC:
+        value = getattr(importlib.import_module(_PUBLIC[name]), name)
+    elif name in _SUBMODULES:
+        value = importlib.import_module(_SUBMODULES[name])
+    else:
+        raise AttributeError(f"module 'fempdl' has no attribute {name!r}")
+    globals()[name] = value      # later lookups skip this function
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

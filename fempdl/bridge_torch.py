@@ -35,7 +35,7 @@ if they differ) and their device (CUDA tensors are solved on the CPU).
 In implicit mode the layer composes with torch.func (grad, vjp, jacrev; vmap
 folds the mapped dimension into the native batch: one solve call) and with
 torch.compile (each solve and each adjoint solve is one opaque operator, no
-graph break); see :mod:`fempdl.implicit`.
+graph break); see :mod:`fempdl.layer.implicit`.
 """
 from __future__ import annotations
 
@@ -43,12 +43,13 @@ import time
 
 import torch
 
-from fempdl.implicit import ImplicitSolve, count_on_all_ranks, nonfinite_control_message, register_layer
+from fempdl.layer.implicit import ImplicitSolve, count_on_all_ranks, nonfinite_control_message, register_layer
 from fempdl.iterative.batched import BatchedEngine
-from fempdl.iterative.unrolled_path import UnrolledPath, unrolled_method
-from fempdl.ksp_adjoint import CumulativeStats, KSPOptions, warn_at_caller
-from fempdl.problem import Problem
-from fempdl.system import INITIAL_GUESS, LinearSystem
+from fempdl.layer.unrolled import UnrolledPath, unrolled_method
+from fempdl.solve.options import KSPOptions
+from fempdl.solve.stats import CumulativeStats, warn_at_caller
+from fempdl.core.problem import Problem
+from fempdl.solve.linear_system import INITIAL_GUESS, LinearSystem
 
 __all__ = ["SolveLayer", "DIFF_MODES"]
 
@@ -78,7 +79,7 @@ class SolveLayer(torch.nn.Module):
         memory_budget: in unrolled mode, the bytes the stored iterates may
             take at most; a call that would keep more is refused with a
             MemoryError before it starts. ``None``: half the memory available
-            at the call (:func:`fempdl.resources.memory_budget`).
+            at the call (:func:`fempdl.core.resources.memory_budget`).
 
     Attributes:
         max_it: the iteration cap K; assign to move it between calls (PRDP does).

@@ -17,7 +17,7 @@
     h = 0.1 and 0.03 (408 and 4071 DOFs), one sample on the PETSc engine, with
     and without the KSP monitor that lets Ctrl-C stop a long solve (fempdl
     installs it where the cap times the unknowns reaches
-    ``fempdl.ksp_adjoint.INTERRUPT_CHECK_MIN_WORK``): seconds per iteration,
+    ``fempdl.core.tuning.INTERRUPT_CHECK_MIN_WORK``): seconds per iteration,
     the minimum over ``--repeats`` alternating runs.
 
 Writes ``bench-results/bench_bounds.json`` with the machine's load.
@@ -37,7 +37,8 @@ import torch
 from mpi4py import MPI
 
 from bench_common import comma_list, machine_info, write_json_atomically
-from fempdl import forms, ksp_adjoint, mesh
+from fempdl import forms, mesh
+from fempdl.core import tuning
 from fempdl.iterative import unrolled
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
@@ -119,16 +120,16 @@ def monitor_cost(K: int, repeats: int, h: float) -> dict:
     torch.set_num_threads(1)
     prob = forms.poisson.problem(mesh.load("lshape", MPI.COMM_SELF, h=h), controls=("f",))
     f = torch.ones(prob.control_size("f"), dtype=torch.float64)
-    threshold = ksp_adjoint.INTERRUPT_CHECK_MIN_WORK
+    threshold = tuning.INTERRUPT_CHECK_MIN_WORK
     times = {"with_monitor": [], "without_monitor": []}
     layers = {name: SolveLayer(prob, KSPOptions(max_it=K, engine="petsc")) for name in times}
     for _ in range(repeats):
         for name, layer in layers.items():
-            ksp_adjoint.INTERRUPT_CHECK_MIN_WORK = 0 if name == "with_monitor" else 10 ** 30
+            tuning.INTERRUPT_CHECK_MIN_WORK = 0 if name == "with_monitor" else 10 ** 30
             before = layer.stats.forward_time
             layer(f=f)
             times[name].append((layer.stats.forward_time - before) / K)
-    ksp_adjoint.INTERRUPT_CHECK_MIN_WORK = threshold
+    tuning.INTERRUPT_CHECK_MIN_WORK = threshold
     best = {name: min(values) for name, values in times.items()}
     return {"K": K, "h": h, "n": prob.output_size, "repeats": repeats, "seconds_per_iteration_min": best,
             "seconds_per_iteration_all": times,

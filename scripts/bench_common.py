@@ -21,8 +21,8 @@ import torch
 from petsc4py import PETSc
 
 import fempdl
-from fempdl import _dolfinx
-from fempdl.app.training import write_atomically
+from fempdl.core import _dolfinx
+from fempdl.app.runs.training import write_atomically
 
 
 def machine_info() -> dict:

@@ -84,7 +84,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=Path("bench-results/bench_floor.json"))
     args = parser.parse_args(argv)
 
-    msh = fempdl.mesh.load("lshape", h=args.h)
+    msh = fempdl.core.mesh.load("lshape", h=args.h)
     prob = fempdl.forms.poisson.problem(msh, controls=("f",), g=lambda x: 1.0 + x[0] * x[1])
     rng = np.random.default_rng(0)
     F = torch.from_numpy(rng.standard_normal((args.batch, prob.control_size("f")))).requires_grad_()

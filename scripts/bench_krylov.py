@@ -58,7 +58,7 @@ def rel(X, Y) -> float:
 
 
 def bench(size: str, args, rng) -> list:
-    msh = fempdl.mesh.load("lshape", h=MESH_SIZES[size])
+    msh = fempdl.core.mesh.load("lshape", h=MESH_SIZES[size])
     prob = fempdl.forms.poisson.problem(msh, controls=("f",), g=lambda x: 1.0 + x[0] * x[1])
     F_all = rng.standard_normal((max(args.batches), prob.control_size("f")))
     W_all = torch.from_numpy(rng.standard_normal((max(args.batches), prob.output_size)))

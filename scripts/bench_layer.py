@@ -83,7 +83,7 @@ from fempdl.bridge_torch import SolveLayer
 from bench_common import apply_defaults, comma_list, machine_info, write_json_atomically
 from fempdl.ksp_adjoint import KSPOptions
 
-MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.meshgen)
+MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.core.meshgen)
 TARGET_OVERHEAD = 1.15
 TARGET_BATCH_SPEEDUP = 1.5
 STATISTIC = "min"
@@ -338,7 +338,7 @@ def bench_config(layers: dict, raw: RawLoop, F, W, max_it: int, repeats: int, mi
 
 def bench_size(size: str, args: argparse.Namespace, rng) -> tuple[dict, list]:
     h = MESH_SIZES[size]
-    msh = fempdl.mesh.load("lshape", h=h)
+    msh = fempdl.core.mesh.load("lshape", h=h)
     prob = fempdl.forms.poisson.problem(msh, controls=("f",), g=boundary_values)
     n = prob.control_size("f")
     mesh_info = {"h": h, "dofs": prob.output_size,

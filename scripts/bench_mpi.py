@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from bench_common import comma_list, machine_info, run_mpi_worker, write_json_atomically
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 
 RANKS = (1, 2)
 
@@ -85,7 +85,7 @@ def layer_worker(args) -> dict:
 def training_worker(args) -> dict:
     from mpi4py import MPI
 
-    from fempdl.app import runner
+    from fempdl.app.runs import runner
     from fempdl.app import scene
 
     comm = MPI.COMM_WORLD
@@ -104,7 +104,7 @@ WORKERS = {"layer": layer_worker, "training": training_worker}
 def run_worker(args) -> int:
     from mpi4py import MPI
 
-    from fempdl import parallel
+    from fempdl.core import parallel
 
     parallel.abort_on_error()
     if MPI.COMM_WORLD.size > 1:

@@ -44,7 +44,8 @@ import numpy as np
 from petsc4py import PETSc
 
 from bench_common import machine_info, write_json_atomically
-from fempdl import _dolfinx, forms, mesh
+from fempdl.core import _dolfinx
+from fempdl import forms, mesh
 from fempdl.ksp_adjoint import CappedSolver, KSPOptions, SolverFailedError
 
 RTOL = 1e-10

@@ -36,7 +36,8 @@ def worker(args) -> int:
     import torch
     from mpi4py import MPI
 
-    from fempdl import forms, mesh, parallel
+    from fempdl import forms, mesh
+    from fempdl.core import parallel
     from fempdl.bridge_torch import SolveLayer
     from fempdl.ksp_adjoint import KSPOptions
 
@@ -98,7 +99,7 @@ def main(argv=None) -> int:
         return worker(args)
     if args.quick:
         args.h, args.repeats = [0.08, 0.05], 1
-    from fempdl import meshgen
+    from fempdl.core import meshgen
 
     load_before = os.getloadavg()
     sizes = []

@@ -8,7 +8,7 @@ cumulative forward + backward inner iterations, wall time and where it went
 (solver iterations, set-up, assembly, adjoint operator, network, validation,
 other), and the K schedule. Per scene: PRDP / baseline ratios of the seeds'
 means (metric, iterations, wall time) and each seed's ratios (the spread);
-with ``--sweep`` also the fixed-K sweep of :mod:`fempdl.app.tradeoff` (seed 0)
+with ``--sweep`` also the fixed-K sweep of :mod:`fempdl.app.reports.tradeoff` (seed 0)
 and PRDP's saving split into incomplete-convergence and progressive-refinement
 parts. The summary averages the savings over the scenes.
 
@@ -28,9 +28,9 @@ from bench_common import comma_list, machine_info, write_json_atomically
 
 import torch
 
-from fempdl.app import runner
+from fempdl.app.runs import runner
 from fempdl.app import scene
-from fempdl.app import tradeoff
+from fempdl.app.reports import tradeoff
 
 PRDP_SCENES = ["heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
                "burgers-emulator", "ns-hybrid"]

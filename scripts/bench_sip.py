@@ -1,6 +1,6 @@
 """Benchmark: SIP and HIG against Adam with backpropagation, on the bundled sip and hig scenes.
 
-For every scene, :func:`fempdl.app.compare.compare` trains the scene's method and
+For every scene, :func:`fempdl.app.reports.compare.compare` trains the scene's method and
 then the baseline (Adam, gradients backpropagated through the LU solve) from
 the same initial network, for the scene's epochs; the baseline then goes on
 until it has used the method's training time (at most 20x the iterations).
@@ -30,7 +30,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")    # before torch starts its
 
 import torch  # noqa: E402
 
-from fempdl.app import compare
+from fempdl.app.reports import compare
 from fempdl.app import scene  # noqa: E402
 from fempdl.app.cli import positive_int  # noqa: E402
 

@@ -1,6 +1,6 @@
 """Benchmark: the marker inverse problem (scene sip-flow), SIP against Adam with backpropagation.
 
-On the scene's physics (:class:`fempdl.marker_flow.MarkerFlow`):
+On the scene's physics (:class:`fempdl.app.tasks.marker_rollout.MarkerFlow`):
 
 * single problems: ``--problems`` held-out problems solved from x = 0 by damped
   Gauss-Newton (the SIP inverse, ``--gn-cg`` CG iterations per step) and by
@@ -50,7 +50,7 @@ import torch  # noqa: E402
 
 from fempdl.app import scene  # noqa: E402
 from fempdl.app.tasks.marker import MarkerInversionTask  # noqa: E402
-from fempdl.sip import LinearisedGaussNewton, proxy_loss  # noqa: E402
+from fempdl.methods.sip import LinearisedGaussNewton, proxy_loss  # noqa: E402
 
 from bench_common import comma_list, machine_info, write_json_atomically  # noqa: E402
 

@@ -46,7 +46,8 @@ import torch
 from petsc4py import PETSc
 
 from bench_common import machine_info, write_json_atomically
-from fempdl import _dolfinx, forms, mesh
+from fempdl.core import _dolfinx
+from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 

@@ -3,7 +3,7 @@
 Setup: Poisson's equation -div(grad u) = f on the bundled L-shape, meshed at
 two sizes (``small`` h=0.03, about 4k P1 DOFs; ``large`` h=0.0073, about 66k),
 u = 0 on the whole boundary, the source f the only control
-(``fempdl.forms.poisson.problem(fempdl.mesh.load("lshape", h=h), controls=("f",))``).
+(``fempdl.forms.poisson.problem(fempdl.core.mesh.load("lshape", h=h), controls=("f",))``).
 Solvers capped at K iterations: Richardson + Jacobi (``KSPOptions(max_it=K)``)
 and CG + Jacobi (``KSPOptions.preset("cg", max_it=K)``). A batch of B random
 sources F (B, n) is solved and the loss sum(u * W) backpropagated to F:
@@ -20,7 +20,7 @@ Measured per (size, solver, K):
     in a fresh subprocess per measurement (this script with a hidden
     ``--child`` option), so that no other configuration's allocations or
     allocator caches are in it. The child reads the same mesh from a
-    ``.msh`` file written once per size (``fempdl.meshgen.write_msh``; reading
+    ``.msh`` file written once per size (``fempdl.core.meshgen.write_msh``; reading
     takes 0.8 s where meshing the 66k DOF size takes 5 s), builds the
     problem and the layer, warms up on two samples (form JIT, assembly, the
     torch copies of the operators, the code paths of the batched call; a
@@ -140,14 +140,14 @@ import torch
 from mpi4py import MPI
 
 import fempdl
-import fempdl.meshgen
+import fempdl.core.meshgen
 from fempdl.iterative import unrolled
 from fempdl.bridge_torch import SolveLayer
 from bench_common import apply_defaults, comma_list, machine_info, write_json_atomically
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.resources import available_memory
+from fempdl.core.resources import available_memory
 
-MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.meshgen)
+MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.core.meshgen)
 SOLVERS = ("jacobi", "cg")                      # Richardson+Jacobi, CG+Jacobi
 UNROLLED_METHOD = {"jacobi": "jacobi", "cg": "cg"}  # their fempdl.iterative.unrolled method names
 AGREEMENT_TOL = 1e-12           # relative; forward always, gradients for Jacobi
@@ -181,8 +181,8 @@ def solver_options(solver: str, max_it: int, engine: str) -> KSPOptions:
 
 
 def build_problem(mesh):
-    """The benchmark problem on ``fempdl.mesh.load("lshape", h=mesh)``, or on a ``.msh`` path."""
-    msh = fempdl.mesh.load(mesh) if isinstance(mesh, str) else fempdl.mesh.load("lshape", h=mesh)
+    """The benchmark problem on ``fempdl.core.mesh.load("lshape", h=mesh)``, or on a ``.msh`` path."""
+    msh = fempdl.core.mesh.load(mesh) if isinstance(mesh, str) else fempdl.core.mesh.load("lshape", h=mesh)
     return msh, fempdl.forms.poisson.problem(msh, controls=("f",))
 
 
@@ -468,7 +468,7 @@ def bench_size(size: str, args: argparse.Namespace, skipped: list) -> tuple[dict
     if args.memory:
         # The same mesh as a file for the memory subprocesses: reading it takes 0.8 s where
         # meshing the 66k DOF size takes 5 s, in each of 20 subprocesses.
-        args.msh_files[size] = str(fempdl.meshgen.write_msh("lshape", Path(args.msh_dir) / f"{size}.msh", h=h))
+        args.msh_files[size] = str(fempdl.core.meshgen.write_msh("lshape", Path(args.msh_dir) / f"{size}.msh", h=h))
     n = prob.output_size
     mesh_info = {"h": h, "dofs": n, "cells": msh.mesh.topology.index_map(msh.tdim).size_local,
                  "mesh_seconds": time.perf_counter() - t0}

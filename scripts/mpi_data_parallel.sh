@@ -20,5 +20,5 @@ ranks=${1:-2}
 scene=${2:-burgers-emulator}
 shift $(( $# < 2 ? $# : 2 ))
 # The launcher of the MPI the venv's mpi4py uses (Open MPI's mpirun or MPICH's mpiexec).
-read -r -a launcher < <("$venv/bin/python" -c "from fempdl import _dolfinx; print(*_dolfinx.mpi_launcher())")
+read -r -a launcher < <("$venv/bin/python" -c "from fempdl.core import _dolfinx; print(*_dolfinx.mpi_launcher())")
 exec "${launcher[@]}" -n "$ranks" "$venv/bin/fempdl" run "$scene" --parallel data --no-progress "$@"

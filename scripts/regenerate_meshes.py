@@ -3,14 +3,14 @@
     python scripts/regenerate_meshes.py [--out DIR] [--name NAME ...] [--h H]
 
 Meshing runs on one thread with the user's gmsh configuration ignored, so the
-files are reproducible for a given gmsh version (fempdl.meshgen).
+files are reproducible for a given gmsh version (fempdl.core.meshgen).
 """
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from fempdl import meshgen
+from fempdl.core import meshgen
 
 
 def main(argv: list[str] | None = None) -> None:

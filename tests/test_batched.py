@@ -168,7 +168,7 @@ def test_fast_paths_equal_unrolled_recurrences(k, restart):
 
 
 def test_auto_picks_batched_cg_where_measured_faster(lshape):
-    from fempdl.iterative.batched import CG_MIN_BATCH
+    from fempdl.core.tuning import CG_MIN_BATCH
 
     prob = build("poisson", lshape)
     f = control_values(prob, "f", batch=CG_MIN_BATCH)

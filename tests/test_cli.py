@@ -17,7 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from fempdl.app import cli, runner, scene
+from fempdl.app import cli, scene, schema
+from fempdl.app.runs import runner
 
 TRAIN, BATCH, EPOCHS = 16, 8, 6
 TINY = f"""
@@ -455,10 +456,10 @@ def test_scenes_schema_prints_every_section_and_key(capsys):
     text = capsys.readouterr().out
     assert text == scene.schema_text() + "\n"
     headers = [line.split()[0] for line in text.splitlines() if line.startswith("[")]
-    assert headers == [f"[{name}]" for name in scene.SECTIONS]
-    for name, block in zip(scene.SECTIONS, text.split("\n[")[1:]):
+    assert headers == [f"[{name}]" for name in schema.SECTIONS]
+    for name, block in zip(schema.SECTIONS, text.split("\n[")[1:]):
         keys = [line.split()[0] for line in block.splitlines()[1:] if line.strip()]
-        assert keys == [field.name for field in dataclasses.fields(scene.SECTIONS[name])], name
+        assert keys == [field.name for field in dataclasses.fields(schema.SECTIONS[name])], name
 
 
 def test_set_values_are_toml_or_plain_strings(tiny):
@@ -547,9 +548,9 @@ def test_save_fields_writes_predictions_references_and_a_png(tiny, tmp_path):
 
 def test_validation_fields_are_what_the_metric_measures(tiny):
     import torch
-    from fempdl.app import runner
+    from fempdl.app.runs import runner
     from fempdl.ksp_adjoint import KSPOptions
-    from fempdl.app.training import sample_nmse
+    from fempdl.app.tasks.metrics import sample_nmse
     sc = scene.load(tiny)
     assert sc.data.rollout == 1
     task = runner.build_task(sc, KSPOptions(max_it=2))

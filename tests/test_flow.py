@@ -12,11 +12,12 @@ import torch
 import ufl
 from mpi4py import MPI
 
-from fempdl import _dolfinx, forms, mesh
+from fempdl.core import _dolfinx
+from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 from conftest import integral
-from fempdl.mesh import TaggedMesh
+from fempdl.core.mesh import TaggedMesh
 
 CONVERGED_SCHUR = KSPOptions.preset("schur", rtol=1e-12)
 X, Y = sympy.symbols("x y")
@@ -159,7 +160,7 @@ def test_oseen_adjoint_solve_passes_the_dot_product_test(which, request):
 
 
 def test_assembled_adjoint_operator_is_the_exact_transpose(oseen_open):
-    from fempdl.ksp_adjoint import petsc_to_scipy
+    from fempdl.solve.petsc import petsc_to_scipy
 
     layer = SolveLayer(oseen_open, KSPOptions.preset("schur", max_it=3))
     w = velocity_batch(oseen_open, "w", 1, 0)[0].requires_grad_()

@@ -13,13 +13,13 @@ import torch
 from mpi4py import MPI
 
 from fempdl import mesh
-from fempdl.app import runner
+from fempdl.app.runs import runner
 from fempdl.app import scene
-from fempdl.app.scene import PdeConfig
+from fempdl.app.schema import PdeConfig
 from fempdl.app.tasks.data import smooth_fields
 from fempdl.app.tasks.hybrid import HybridTask, VelocityTransfer, channel_problem
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.app.networks import ResidualMLP
+from fempdl.app.tasks.networks import ResidualMLP
 
 BURGERS = """
 [scene]
@@ -195,7 +195,7 @@ def test_burgers_chain_gradient_matches_finite_differences(burgers):
     try:
         task.model.double()
         u0, u2 = task.train_u0[:3].double(), task.train_u2[:3].double()
-        from fempdl.app.training import nmse
+        from fempdl.app.tasks.metrics import nmse
         exact, fd = _directional_check(task, lambda: nmse(task.physics(task.layer, task.model(u0)), u2))
         assert abs(exact - fd) <= 1e-6 * abs(fd) and abs(fd) > 1e-6
     finally:
@@ -255,7 +255,7 @@ def test_hybrid_two_step_gradient_matches_finite_differences(hybrid_lu):
     task = hybrid_lu
     task.model.double()
     states = task.train_states[:, :2].double()
-    from fempdl.app.training import nmse
+    from fempdl.app.tasks.metrics import nmse
     # Move off the zero output layer so both steps' network terms are active.
     with torch.no_grad():
         task.model.net[-1].weight.normal_(0.0, 1e-3, generator=torch.Generator().manual_seed(1))

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 

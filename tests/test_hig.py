@@ -7,7 +7,7 @@ from mpi4py import MPI
 
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
-from fempdl.hig import HIG, half_inverse_update
+from fempdl.methods.hig import HIG, half_inverse_update
 from fempdl.ksp_adjoint import KSPOptions
 
 

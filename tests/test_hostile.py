@@ -18,12 +18,12 @@ import torch
 from mpi4py import MPI
 
 from fempdl import forms, mesh
-from fempdl.app import checkpoints
+from fempdl.app.runs import checkpoints
 from fempdl.app import cli
-from fempdl.app import runner
-from fempdl.app import rundir
+from fempdl.app.runs import runner
+from fempdl.app.runs import rundir
 from fempdl.app import scene
-from fempdl.app.checkpoints import CheckpointError
+from fempdl.app.runs.checkpoints import CheckpointError
 from fempdl.ksp_adjoint import KSPOptions
 
 INVERSE = """
@@ -373,18 +373,19 @@ def test_an_unrolled_solve_beyond_the_memory_budget_is_refused_up_front(coarse_p
 
 
 def test_the_interrupt_monitor_is_installed_only_on_long_solves(coarse_problems):
-    from fempdl import ksp_adjoint
     from fempdl.bridge_torch import SolveLayer
+    from fempdl.core import tuning
+    from fempdl.solve.options import DEFAULT_CONVERGED_MAX_IT
     prob = coarse_problems["poisson"]
     layer = SolveLayer(prob, KSPOptions(max_it=20, engine="petsc"))
     solver = layer.system._solver
-    long_cap = -(-ksp_adjoint.INTERRUPT_CHECK_MIN_WORK // prob.output_size)
+    long_cap = -(-tuning.INTERRUPT_CHECK_MIN_WORK // prob.output_size)
     installed = []
     for options in (KSPOptions(max_it=20), KSPOptions(max_it=long_cap), KSPOptions(max_it=long_cap - 1),
                     KSPOptions(max_it=None), KSPOptions.preset("lu")):
         solver._set_interrupt_checks(solver.ksp, options)
         installed.append(len(solver.ksp.getMonitor() or ()))
-    uncapped = ksp_adjoint.DEFAULT_CONVERGED_MAX_IT * prob.output_size >= ksp_adjoint.INTERRUPT_CHECK_MIN_WORK
+    uncapped = DEFAULT_CONVERGED_MAX_IT * prob.output_size >= tuning.INTERRUPT_CHECK_MIN_WORK
     assert installed == [0, 1, 0, int(uncapped), 0]
 
 

@@ -16,7 +16,8 @@ import torch
 import ufl
 from mpi4py import MPI
 
-from fempdl import Problem, _dolfinx, forms, mesh
+from fempdl import Problem, forms, mesh
+from fempdl.core import _dolfinx
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions, SolverFailedError
 

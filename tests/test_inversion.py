@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-from fempdl.app import compare
-from fempdl.app import runner
+from fempdl.app.reports import compare
+from fempdl.app.runs import runner
 from fempdl.app import tasks
 from fempdl.app import scene
 from fempdl.app.tasks.data import rectangle_fields
 from fempdl.app.tasks.inversion import InversionTask
-from fempdl.app.training import Trainer
+from fempdl.app.runs.training import Trainer
 
 SIP = """
 [scene]

@@ -1,4 +1,4 @@
-"""Fields out: Problem.to_function / from_function and XDMF files (fempdl.io).
+"""Fields out: Problem.to_function / from_function and XDMF files (fempdl.core.io).
 
 The XDMF tests write with the ASCII encoding, so the values can be read back
 from the XML itself and compared with the field's nodal values; one test
@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from fempdl import forms, io, mesh
+from fempdl import forms, mesh
+from fempdl.core import io
 
 from conftest import smooth
 

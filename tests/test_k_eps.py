@@ -1,4 +1,4 @@
-"""fempdl.prdp.k_eps: the converged cap of a layer, checked against the residuals of its capped iterates."""
+"""fempdl.methods.prdp.k_eps: the converged cap of a layer, checked against the residuals of its capped iterates."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,8 +8,8 @@ import torch
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.prdp import k_eps
-from fempdl.system import assemble_scipy
+from fempdl.methods.prdp import k_eps
+from fempdl.solve.assembly import assemble_scipy
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ from petsc4py import PETSc
 
 import dolfinx.fem
 import dolfinx.fem.petsc
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import CappedSolver, KSPOptions
 
 from conftest import CAPPED

@@ -1,36 +1,64 @@
-"""The package's floors: imports point down only (app -> methods -> layer -> core), with no cycle.
+"""The package's floors: imports point down only, and inside a floor from a later room to an earlier one.
 
-Every ``import`` of a fempdl module, at module level or inside a function, is
-an edge; the test reads the sources' ASTs, so it sees imports that never run.
+A module's floor and room come from its package path (:data:`FLOORS`): ``fempdl/core/`` is the
+bottom floor, ``fempdl/app/`` the top one; the design card's named files (``ksp_adjoint.py``,
+``bridge_torch.py``, the ``prdp.py`` import path) are placed by name. Every ``import`` of a fempdl
+module, at module level or inside a function, is an edge; the test reads the sources' ASTs, so it
+sees imports that never run. A module may import its own room (no cycle), the earlier rooms of its
+floor, and every floor below. ``fempdl/iterative/`` is torch-only: nothing it imports, directly or
+through other fempdl modules, imports DOLFINx, UFL or basix.
 """
 from __future__ import annotations
 
 import ast
+import importlib
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 PACKAGE = Path(__file__).resolve().parent.parent / "fempdl"
 
-# The floor of each module; a module may import its own floor and the ones below.
-FLOORS = {"core": 0, "layer": 1, "methods": 2, "public": 3, "app": 4}
-CORE = {"fempdl._dolfinx", "fempdl.resources", "fempdl.mesh", "fempdl.meshgen", "fempdl.problem", "fempdl.io"}
-LAYER = {"fempdl.ksp_adjoint", "fempdl.system", "fempdl.implicit", "fempdl.bridge_torch", "fempdl.marker_flow"}
-METHODS = {"fempdl.prdp", "fempdl.sip", "fempdl.hig", "fempdl.parallel"}
+# Floors bottom to top, each a list of rooms in order; a room is a list of module prefixes.
+FLOORS = [
+    ("core", [["fempdl.core._dolfinx", "fempdl.core.checks", "fempdl.core.resources", "fempdl.core.parallel",
+               "fempdl.core.meshgen"], ["fempdl.core.mesh"], ["fempdl.core.problem", "fempdl.core.io"],
+              ["fempdl.forms"], ["fempdl.core"]]),
+    ("solve", [["fempdl.solve.options"], ["fempdl.solve.stats", "fempdl.solve.petsc"], ["fempdl.ksp_adjoint"],
+               ["fempdl.solve.assembly"], ["fempdl.solve.linear_system"], ["fempdl.solve"]]),
+    ("iterative", [["fempdl.iterative"]]),
+    ("layer", [["fempdl.layer"], ["fempdl.bridge_torch"]]),
+    ("methods", [["fempdl.methods"], ["fempdl.prdp"]]),
+    ("public", [["fempdl"]]),                    # __init__: the public names
+    ("app", [["fempdl.app.schema", "fempdl.app.scenes"], ["fempdl.app.tasks"], ["fempdl.app.scene"],
+             ["fempdl.app.runs"], ["fempdl.app.reports"], ["fempdl.app.cli", "fempdl.app.commands"], ["fempdl.app"]]),
+]
+# Third-party packages the torch-only floor must not reach.
+FEM_PACKAGES = ("dolfinx", "ufl", "basix", "ffcx")
 
 
-def floor_of(module: str) -> str:
-    if module == "fempdl":
-        return "public"                         # __init__ re-exports the public names
-    if module in CORE or module.startswith("fempdl.forms"):
-        return "core"
-    if module in LAYER or module.startswith("fempdl.iterative"):
-        return "layer"
-    if module in METHODS:
-        return "methods"
-    if module.startswith("fempdl.app"):
-        return "app"
-    raise AssertionError(f"{module} is on no floor: add it to tests/test_layout.py")
+def place(module: str) -> tuple[int, int, str]:
+    """(floor index, room index, floor name) of ``module``: the room of its longest matching prefix."""
+    best = None
+    for f, (floor, rooms) in enumerate(FLOORS):
+        for r, room in enumerate(rooms):
+            for prefix in room:
+                if (module == prefix or module.startswith(prefix + ".")) and (best is None or len(prefix) > best[0]):
+                    best = (len(prefix), f, r, floor)
+    if best is None:
+        raise AssertionError(f"{module} is on no floor: give its package a place in tests/test_layout.py")
+    return best[1], best[2], best[3]
+
+
+def wrong_way(importer: str, imported: str) -> str | None:
+    """Why ``importer`` may not import ``imported`` (None if it may)."""
+    (f1, r1, floor1), (f2, r2, floor2) = place(importer), place(imported)
+    if f2 > f1:
+        return f"{importer} ({floor1}) imports {imported} ({floor2}), a floor above"
+    if f2 == f1 and r2 > r1:
+        return f"{importer} imports {imported}, a later room of the {floor1} floor"
+    return None
 
 
 def modules() -> dict[str, Path]:
@@ -42,9 +70,9 @@ def modules() -> dict[str, Path]:
     return out
 
 
-def imports_of(path: Path, name: str, known: set[str]) -> set[str]:
-    """The fempdl modules ``path`` imports; ``from fempdl.x import y`` is an import of fempdl.x.y when that
-    is a module, else of fempdl.x."""
+def imports_of(path: Path, name: str, known: set[str], *, external: bool = False) -> set[str]:
+    """The fempdl modules ``path`` imports (with ``external``: the top-level names of everything it
+    imports); ``from fempdl.x import y`` is an import of fempdl.x.y when that is a module, else of fempdl.x."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
@@ -57,6 +85,8 @@ def imports_of(path: Path, name: str, known: set[str]) -> set[str]:
             for alias in node.names:
                 candidate = f"{base}.{alias.name}"
                 found.add(candidate if candidate in known else base)
+    if external:
+        return {m.split(".")[0] for m in found}
     return {m for m in found if m == "fempdl" or m.startswith("fempdl.")} - {name}
 
 
@@ -66,16 +96,14 @@ def graph() -> dict[str, set[str]]:
     return {name: imports_of(path, name, set(mods)) for name, path in mods.items()}
 
 
-def test_every_module_has_a_floor(graph):
+def test_every_module_has_a_place(graph):
     for name in graph:
-        floor_of(name)
+        place(name)
 
 
 def test_imports_point_down_only(graph):
-    upward = [f"{a} ({floor_of(a)}) imports {b} ({floor_of(b)})"
-              for a, targets in graph.items() for b in sorted(targets)
-              if FLOORS[floor_of(b)] > FLOORS[floor_of(a)]]
-    assert not upward, "\n".join(upward)
+    wrong = [why for a, targets in graph.items() for b in sorted(targets) if (why := wrong_way(a, b))]
+    assert not wrong, "\n".join(wrong)
 
 
 def test_no_import_cycle(graph):
@@ -84,6 +112,10 @@ def test_no_import_cycle(graph):
     # package itself are left out; test_imports_point_down_only keeps them out of
     # the floors below it.
     edges = {a: {b for b in targets if b != "fempdl"} for a, targets in graph.items()}
+    assert not find_cycles(edges), "\n".join(find_cycles(edges))
+
+
+def find_cycles(edges: dict[str, set[str]]) -> list[str]:
     state, stack, cycles = {}, [], []
 
     def visit(node):
@@ -100,13 +132,88 @@ def test_no_import_cycle(graph):
     for node in sorted(edges):
         if node not in state:
             visit(node)
-    assert not cycles, "\n".join(cycles)
+    return cycles
 
 
-def test_the_checker_sees_a_cycle_and_an_upward_import(tmp_path):
-    """The two checks fail where they should: a layer module importing the app, and a -> b -> a."""
-    (tmp_path / "a.py").write_text("def f():\n    from fempdl.app import runner\n")
-    assert imports_of(tmp_path / "a.py", "fempdl.system", {"fempdl.app.runner"}) == {"fempdl.app.runner"}
-    assert FLOORS[floor_of("fempdl.app.runner")] > FLOORS[floor_of("fempdl.system")]
-    (tmp_path / "b.py").write_text("from . import system\n")
-    assert imports_of(tmp_path / "b.py", "fempdl.problem", {"fempdl.system"}) == {"fempdl.system"}
+def fem_imports_reached(start: str, graph: dict[str, set[str]], paths: dict[str, Path]) -> dict[str, set[str]]:
+    """{module: FEM packages it imports} for every fempdl module reachable from ``start``."""
+    seen, todo, out = set(), [start], {}
+    while todo:
+        name = todo.pop()
+        if name in seen or name not in paths:
+            continue
+        seen.add(name)
+        fem = imports_of(paths[name], name, set(paths), external=True) & set(FEM_PACKAGES)
+        if fem:
+            out[name] = fem
+        todo.extend(graph.get(name, ()))
+    return out
+
+
+def test_iterative_reaches_no_dolfinx(graph):
+    paths = modules()
+    found = {}
+    for name in (n for n in paths if n.startswith("fempdl.iterative")):
+        found.update(fem_imports_reached(name, graph, paths))
+    assert not found, f"fempdl/iterative/ reaches DOLFINx/UFL through {found}"
+
+
+def test_the_checker_sees_wrong_way_imports_cycles_and_dolfinx(tmp_path):
+    """The checks fail where they should: an import from a floor above, from a later room of the same
+    floor (app's order), a -> b -> a, and a DOLFINx import reached from iterative/."""
+    (tmp_path / "a.py").write_text("def f():\n    from fempdl.app.runs import runner\n")
+    assert imports_of(tmp_path / "a.py", "fempdl.solve.linear_system", {"fempdl.app.runs.runner"}) \
+        == {"fempdl.app.runs.runner"}
+    assert "a floor above" in wrong_way("fempdl.solve.linear_system", "fempdl.app.runs.runner")
+    assert "later room of the app floor" in wrong_way("fempdl.app.scene", "fempdl.app.runs.runner")
+    assert "later room of the app floor" in wrong_way("fempdl.app.schema", "fempdl.app.tasks.base")
+    assert "later room of the solve floor" in wrong_way("fempdl.solve.options", "fempdl.ksp_adjoint")
+    assert wrong_way("fempdl.app.runs.runner", "fempdl.app.scene") is None
+    assert wrong_way("fempdl.bridge_torch", "fempdl.layer.implicit") is None
+    (tmp_path / "b.py").write_text("from . import linear_system\n")
+    assert imports_of(tmp_path / "b.py", "fempdl.core.problem", {"fempdl.core.linear_system"}) \
+        == {"fempdl.core.linear_system"}
+    assert find_cycles({"x": {"y"}, "y": {"x"}}) == ["x -> y -> x"]
+    (tmp_path / "c.py").write_text("import numpy\nfrom fempdl.solve import helper\n")
+    (tmp_path / "helper.py").write_text("import ufl.algorithms\n")
+    paths = {"fempdl.iterative.c": tmp_path / "c.py", "fempdl.solve.helper": tmp_path / "helper.py"}
+    assert fem_imports_reached("fempdl.iterative.c", {"fempdl.iterative.c": {"fempdl.solve.helper"}}, paths) \
+        == {"fempdl.solve.helper": {"ufl"}}
+
+
+def test_one_line_import_of_the_public_names():
+    """``from fempdl import ...`` gives every public name, from the module that defines it."""
+    import fempdl
+
+    from fempdl import CappedSolver, KSPOptions, PRDP, Problem, SolveLayer, SolverFailedError, forms, mesh
+    assert (Problem.__module__, SolveLayer.__module__, CappedSolver.__module__) \
+        == ("fempdl.core.problem", "fempdl.bridge_torch", "fempdl.ksp_adjoint")
+    assert KSPOptions is importlib.import_module("fempdl.ksp_adjoint").KSPOptions
+    assert PRDP is importlib.import_module("fempdl.prdp").PRDP
+    assert issubclass(SolverFailedError, RuntimeError) and callable(mesh.load) and forms.poisson.problem
+    for name in fempdl.__all__:
+        assert getattr(fempdl, name) is not None
+    with pytest.raises(AttributeError, match="has no attribute 'Nothing'"):
+        fempdl.Nothing
+
+
+def test_no_module_is_too_long_to_hold_in_one_head():
+    """No module of the package is over about 400 lines: a longer one holds more than one job."""
+    long = {str(p.relative_to(PACKAGE.parent)): n for p in PACKAGE.rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > 430}
+    assert not long, long
+
+
+def test_help_and_import_load_neither_dolfinx_nor_torch():
+    """``import fempdl`` and ``fempdl --help`` answer without loading DOLFINx, PETSc, MPI or torch (they take
+    seconds to import); the public names load them on first use."""
+    code = ("import sys, contextlib, io\n"
+            "import fempdl\n"
+            "from fempdl.app import cli\n"
+            "with contextlib.redirect_stdout(io.StringIO()) as out, contextlib.suppress(SystemExit):\n"
+            "    cli.main(['--help'])\n"
+            "assert 'usage: fempdl' in out.getvalue()\n"
+            "print(sorted(m for m in ('dolfinx', 'petsc4py', 'mpi4py', 'torch', 'ufl') if m in sys.modules))\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"

@@ -16,7 +16,8 @@ import ufl
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from fempdl import mesh, meshgen
+from fempdl import mesh
+from fempdl.core import meshgen
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 COMM = MPI.COMM_WORLD
@@ -251,7 +252,7 @@ def test_load_errors_for_paths(tmp_path):
 
 
 def test_other_errors_name_the_argument():
-    with pytest.raises(TypeError, match="mesh must be a fempdl.mesh.TaggedMesh .* got str"):
+    with pytest.raises(TypeError, match="mesh must be a fempdl.core.mesh.TaggedMesh .* got str"):
         mesh.as_tagged("lshape")
     obstacle = mesh.load("obstacle", COMM)
     with pytest.raises(ValueError, match=r"label must be one of \['inlet', 'obstacle', 'outlet', 'walls'\]"):
@@ -285,14 +286,14 @@ def test_wheel_contains_the_bundled_meshes(wheel):
     names = set(zipfile.ZipFile(wheel).namelist())
     for name in mesh.available():
         assert f"fempdl/meshes/{name}.msh" in names
-    assert "fempdl/meshgen.py" in names
+    assert "fempdl/core/meshgen.py" in names
 
 
 @serial_only
 def test_bundled_mesh_loads_from_the_unpacked_wheel(wheel, tmp_path):
     site = tmp_path / "site"
     zipfile.ZipFile(wheel).extractall(site)
-    code = ("import fempdl.mesh as m; t = m.load('obstacle'); "
+    code = ("import fempdl.core.mesh as m; t = m.load('obstacle'); "
             "print(m.__file__); print(t.mesh.topology.index_map(2).size_global)")
     result = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(site)},
                             capture_output=True, text=True, check=True)

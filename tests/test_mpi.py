@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 
 SCRIPTS = Path(__file__).parent / "mpi"
 EXAMPLES = Path(__file__).parent.parent / "scripts"

@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 
 MPI_ENV = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1", "OMP_NUM_THREADS": "1"}
 

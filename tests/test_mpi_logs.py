@@ -6,7 +6,7 @@ import re
 import subprocess
 import sys
 
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 
 from test_cli import TINY
 

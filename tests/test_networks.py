@@ -9,7 +9,7 @@ import torch
 
 import pytest
 
-from fempdl.app.networks import GraphConvNet, Standardize, normalised_adjacency
+from fempdl.app.tasks.networks import GraphConvNet, Standardize, normalised_adjacency
 
 
 def _dense_reference(net: GraphConvNet, A: torch.Tensor, u: torch.Tensor) -> torch.Tensor:

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from fempdl.prdp import PRDP
+from fempdl.methods.prdp import PRDP
 
 
 class Target:
@@ -165,8 +165,8 @@ def test_state_without_guard_and_growth_loads_as_plain_algorithm():
 
 def test_refinements_are_logged(caplog):
     improving = [0.5 ** i for i in range(10)]
-    with caplog.at_level("INFO", logger="fempdl.prdp"):
+    with caplog.at_level("INFO", logger="fempdl.methods.prdp"):
         ctrl, decisions = run(improving + [improving[-1]] * 3, ema_window=1, k0=3, dk=2)
     step = decisions.index(True)
     assert [(r.name, r.levelname, r.getMessage()) for r in caplog.records] == [
-        ("fempdl.prdp", "INFO", f"PRDP: K 3 -> 5 (plateau) at step {step}, metric {improving[-1]:.3e}")]
+        ("fempdl.methods.prdp", "INFO", f"PRDP: K 3 -> 5 (plateau) at step {step}, metric {improving[-1]:.3e}")]

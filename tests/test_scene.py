@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from fempdl.app import scene
+from fempdl.app import scene, schema, tasks
 from fempdl.app.scene import SceneError
 
 EXPECTED_BUNDLED = {"heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
@@ -56,8 +56,8 @@ def test_available_lists_the_bundled_files():
 
 def _keys_for(sc, section: str) -> set:
     """The schema's keys of a section, less those the scene's task and PDE do not use."""
-    unused = [scene._NOT_FOR.get(("task", sc.task), {}), scene._NOT_FOR.get(("pde", sc.pde.type), {})]
-    return set(scene.specs(section)).difference(*(by_section.get(section, set()) for by_section in unused))
+    unused = [tasks.spec_of(sc.task).unused, schema.PDE_UNUSED.get(sc.pde.type, {})]
+    return set(schema.specs(section)).difference(*(by_section.get(section, set()) for by_section in unused))
 
 
 @pytest.mark.parametrize("name", scene.available())
@@ -68,18 +68,18 @@ def test_bundled_scene_loads_with_its_tasks_sections(name):
     assert sc.description.strip()
     assert sc.task in ("emulator", "inverse", "hybrid", "sip", "hig")
     assert sc.mesh.name
-    sections = ("mesh", "pde", "data", "optimizer") + (("network", "baseline") if sc.task in scene.METHOD_TASKS
+    sections = ("mesh", "pde", "data", "optimizer") + (("network", "baseline") if tasks.spec_of(sc.task).trains == "method"
                                                        else ("solver", "prdp"))
     for section in sections:
         assert set(sc.as_dict()[section]) == _keys_for(sc, section), section
-    if sc.task in scene.METHOD_TASKS:
+    if tasks.spec_of(sc.task).trains == "method":
         assert sc.solver is None and sc.prdp is None and sc.inverse is None
         assert (sc.sip is not None, sc.hig is not None) == (sc.task == "sip", sc.task == "hig")
         assert sc.optimizer.batch <= sc.data.train
         assert sc.baseline.lr > 0
     elif sc.task in ("emulator", "hybrid"):
         assert sc.inverse is None
-        assert set(sc.as_dict()["network"]) == set(scene.specs("network"))
+        assert set(sc.as_dict()["network"]) == set(schema.specs("network"))
         assert sc.network.type in ("mlp", "graph")
         assert sc.pde.type in {"emulator": ("heat", "burgers"), "hybrid": ("oseen",)}[sc.task]
         assert (sc.hybrid is not None) == (sc.task == "hybrid")
@@ -133,12 +133,12 @@ def test_a_loaded_scene_is_frozen_and_changed_by_replace():
 
 def test_schema_text_names_every_section_and_key():
     blocks = {block.split("]")[0]: block for block in scene.schema_text().split("\n[")[1:]}
-    assert set(blocks) == set(scene.SECTIONS)
-    for name, cls in scene.SECTIONS.items():
+    assert set(blocks) == set(schema.SECTIONS)
+    for name, cls in schema.SECTIONS.items():
         lines = {line.split()[0]: line for line in blocks[name].splitlines()[1:] if line.strip()}
         assert set(lines) == {field.name for field in dataclasses.fields(cls)}, name
         for field in dataclasses.fields(cls):
-            spec, line = field.metadata["spec"], lines[field.name]
+            spec, line = schema.specs(name)[field.name], lines[field.name]
             assert spec.doc in line and ("required" in line) == spec.required, line
             assert all(f'"{choice}"' in line for choice in spec.choices or ()), line
 
@@ -157,15 +157,15 @@ def test_parse_fills_the_schema_defaults():
                        "k_cap": None, "guard": None, "growth": 1.0}
     assert sc.inverse is None
     # ... and they are the schema's.
-    for section in scene.SECTIONS:
-        keys = scene.specs(section)
+    for section in schema.SECTIONS:
+        keys = schema.specs(section)
         values = {"name": sc.name, "task": sc.task, "description": sc.description} if section == "scene" \
             else sc.as_dict()[section]
         if values is None:
             continue
         assert set(values) == _keys_for(sc, section), section
         for key, spec in keys.items():
-            if key in values and spec.default is not scene._REQUIRED and (section, key) != ("pde", "degree"):
+            if key in values and spec.default is not schema.REQUIRED and (section, key) != ("pde", "degree"):
                 assert values[key] == spec.default, (section, key)
 
 
@@ -224,7 +224,7 @@ BAD = {
     "toml-duplicate-key": (toml({"scene": 'name = "u"'}), ["not valid TOML"]),
     # unknown section / key
     "unknown-section": (toml({"training": "epochs = 3"}),
-                        ["unknown section(s) ['training']", f"allowed sections are {sorted(scene.SECTIONS)}"]),
+                        ["unknown section(s) ['training']", f"allowed sections are {sorted(schema.SECTIONS)}"]),
     "unknown-top-level-key": ('epochs = 3\n' + toml(), ["unknown section(s) ['epochs']"]),
     "unknown-key": (toml({"optimizer": "learning_rate = 0.1"}),
                     ["unknown key(s) ['learning_rate'] in [optimizer]",

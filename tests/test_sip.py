@@ -10,7 +10,7 @@ from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.app.tasks.data import smooth_fields
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.sip import ExactLinearInverse, GaussNewtonInverse, GradientStep, TikhonovInverse, proxy_loss, sip_step
+from fempdl.methods.sip import ExactLinearInverse, GaussNewtonInverse, GradientStep, TikhonovInverse, proxy_loss, sip_step
 
 LU = KSPOptions.preset("lu")
 
@@ -128,7 +128,7 @@ def test_gauss_newton_inverse_runs_its_cap_and_converges_to_the_target(lshape):
 
 
 def test_prdp_raises_the_gauss_newton_cap_when_the_metric_plateaus(lshape):
-    from fempdl.prdp import PRDP
+    from fempdl.methods.prdp import PRDP
 
     problem = _poisson(lshape)
     layer = SolveLayer(problem, LU)

@@ -12,14 +12,15 @@ import ufl
 from mpi4py import MPI
 
 import dolfinx.fem
-from fempdl import _dolfinx, mesh
-from fempdl.app import compare
+from fempdl.core import _dolfinx
+from fempdl import mesh
+from fempdl.app.reports import compare
 from fempdl.app import scene
 from fempdl.app.tasks.data import smooth_fields
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.marker_flow import ENCLOSED_LU, MarkerFlow
+from fempdl.app.tasks.marker_rollout import ENCLOSED_LU, MarkerFlow
 from fempdl.app.tasks.marker import MarkerInversionTask
-from fempdl.sip import LinearisedGaussNewton, batched_cg
+from fempdl.methods.sip import LinearisedGaussNewton, batched_cg
 
 
 @pytest.fixture(scope="module")

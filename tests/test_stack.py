@@ -14,7 +14,8 @@ import pytest
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from fempdl import _dolfinx, forms, mesh
+from fempdl.core import _dolfinx
+from fempdl import forms, mesh
 from fempdl.ksp_adjoint import KSPOptions
 
 COMM = MPI.COMM_WORLD

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from fempdl.app import runner
+from fempdl.app.runs import runner
 from fempdl.app import scene
 
 TINY = """
@@ -130,7 +130,7 @@ def test_unrolled_and_implicit_jacobi_train_identically():
 def test_metrics_split_the_wall_time(tiny, baseline):
     """The time parts add up to the wall time, the iterations part is the layers' solve time,
     and the cheap parts are not lost in 'other'."""
-    from fempdl.app.training import TIME_FIELDS
+    from fempdl.app.runs.training import TIME_FIELDS
     for row in baseline.rows:
         parts = [row[f] for f in TIME_FIELDS]
         assert all(p >= -1e-3 for p in parts)        # differences of clock readings: no real part is negative

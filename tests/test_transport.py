@@ -11,7 +11,8 @@ import ufl
 from mpi4py import MPI
 
 import dolfinx.fem
-from fempdl import _dolfinx, forms, mesh
+from fempdl.core import _dolfinx
+from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 from conftest import integral

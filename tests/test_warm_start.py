@@ -118,7 +118,7 @@ def test_bad_guess_is_refused(heat):
 def test_adjoint_reuses_the_forward_per_sample_matrices(heat, monkeypatch):
     """A batch of per-sample matrices (kappa) is assembled once, in the forward pass;
     the adjoint copies the kept matrices and gives the same gradient as reassembly."""
-    from fempdl.system import LinearSystem
+    from fempdl.solve.linear_system import LinearSystem
     u0 = control_values(heat, "u0", 3, seed=7)
     kappa = control_values(heat, "kappa", 3, seed=7).requires_grad_()
     calls = []
@@ -139,7 +139,7 @@ def test_adjoint_reuses_the_forward_per_sample_matrices(heat, monkeypatch):
 
 
 def test_fit_threads():
-    from fempdl.parallel import fit_threads
+    from fempdl.core.parallel import fit_threads
     before = torch.get_num_threads()
     try:
         assert fit_threads(1) == 1 and torch.get_num_threads() == 1
@@ -185,7 +185,7 @@ def test_a_warm_started_inverse_converges_at_a_cap_where_a_cold_one_stalls():
     """At K = 25 Richardson-Jacobi iterations per solve (K_eps = 477), gradient descent on the source
     amplitude from the last step's solution reaches a relative error of ~1e-6 in 300 steps; from zero each
     capped solve has the same large error every step, and the amplitude settles where it cancels it."""
-    from fempdl.app import runner
+    from fempdl.app.runs import runner
     warm = runner.run(_inverse_scene(True, 300), "fixed", 25, k_eps_value=477)
     cold = runner.run(_inverse_scene(False, 300), "fixed", 25, k_eps_value=477)
     assert warm.total_iterations == cold.total_iterations == 300 * 2 * 25     # forward + adjoint, 25 each
@@ -193,8 +193,8 @@ def test_a_warm_started_inverse_converges_at_a_cap_where_a_cold_one_stalls():
 
 
 def test_a_resumed_warm_started_inverse_continues_from_the_saved_solution(tmp_path):
-    from fempdl.app import checkpoints, runner
-    from fempdl.app.training import CHECKPOINT
+    from fempdl.app.runs import checkpoints, runner
+    from fempdl.app.runs.training import CHECKPOINT
     sc = _inverse_scene(True, 40)
     whole = runner.run(sc, "fixed", 25, out_dir=tmp_path / "whole", k_eps_value=477)
     runner.run(sc, "fixed", 25, out_dir=tmp_path / "split", k_eps_value=477, stop_after=15)
@@ -209,7 +209,7 @@ def test_a_resumed_warm_started_inverse_continues_from_the_saved_solution(tmp_pa
 
 
 def test_the_inverse_task_state_is_placed_by_coordinates_and_refuses_foreign_entries():
-    from fempdl.app import runner
+    from fempdl.app.runs import runner
     from fempdl.app.tasks.inverse import InverseTask
     sc = _inverse_scene(True, 1)
     task = InverseTask(sc, runner.solver_options(sc, 5))
@@ -241,8 +241,8 @@ def test_the_inverse_task_state_is_placed_by_coordinates_and_refuses_foreign_ent
 def test_an_inverse_checkpoint_from_before_warm_starts_resumes_cold(tmp_path):
     """A checkpoint written before the inverse task took [solver] warm_start has neither the key in its
     fingerprint nor task state; it ran cold, so a cold run resumes it to the uninterrupted result."""
-    from fempdl.app import checkpoints, rundir, runner
-    from fempdl.app.training import CHECKPOINT
+    from fempdl.app.runs import checkpoints, rundir, runner
+    from fempdl.app.runs.training import CHECKPOINT
     sc = _inverse_scene(False, 20)
     whole = runner.run(sc, "fixed", 25, out_dir=tmp_path / "whole", k_eps_value=477)
     runner.run(sc, "fixed", 25, out_dir=tmp_path / "old", k_eps_value=477, stop_after=8)

@@ -1,294 +1,31 @@
-"""Scenes: TOML files that declare a training experiment, parsed into typed, frozen sections.
+"""Scenes: TOML files that declare a training experiment, parsed into a validated :class:`Scene`.
 
-Each section of a scene file is a frozen dataclass below (:class:`MeshConfig`,
-:class:`PdeConfig`, ...); each field carries its type, default, choices, bounds
-and a one-line doc, so the schema is written once, there. :func:`schema_text`
-renders it (``fempdl scenes --schema``). :func:`parse` is the one place that
-validates: a malformed scene raises :class:`SceneError` naming the key and what
-is allowed. Bundled scenes live in ``fempdl/app/scenes/``; :func:`load` takes a
-bundled name or a path.
+:func:`parse` is the one place that validates: against the schema (:mod:`fempdl.app.schema`: every
+section's keys, types, defaults, choices and bounds) and the task registry (:mod:`fempdl.app.tasks`:
+the sections, PDEs and keys each task takes). A malformed scene raises :class:`SceneError` naming
+the key and what is allowed. :func:`schema_text` renders both (``fempdl scenes --schema``). Bundled
+scenes live in ``fempdl/app/scenes/``; :func:`load` takes a bundled name or a path.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import tomllib
 from importlib import resources
 from pathlib import Path
-from typing import Any
 
-from fempdl.resources import GEOMETRIES, estimated_dofs, format_bytes, memory_budget
-from fempdl.app.rundir import check_slug
+from fempdl.app.schema import POSITIVE, PDE_UNUSED, REQUIRED, SECTIONS, Scene, Spec, check_slug, specs
+from fempdl.app.tasks import SPECS
+from fempdl.core.resources import GEOMETRIES, estimated_dofs, format_bytes, memory_budget
 
-__all__ = ["Scene", "SceneError", "load", "available", "parse", "schema_text", "SECTIONS", "Spec", "specs",
-           "SceneSection", "MeshConfig", "PdeConfig", "DataConfig", "NetworkConfig", "InverseConfig", "SipConfig",
-           "MarkerConfig", "HigConfig", "BaselineConfig", "HybridConfig", "OptimizerConfig", "SolverConfig",
-           "PrdpConfig"]
+__all__ = ["Scene", "SceneError", "load", "available", "bundled_text", "parse", "schema_text", "estimated_memory"]
 
-_REQUIRED = object()
-_POSITIVE = 1e-300      # a minimum of "> 0"
 
-
-@dataclasses.dataclass(frozen=True)
-class Spec:
-    """What a scene key accepts: its type, default (``_REQUIRED``: none), choices and bounds, and what it means."""
-
-    kind: type
-    default: Any = _REQUIRED
-    doc: str = ""
-    choices: tuple | None = None
-    minimum: float | None = None
-    maximum: float | None = None
-
-    @property
-    def required(self) -> bool:
-        return self.default is _REQUIRED
-
-
-def _key(kind: type, default: Any = _REQUIRED, doc: str = "", **bounds):
-    """A section field whose metadata holds its :class:`Spec` (required keys have no default)."""
-    spec = Spec(kind, default, doc, **bounds)
-    if spec.required:
-        return dataclasses.field(metadata={"spec": spec})
-    return dataclasses.field(default=default, metadata={"spec": spec})
-
-
-_section = dataclasses.dataclass(frozen=True, kw_only=True)
-
-
-@_section
-class SceneSection:
-    """[scene]: what the run is called and which task it trains."""
-
-    name: str = _key(str, doc='letters, digits and "-_.": it names the run directory')
-    description: str = _key(str, "", doc="free text")
-    task: str = _key(str, doc="what is trained", choices=("emulator", "inverse", "hybrid", "sip", "hig"))
-
-
-@_section
-class MeshConfig:
-    """[mesh]: the domain."""
-
-    name: str = _key(str, doc="a bundled mesh's name or the path to a .msh file")
-    h: float | None = _key(float, None, doc="mesh size (none: the bundled mesh's default)", minimum=_POSITIVE)
-
-
-@_section
-class PdeConfig:
-    """[pde]: the physics.
-
-    Keys the PDE type does not use are refused in a file and None here."""
-
-    type: str = _key(str, doc="heat | burgers for emulator, poisson for inverse and hig, poisson | heat | marker "
-                              "for sip, oseen for hybrid", choices=("heat", "poisson", "burgers", "oseen", "marker"))
-    dt: float | None = _key(float, 0.01, doc="time step (heat, burgers, oseen, marker)", minimum=_POSITIVE)
-    theta: float | None = _key(float, 1.0, doc="theta time stepping: 1 implicit Euler (heat)",
-                               minimum=0.0, maximum=1.0)
-    kappa: float | None = _key(float, 1.0, doc="diffusivity (heat, poisson; marker: the marker's)",
-                               minimum=_POSITIVE)
-    degree: int | None = _key(int, None, doc="element degree (none: 1; 2 for oseen and marker, "
-                                             "the Taylor-Hood velocity)", minimum=1)
-    nu: float | None = _key(float, 0.01, doc="viscosity (burgers, oseen, marker)", minimum=_POSITIVE)
-    inflow: float | None = _key(float, 1.0, doc="peak of the parabolic inlet profile (oseen)", minimum=_POSITIVE)
-
-
-@_section
-class DataConfig:
-    """[data]: the generated samples.
-
-    Keys the task does not use are refused in a file and None here."""
-
-    train: int | None = _key(int, 64, doc="training samples (not inverse)", minimum=1)
-    validation: int | None = _key(int, 16, doc="validation samples (not inverse)", minimum=1)
-    modes: int | None = _key(int, 4, doc="sine modes (or boxes) per axis of the random fields (not inverse)",
-                             minimum=1)
-    seed: int = _key(int, 0, doc="seed of the data (and of the network, unless a run sets its own)", minimum=0)
-    k_eps_rtol: float | None = _key(float, 1e-5, doc="rtol whose iteration count is the converged cap K_eps "
-                                                     "(not sip, hig)", minimum=_POSITIVE, maximum=0.5)
-    rollout: int | None = _key(int, 1, doc="steps of the validation rollout (emulator, hybrid)", minimum=1)
-    truths: str | None = _key(str, "smooth", doc="sums of `modes` sine modes or boxes (sip, hig)",
-                              choices=("smooth", "rectangles"))
-    noise: float | None = _key(float, 0.0, doc="Gaussian noise on the observations, relative to their largest "
-                                               "value (sip, hig)", minimum=0.0)
-    resample: bool | None = _key(bool, False, doc="draw new training truths every epoch (sip, hig)")
-
-
-@_section
-class NetworkConfig:
-    """[network]: the trained network."""
-
-    type: str = _key(str, "mlp", doc="graph: heat emulators only", choices=("mlp", "graph"))
-    hidden: int = _key(int, 128, doc="width of the hidden layers", minimum=1)
-    layers: int = _key(int, 2, doc="hidden layers (0: linear); for graph the convolutions, >= 1", minimum=0)
-
-
-@_section
-class InverseConfig:
-    """[inverse]: the source modes to recover."""
-
-    theta_ref: tuple = _key(list, doc="the true source mode coefficients (numbers)")
-    theta_init: tuple = _key(list, doc="the initial guess, as long as theta_ref")
-
-
-@_section
-class SipConfig:
-    """[sip]: the scale-invariant physics inverse."""
-
-    inverse: str = _key(str, doc="the physics inverse (marker: gauss-newton)",
-                        choices=("exact", "tikhonov", "gauss-newton"))
-    eta: float = _key(float, 1.0, doc="step along the inverse's update", minimum=_POSITIVE)
-    damping: float = _key(float, 0.0, doc="Tikhonov alpha (tikhonov, gauss-newton)", minimum=0.0)
-    cg_iterations: int = _key(int, 20, doc="CG iterations of the Gauss-Newton inverse (gauss-newton)", minimum=1)
-
-
-@_section
-class MarkerConfig:
-    """[marker]: the advected marker (pde "marker" only)."""
-
-    steps: int = _key(int, 4, doc="time steps of the flow", minimum=1)
-    smoothing: float = _key(float, 0.1, doc="the projection's length ell", minimum=_POSITIVE)
-    speed: float = _key(float, 1.0, doc="largest initial speed", minimum=_POSITIVE)
-    shape: str = _key(str, "blob", doc="the marker's shape", choices=("blob", "band"))
-    width: float = _key(float, 0.25, doc="the marker's width", minimum=_POSITIVE)
-    prior: float = _key(float, 1e-4, doc="Tikhonov prior of the Gauss-Newton inverse", minimum=0.0)
-    placement: str = _key(str, "random", doc="central: the node farthest from the walls",
-                          choices=("random", "central"))
-    inputs: str = _key(str, "standardized", doc="the network's inputs (m0, m_T): standardized by the initial "
-                       "training draw, or raw", choices=("standardized", "raw"))
-
-
-@_section
-class HigConfig:
-    """[hig]: the half-inverse gradient optimizer."""
-
-    lr: float = _key(float, 1.0, doc="learning rate", minimum=_POSITIVE)
-    kappa: float = _key(float, -0.5, doc="exponent of the half-inverse")
-    beta: float = _key(float, 0.0, doc="momentum")
-    tau: float = _key(float, 1e-5, doc="relative truncation of small singular values", minimum=0.0, maximum=1.0)
-    method: str = _key(str, "auto", doc="how the half-inverse is computed", choices=("auto", "svd", "gram"))
-    max_jacobian_mib: float = _key(float, 1024.0, doc="largest Jacobian held in memory, MiB", minimum=_POSITIVE)
-
-
-@_section
-class BaselineConfig:
-    """[baseline]: Adam with backpropagation through the physics, the method's comparison."""
-
-    lr: float | None = _key(float, None, doc="none: the optimizer's lr; 1e-3 for hig", minimum=_POSITIVE)
-    decay: float | None = _key(float, None, doc="none: the optimizer's decay; 1.0 for hig", minimum=_POSITIVE)
-
-
-@_section
-class HybridConfig:
-    """[hybrid]: the solver-in-the-loop correction of a coarse flow."""
-
-    fine_h: float = _key(float, doc="the reference mesh size", minimum=_POSITIVE)
-    steps: int = _key(int, 2, doc="unrolled training steps", minimum=1)
-    spinup: int = _key(int, 10, doc="fine steps from rest before sampling", minimum=0)
-    perturbation: float = _key(float, 0.2, doc="initial perturbation, relative to inflow", minimum=0.0)
-
-
-@_section
-class OptimizerConfig:
-    """[optimizer]: the training loop.
-
-    Keys the task does not use are refused in a file and None here."""
-
-    type: str | None = _key(str, "adam", doc="not hig: HIG is its optimizer", choices=("adam", "sgd"))
-    lr: float | None = _key(float, 1e-3, doc="learning rate (not hig)", minimum=_POSITIVE)
-    decay: float | None = _key(float, 1.0, doc="learning rate factor per epoch (not hig)", minimum=_POSITIVE)
-    epochs: int = _key(int, 30, doc="training epochs", minimum=1)
-    batch: int | None = _key(int, 16, doc="mini-batch size (not inverse)", minimum=1)
-    stop_at: float | None = _key(float, None, doc="end once the validation metric is <= it (none: never)",
-                                 minimum=_POSITIVE)
-
-
-@_section
-class SolverConfig:
-    """[solver]: the capped linear solver (sip and hig solve with LU: they compare methods, not caps)."""
-
-    preset: str = _key(str, "jacobi", doc="the capped solver; schur is for oseen and only it",
-                       choices=("jacobi", "cg", "gmres", "gmres-ilu", "schur"))
-    diff: str = _key(str, "implicit", doc="how gradients pass the solve (unrolled: jacobi or cg)",
-                     choices=("implicit", "unrolled"))
-    warm_start: bool | None = _key(bool, False, doc="start the capped solve from the state being advanced "
-                                                    "(emulator, hybrid) or from the last step's solution "
-                                                    "(inverse)")
-    lag_preconditioner: bool = _key(bool, False, doc="per-sample matrices share the first sample's "
-                                                     "preconditioner within a call")
-
-
-@_section
-class PrdpConfig:
-    """[prdp]: progressively refined differentiable physics."""
-
-    k0: int = _key(int, 1, doc="first cap", minimum=1)
-    dk: int = _key(int, 1, doc="least increase of a refinement", minimum=1)
-    tau_step: float = _key(float, 0.95, doc="refine when the metric improves less than this factor",
-                           minimum=_POSITIVE, maximum=1.0)
-    tau_stop: float = _key(float, 0.9, doc="stop refining when a refinement improves less than this factor",
-                           minimum=_POSITIVE, maximum=1.0)
-    delta: int = _key(int, 3, doc="epochs compared for a plateau", minimum=2)
-    ema_window: int = _key(int, 6, doc="epochs of the metric's moving average", minimum=1)
-    k_cap: int | None = _key(int, None, doc="largest cap (none: K_eps)", minimum=1)
-    guard: float | None = _key(float, None, doc="refine at once when the metric rises above guard x its best "
-                                                "(none: never)", minimum=1.0 + 1e-12)
-    growth: float = _key(float, 1.0, doc="a refinement sets K to max(K + dk, ceil(growth K))", minimum=1.0)
-
-
-# Every section, in file order: the schema.
-SECTIONS: dict[str, type] = {
-    "scene": SceneSection, "mesh": MeshConfig, "pde": PdeConfig, "data": DataConfig, "network": NetworkConfig,
-    "inverse": InverseConfig, "sip": SipConfig, "marker": MarkerConfig, "hig": HigConfig,
-    "baseline": BaselineConfig, "hybrid": HybridConfig, "optimizer": OptimizerConfig, "solver": SolverConfig,
-    "prdp": PrdpConfig,
-}
-
-
-def specs(section: str) -> dict[str, Spec]:
-    """The keys of ``section`` and their specs, in order."""
-    return {f.name: f.metadata["spec"] for f in dataclasses.fields(SECTIONS[section])}
-
-
-# Sections each task needs (others must be absent) and may omit (then all defaults).
-_TASK_SECTIONS = {
-    "emulator": {"required": {"scene", "mesh", "pde"}, "optional": {"data", "network", "optimizer", "solver", "prdp"}},
-    "inverse": {"required": {"scene", "mesh", "pde", "inverse"}, "optional": {"data", "optimizer", "solver", "prdp"}},
-    "hybrid": {"required": {"scene", "mesh", "pde", "hybrid"},
-               "optional": {"data", "network", "optimizer", "solver", "prdp"}},
-    "sip": {"required": {"scene", "mesh", "pde", "sip"},
-            "optional": {"data", "network", "optimizer", "baseline", "marker"}},
-    "hig": {"required": {"scene", "mesh", "pde", "hig"}, "optional": {"data", "network", "optimizer", "baseline"}},
-}
-# The PDEs each task is built for.
-_TASK_PDES = {"emulator": ("heat", "burgers"), "inverse": ("poisson",), "hybrid": ("oseen",),
-              "sip": ("poisson", "heat", "marker"), "hig": ("poisson",)}
-# Tasks that compare a training method with Adam and backpropagation (fempdl.app.tasks.inversion).
-METHOD_TASKS = ("sip", "hig")
-_INVERSION_DATA = {"truths", "noise", "resample"}
-
-
-# Keys a task or PDE type does not use: setting them is an error, not a silent no-op; they are None in the scene.
-_NOT_FOR = {
-    ("task", "inverse"): {"data": {"train", "validation", "modes", "rollout"} | _INVERSION_DATA,
-                          "optimizer": {"batch"}},
-    ("task", "emulator"): {"data": _INVERSION_DATA},
-    ("task", "hybrid"): {"data": _INVERSION_DATA},
-    ("task", "sip"): {"data": {"k_eps_rtol", "rollout"}},
-    ("task", "hig"): {"data": {"k_eps_rtol", "rollout"}, "optimizer": {"type", "lr", "decay"}},
-    ("pde", "poisson"): {"pde": {"dt", "theta", "nu", "inflow"}},
-    ("pde", "heat"): {"pde": {"nu", "inflow"}},
-    ("pde", "burgers"): {"pde": {"theta", "kappa", "inflow"}},
-    ("pde", "oseen"): {"pde": {"theta", "kappa"}},
-    ("pde", "marker"): {"pde": {"theta", "inflow"}},
-}
-
-
-def _unused(task: str, pde: str) -> dict[str, set]:
+def unused_keys(task: str, pde: str) -> dict[str, frozenset]:
     """The keys, by section, that ``task`` and PDE type ``pde`` do not use."""
-    out: dict[str, set] = {}
-    for by_section in (_NOT_FOR.get(("task", task), {}), _NOT_FOR.get(("pde", pde), {})):
+    out: dict[str, frozenset] = {}
+    for by_section in (SPECS[task].unused, PDE_UNUSED.get(pde, {})):
         for name, keys in by_section.items():
-            out.setdefault(name, set()).update(keys)
+            out[name] = out.get(name, frozenset()) | keys
     return out
 
 
@@ -296,52 +33,16 @@ class SceneError(ValueError):
     """A scene file is malformed; the message names the section, key and what is allowed."""
 
 
-@dataclasses.dataclass(frozen=True)
-class Scene:
-    """A validated scene: one frozen section object per section its task uses (None for the others).
-
-    Change one with :func:`dataclasses.replace` (``replace(scene, optimizer=replace(scene.optimizer,
-    epochs=5))``); the values are not validated again."""
-
-    name: str
-    task: str
-    description: str
-    mesh: MeshConfig
-    pde: PdeConfig
-    data: DataConfig
-    optimizer: OptimizerConfig
-    solver: SolverConfig | None = None
-    prdp: PrdpConfig | None = None
-    network: NetworkConfig | None = None
-    inverse: InverseConfig | None = None
-    hybrid: HybridConfig | None = None
-    sip: SipConfig | None = None
-    hig: HigConfig | None = None
-    baseline: BaselineConfig | None = None
-    marker: MarkerConfig | None = None
-    source: str = ""
-
-    def as_dict(self) -> dict:
-        """Plain (JSON-able) values: one dict per section, holding the keys its task and PDE use."""
-        unused = _unused(self.task, self.pde.type)
-        out = {}
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if dataclasses.is_dataclass(value):
-                value = {key: list(v) if isinstance(v, tuple) else v
-                         for key, v in dataclasses.asdict(value).items() if key not in unused.get(f.name, ())}
-            out[f.name] = value
-        return out
-
 
 def schema_text() -> str:
     """The schema as text: every section (and the tasks that take it), key, type, default, choices, bounds and doc."""
-    lines = ["Scene files (TOML): sections and keys. A key a task or PDE does not use is refused.", ""]
+    lines = ["Scene files (TOML): sections and keys. A key a task or PDE does not use is refused.",
+             "Tasks ([scene] task) and the PDEs they take: "
+             + "; ".join(f"{task} ({', '.join(spec.pdes)})" for task, spec in SPECS.items()), ""]
     for name, cls in SECTIONS.items():
-        tasks = [task for task, sections in _TASK_SECTIONS.items()
-                 if name in sections["required"] | sections["optional"]]
-        needed = [task for task, sections in _TASK_SECTIONS.items() if name in sections["required"]]
-        usage = "every task" if len(tasks) == len(_TASK_SECTIONS) else ", ".join(tasks)
+        tasks = [task for task, spec in SPECS.items() if name in spec.sections]
+        needed = [task for task, spec in SPECS.items() if name in spec.required]
+        usage = "every task" if len(tasks) == len(SPECS) else ", ".join(tasks)
         if needed and needed != tasks:
             usage += f"; required for {', '.join(needed)}"
         elif needed:
@@ -363,7 +64,7 @@ def _describe(spec: Spec) -> str:
     if spec.choices is not None:
         parts.append("one of " + " | ".join(f'"{c}"' for c in spec.choices))
     if spec.minimum is not None:
-        parts.append("> 0" if spec.minimum == _POSITIVE else f">= {spec.minimum:g}")
+        parts.append("> 0" if spec.minimum == POSITIVE else f">= {spec.minimum:g}")
     if spec.maximum is not None:
         parts.append(f"<= {spec.maximum:g}")
     return ", ".join(parts) + f": {spec.doc}"
@@ -441,44 +142,47 @@ def parse(text: str, source: str = "<string>", overrides=()) -> Scene:
     except ValueError as err:
         raise SceneError(f"{source}: {err}") from None
     task = header["task"]
+    if task not in SPECS:
+        raise SceneError(f"{source}: [scene] task must be one of {list(SPECS)}, got {task!r}")
+    spec = SPECS[task]
     values = _task_sections(raw, task, source)
-    _drop_unused(values, raw, task, source)
     pde = values["pde"]
-    if pde["type"] not in _TASK_PDES[task]:
+    unused = unused_keys(task, pde["type"])
+    _drop_unused(values, raw, task, source)
+    if pde["type"] not in spec.pdes:
         raise SceneError(f"{source}: [pde] type {pde['type']!r} does not apply to task {task!r}; "
-                         f"it takes {list(_TASK_PDES[task])}")
-    if task in METHOD_TASKS:
+                         f"it takes {list(spec.pdes)}")
+    if spec.trains == "method":
         _check_method(values, raw, source)
     else:
         _check_flow(values, source)
         _check_solver(values, source)
-    if task == "inverse":
+    if "inverse" in values:
         _check_inverse(values["inverse"], source)
     _check_size(task, values, source)
     sections = {name: SECTIONS[name](**values[name]) if name in values else None
                 for name in SECTIONS if name != "scene"}
-    return Scene(name=header["name"], task=task, description=header["description"], source=source, **sections)
+    return Scene(name=header["name"], task=task, description=header["description"], source=source,
+                 unused=unused, **sections)
 
 
 def _task_sections(raw: dict, task: str, source: str) -> dict[str, dict]:
     """The checked keys (defaults filled in) of every section ``task`` takes; refuses missing and extra sections."""
-    sections = _TASK_SECTIONS[task]
-    missing = sorted(sections["required"] - set(raw))
+    spec = SPECS[task]
+    missing = sorted(spec.required - set(raw))
     if missing:
         raise SceneError(f"{source}: task {task!r} needs section(s) {missing}")
-    extra = sorted(set(raw) - sections["required"] - sections["optional"])
+    extra = sorted(set(raw) - spec.sections)
     if extra:
         raise SceneError(f"{source}: section(s) {extra} do not apply to task {task!r}; "
-                         f"allowed: {sorted(sections['required'] | sections['optional'])}")
-    taken = sections["required"] | sections["optional"]
-    return {name: _section(raw, name, source) for name in SECTIONS if name in taken}
+                         f"allowed: {sorted(spec.sections)}")
+    return {name: _section(raw, name, source) for name in SECTIONS if name in spec.sections}
 
 
 def _drop_unused(values: dict, raw: dict, task: str, source: str) -> None:
     """Refuse keys the task or PDE does not use when the file gives them; set them to None otherwise."""
-    for (what, value), unused in _NOT_FOR.items():
-        if (task if what == "task" else values["pde"]["type"]) != value:
-            continue
+    pde = values["pde"]["type"]
+    for what, value, unused in (("task", task, SPECS[task].unused), ("pde", pde, PDE_UNUSED.get(pde, {}))):
         for name, keys in unused.items():
             given = sorted(keys & set(raw.get(name, {})))
             if given:
@@ -593,7 +297,7 @@ def _section(raw: dict, name: str, source: str) -> dict:
     for key, spec in schema.items():
         where = f"{source}: [{name}] {key}"
         if key not in given:
-            if spec.default is _REQUIRED:
+            if spec.default is REQUIRED:
                 raise SceneError(f"{where} is required")
             out[key] = spec.default
             continue
@@ -612,7 +316,7 @@ def _checked(value, spec: Spec, where: str):
     if spec.choices is not None and value not in spec.choices:
         raise SceneError(f"{where} must be one of {list(spec.choices)}, got {value!r}")
     if spec.minimum is not None and value < spec.minimum:
-        bound = "> 0" if spec.minimum == _POSITIVE else f">= {spec.minimum:g}"
+        bound = "> 0" if spec.minimum == POSITIVE else f">= {spec.minimum:g}"
         raise SceneError(f"{where} must be {bound}, got {value!r}")
     if spec.maximum is not None and value > spec.maximum:
         raise SceneError(f"{where} must be <= {spec.maximum:g}, got {value!r}")
@@ -643,7 +347,7 @@ def estimated_memory(task: str, values: dict) -> tuple[float, float, dict] | Non
     return sum(parts.values()), dofs, parts
 
 
-# The committed meshes' sizes (fempdl.meshgen.DEFAULT_H), for the estimate of a scene without h.
+# The committed meshes' sizes (fempdl.core.meshgen.DEFAULT_H), for the estimate of a scene without h.
 _BUNDLED_H = {"lshape": 0.05, "obstacle": 0.035, "box": 0.1}
 
 

@@ -7,8 +7,8 @@ import dolfinx.fem
 import numpy as np
 from mpi4py import MPI
 
-from fempdl import _dolfinx
-from fempdl.mesh import TaggedMesh
+from fempdl.core import _dolfinx
+from fempdl.core.mesh import TaggedMesh
 
 # Spaces a coefficient (kappa) may live in.
 COEFFICIENT_SPACES = {"P1": ("Lagrange", 1), "DG0": ("DG", 0)}

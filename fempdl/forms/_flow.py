@@ -13,10 +13,10 @@ import ufl
 
 from mpi4py import MPI
 
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 from fempdl.forms._common import make_function, positive_constant, tagged_facets
-from fempdl.mesh import TaggedMesh
-from fempdl.problem import Problem
+from fempdl.core.mesh import TaggedMesh
+from fempdl.core.problem import Problem
 
 _MAX = MPI.MAX
 

@@ -24,11 +24,11 @@ import math
 
 import ufl
 
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 from fempdl.forms._common import (check_controls, check_degree, coefficient_space, dirichlet_bcs,
                                   make_function, positive_constant)
-from fempdl.mesh import as_tagged
-from fempdl.problem import Problem
+from fempdl.core.mesh import as_tagged
+from fempdl.core.problem import Problem
 
 CONTROLS = ("u0", "f", "kappa")
 
@@ -38,7 +38,7 @@ def problem(msh, controls=("u0",), *, dt: float = 0.01, theta: float = 1.0, degr
     """Build one heat step on ``msh``.
 
     Args:
-        msh: a :class:`fempdl.mesh.TaggedMesh` or a dolfinx Mesh.
+        msh: a :class:`fempdl.core.mesh.TaggedMesh` or a dolfinx Mesh.
         controls: names among ``("u0", "f", "kappa")`` that become layer inputs.
         dt: time step (> 0).
         theta: 1 implicit Euler, 0.5 Crank-Nicolson, 0 explicit Euler (a mass solve).

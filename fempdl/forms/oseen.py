@@ -35,8 +35,8 @@ import ufl
 from fempdl.forms._common import check_controls, nonnegative_constant, positive_constant
 from fempdl.forms._flow import (flow_problem, supg_measure, supg_tau, taylor_hood, vector_function,
                                warn_if_convection_dominated)
-from fempdl.mesh import as_tagged
-from fempdl.problem import Problem
+from fempdl.core.mesh import as_tagged
+from fempdl.core.problem import Problem
 
 CONTROLS = ("w", "u_prev", "f")
 
@@ -46,7 +46,7 @@ def problem(msh, controls=("w", "u_prev"), *, nu: float = 1e-2, dt: float = 0.1,
     """Build one Oseen step on ``msh``.
 
     Args:
-        msh: a :class:`fempdl.mesh.TaggedMesh` or a dolfinx Mesh.
+        msh: a :class:`fempdl.core.mesh.TaggedMesh` or a dolfinx Mesh.
         controls: names among ``("w", "u_prev", "f")``.
         nu: kinematic viscosity (> 0); dt: time step (> 0).
         degree: velocity degree k >= 2.

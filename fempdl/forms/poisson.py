@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import ufl
 
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 from fempdl.forms._common import check_controls, check_degree, coefficient_space, dirichlet_bcs, make_function
-from fempdl.mesh import as_tagged
-from fempdl.problem import Problem
+from fempdl.core.mesh import as_tagged
+from fempdl.core.problem import Problem
 
 CONTROLS = ("f", "kappa")
 
@@ -29,7 +29,7 @@ def problem(msh, controls=("f",), *, degree: int = 1, kappa_space: str = "P1",
     """Build the Poisson problem on ``msh``.
 
     Args:
-        msh: a :class:`fempdl.mesh.TaggedMesh` (from :func:`fempdl.mesh.load`) or a dolfinx Mesh.
+        msh: a :class:`fempdl.core.mesh.TaggedMesh` (from :func:`fempdl.core.mesh.load`) or a dolfinx Mesh.
         controls: names among ``("f", "kappa")`` that become layer inputs.
         degree: Lagrange degree k of the solution space (and of f).
         kappa_space: ``"P1"`` or ``"DG0"``.

@@ -24,8 +24,8 @@ import ufl
 
 from fempdl.forms._common import check_controls
 from fempdl.forms._flow import flow_problem, taylor_hood, vector_function
-from fempdl.mesh import as_tagged
-from fempdl.problem import Problem
+from fempdl.core.mesh import as_tagged
+from fempdl.core.problem import Problem
 
 CONTROLS = ("f",)
 
@@ -34,7 +34,7 @@ def problem(msh, controls=("f",), *, nu: float = 1.0, degree: int = 2, f=0.0, ve
     """Build the Stokes problem on ``msh``.
 
     Args:
-        msh: a :class:`fempdl.mesh.TaggedMesh` or a dolfinx Mesh.
+        msh: a :class:`fempdl.core.mesh.TaggedMesh` or a dolfinx Mesh.
         controls: ``("f",)`` or ``()``.
         nu: kinematic viscosity (> 0).
         degree: velocity degree k >= 2 (pressure k - 1).

@@ -36,12 +36,12 @@ from __future__ import annotations
 
 import ufl
 
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 from fempdl.forms._common import (check_controls, check_degree, dirichlet_bcs, make_function,
                                   nonnegative_constant, positive_constant)
 from fempdl.forms._flow import supg_tau, vector_function, warn_if_convection_dominated
-from fempdl.mesh import as_tagged
-from fempdl.problem import Problem
+from fempdl.core.mesh import as_tagged
+from fempdl.core.problem import Problem
 
 CONTROLS = ("w", "m_prev", "f")
 
@@ -52,7 +52,7 @@ def problem(msh, controls=("w", "m_prev"), *, kappa: float = 1e-3, dt: float = 0
     """Build one marker transport step on ``msh``.
 
     Args:
-        msh: a :class:`fempdl.mesh.TaggedMesh` or a dolfinx Mesh.
+        msh: a :class:`fempdl.core.mesh.TaggedMesh` or a dolfinx Mesh.
         controls: names among ``("w", "m_prev", "f")``.
         kappa: diffusivity (>= 0; 0 is pure advection, SUPG then needed).
         dt: time step (> 0).

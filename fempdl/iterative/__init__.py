@@ -1,1 +1,2 @@
-"""Torch-side K-step maths of the capped solve: the unrolled recurrences, the batched engine, sparse operators and the unrolled layer path (no UFL)."""
+"""Floor 2, torch-only K-step maths of a capped solve: unrolled recurrences, CG's reverse pass, fused
+Richardson sweeps, the batched engine and sparse operators. Nothing here imports DOLFINx or UFL."""

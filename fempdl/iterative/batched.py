@@ -30,16 +30,16 @@ import numpy as np
 import torch
 from petsc4py import PETSc
 
+from fempdl.core import tuning
 from fempdl.iterative.columns import SOLVED, column_dots, guarded_ratio, spmm_into
-from fempdl.ksp_adjoint import KSPOptions, petsc_to_scipy
+from fempdl.solve.petsc import petsc_to_scipy
+from fempdl.solve.options import KSPOptions
 from fempdl.iterative.sparse import sparse_to_torch, torch_to_scipy
 from fempdl.iterative.sweeps import column_groups, richardson, sweep_matrix, threads_for, torch_threads
 
 __all__ = ["BatchedEngine", "fast_cg", "fast_gmres"]
 
 _OWN_OPTIONS = frozenset({"ksp_richardson_scale"})
-CG_GROUP = 8       # columns per batched CG group (scripts/bench_krylov.py: best at 4k and 66k DOFs)
-CG_MIN_BATCH = 8   # smallest batch where batched CG beat PETSc's loop (scripts/bench_krylov.py)
 
 
 class BatchedEngine:
@@ -69,13 +69,11 @@ class BatchedEngine:
 
     @staticmethod
     def faster_than_petsc(batch: int, ksp_type: str = "richardson") -> bool:
-        """Measured rules. Richardson (scripts/bench_floor.py): from B = 2, at 4k
-        and 66k DOFs, on one thread and on two. CG (scripts/bench_krylov.py):
-        from B = 8. GMRES never: its batched Gram-Schmidt streams B Krylov bases
-        from memory where PETSc's one basis stays in cache."""
+        """The measured rules of :mod:`fempdl.core.tuning`: Richardson from
+        ``RICHARDSON_MIN_BATCH``, CG from ``CG_MIN_BATCH``, GMRES never."""
         if ksp_type == "richardson":
-            return batch >= 2
-        return ksp_type == "cg" and batch >= CG_MIN_BATCH
+            return batch >= tuning.RICHARDSON_MIN_BATCH
+        return ksp_type == "cg" and batch >= tuning.CG_MIN_BATCH
 
     def load(self, A: PETSc.Mat) -> None:
         """Copy the current entries of ``A`` (call again after it is reassembled)."""
@@ -113,13 +111,13 @@ class BatchedEngine:
             return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0
         # A warm start is the K-step solve of the residual equation, as in PETSc. CG's small
         # groups may run on one thread; GMRES's batched Gram-Schmidt keeps them all.
-        threads = threads_for(op.values().numel(), min(CG_GROUP, rhs.shape[1])) if options.ksp_type == "cg" else None
+        threads = threads_for(op.values().numel(), min(tuning.CG_GROUP, rhs.shape[1])) if options.ksp_type == "cg" else None
         with torch.no_grad(), torch_threads(threads):
             res = rhs if start is None else rhs - op @ start
             P = self._dinv if precondition else None
             if options.ksp_type == "cg":
                 X = torch.cat([fast_cg(op, P, res[:, i:i + w].contiguous(), options.max_it)
-                               for i, w in column_groups(res.shape[1], CG_GROUP)], dim=1)
+                               for i, w in column_groups(res.shape[1], tuning.CG_GROUP)], dim=1)
             else:
                 X = fast_gmres(op, P, res, options.max_it, options.gmres_restart or 30)
             if start is not None:

@@ -7,7 +7,7 @@ omega, X <- X + omega P (R - A X), is the sweep X <- c + M X with
 
 One fused sparse product per sweep (read X and c, write the next iterate into a
 second buffer) is the least memory traffic such a sweep can have
-(``scripts/bench_floor.py``). Columns run in groups of about :data:`GROUP`
+(``scripts/bench_floor.py``). Columns run in groups of about :data:`fempdl.core.tuning.SWEEP_GROUP`
 per thread so that a group's iterates stay in cache, and small products run on
 one torch thread (waking a second one per product costs more than it saves).
 """
@@ -19,12 +19,10 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-__all__ = ["sweep_matrix", "richardson", "column_groups", "torch_threads", "threads_for", "GROUP"]
+from fempdl.core import tuning
 
-GROUP = 8   # columns per group and torch thread (scripts/bench_floor.py: best at 66k DOFs on 1 and 2 threads)
-# Below this many multiply-adds per sparse product (nonzeros x group width), one torch
-# thread is faster than two: 4k and 16k DOFs ran faster on one, 66k on two (scripts/bench_floor.py).
-PARALLEL_MIN_WORK = 2_000_000
+__all__ = ["sweep_matrix", "richardson", "column_groups", "torch_threads", "threads_for"]
+
 
 
 def sweep_matrix(S: sp.csr_matrix, omega: float, dinv: np.ndarray | None) -> sp.csr_matrix:
@@ -35,7 +33,7 @@ def sweep_matrix(S: sp.csr_matrix, omega: float, dinv: np.ndarray | None) -> sp.
     return M
 
 
-def column_groups(batch: int, size: int = GROUP) -> list[tuple[int, int]]:
+def column_groups(batch: int, size: int = tuning.SWEEP_GROUP) -> list[tuple[int, int]]:
     """(start, width) of about ``size`` columns each, equal widths: a group's iterates stay
     in cache, at the price of reading the matrix once per group."""
     width = -(-batch // -(-batch // size))
@@ -58,18 +56,18 @@ def torch_threads(count: int | None):
 
 def threads_for(nnz: int, width: int) -> int | None:
     """1 when a sparse product of ``nnz`` entries on ``width`` columns is too small to share, else None."""
-    return 1 if nnz * width < PARALLEL_MIN_WORK else None
+    return 1 if nnz * width < tuning.PARALLEL_MIN_WORK else None
 
 
 def richardson(M: torch.Tensor, c: torch.Tensor, K: int, X0: torch.Tensor | None = None) -> torch.Tensor:
     """K sweeps X <- c + M X from X0 (or 0) for c (n, B), column group by column group; returns X (n, B).
 
-    A group has :data:`GROUP` columns per torch thread (each thread's rows of the
+    A group has :data:`fempdl.core.tuning.SWEEP_GROUP` columns per torch thread (each thread's rows of the
     group's iterates stay in its cache). No autograd: two buffers per group, nothing kept."""
     threads = torch.get_num_threads()
-    if threads_for(M.values().numel(), min(c.shape[1], GROUP * threads)) == 1:
+    if threads_for(M.values().numel(), min(c.shape[1], tuning.SWEEP_GROUP * threads)) == 1:
         threads = 1
-    groups = column_groups(c.shape[1], GROUP * threads)
+    groups = column_groups(c.shape[1], tuning.SWEEP_GROUP * threads)
     with torch.no_grad(), torch_threads(threads):
         out = []
         for i, width in groups:

@@ -34,7 +34,7 @@ and are recomputed one at a time during the backward pass, so about 2 sqrt(K)
 states are stored instead of K (``checkpointed_values``, which must then fit
 in ``max_values``; recomputation is exact: the iteration is deterministic). A
 solve whose stored values would exceed the memory budget
-(:func:`fempdl.resources.memory_budget`, half the available memory) is
+(:func:`fempdl.core.resources.memory_budget`, half the available memory) is
 refused before it starts, with the estimate and the ways out.
 """
 from __future__ import annotations
@@ -49,7 +49,7 @@ from fempdl.iterative import sweeps
 from fempdl.iterative.columns import SOLVED, guarded_ratio
 from fempdl.iterative.reverse_cg import ConstantOperatorCG
 from fempdl.iterative.sparse import SparseOperator, sparse_to_torch
-from fempdl.resources import format_bytes, memory_budget
+from fempdl.core.resources import format_bytes, memory_budget
 
 __all__ = ["solve", "METHODS", "stored_values", "checkpointed_values"]
 

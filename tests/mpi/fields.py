@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from fempdl import forms, io, mesh
+from fempdl import forms, mesh
+from fempdl.core import io
 
 comm = MPI.COMM_WORLD
 out = Path(sys.argv[1])

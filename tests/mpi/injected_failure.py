@@ -1,8 +1,8 @@
 """Run under mpirun -n 2: rank 1 raises while rank 0 waits in a collective.
-With fempdl.parallel.abort_on_error the job must end (non-zero), not hang."""
+With fempdl.core.parallel.abort_on_error the job must end (non-zero), not hang."""
 from mpi4py import MPI
 
-from fempdl.parallel import abort_on_error
+from fempdl.core.parallel import abort_on_error
 
 abort_on_error()
 comm = MPI.COMM_WORLD

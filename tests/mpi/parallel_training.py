@@ -12,8 +12,8 @@ from pathlib import Path
 
 from mpi4py import MPI
 
-from fempdl import parallel
-from fempdl.app import runner
+from fempdl.core import parallel
+from fempdl.app.runs import runner
 from fempdl.app import scene
 
 parallel.abort_on_error()

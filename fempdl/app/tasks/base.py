@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from fempdl.system import assemble_scipy
+from fempdl.solve.assembly import assemble_scipy
 
 __all__ = ["Task", "make_optimizer", "optimisation_step", "operator_pattern"]
 
@@ -17,7 +17,7 @@ def optimisation_step(optimizer, loss: torch.Tensor) -> float:
 
 
 class Task:
-    """What :class:`~fempdl.app.training.Trainer` trains; subclasses define the physics.
+    """What :class:`~fempdl.app.runs.training.Trainer` trains; subclasses define the physics.
 
     A task has ``model``, ``optimizer``, ``scheduler`` (or None), ``layers``
     (the capped layers whose iterations are counted), ``train_size``,

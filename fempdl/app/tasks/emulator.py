@@ -5,14 +5,15 @@ import numpy as np
 import torch
 from mpi4py import MPI
 
-from fempdl import forms, mesh
-from fempdl.app.networks import GraphConvNet, ResidualMLP, normalised_adjacency
-from fempdl.app.scene import NetworkConfig, Scene
+from fempdl import forms
+from fempdl.core import mesh
+from fempdl.app.tasks.networks import GraphConvNet, ResidualMLP, normalised_adjacency
+from fempdl.app.schema import NetworkConfig, Scene, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer, operator_pattern
 from fempdl.app.tasks.data import smooth_fields
-from fempdl.app.training import nmse, sample_nmse
+from fempdl.app.tasks.metrics import nmse, sample_nmse
 from fempdl.bridge_torch import SolveLayer
-from fempdl.ksp_adjoint import KSPOptions
+from fempdl.solve.options import KSPOptions
 
 __all__ = ["EmulatorTask"]
 
@@ -26,6 +27,10 @@ class EmulatorTask(Task):
     (network, converged physics) pairs from held-out states and averages the
     nMSE against the converged trajectory at every pair.
     """
+
+    specs = (TaskSpec(name="emulator", pdes=("heat", "burgers"), required=frozenset({"scene", "mesh", "pde"}),
+                      optional=frozenset({"data", "network", "optimizer", "solver", "prdp"}),
+                      unused={"data": frozenset({"truths", "noise", "resample"})}, parallel=("data",), writes_fields=True),)
 
     def __init__(self, scene: Scene, options: KSPOptions, *, comm: MPI.Comm = MPI.COMM_SELF,
                  seed: int | None = None):

@@ -38,14 +38,15 @@ import torch
 from mpi4py import MPI
 from scipy.spatial import cKDTree
 
-from fempdl import _dolfinx, forms, mesh
-from fempdl.app.networks import ResidualMLP
-from fempdl.app.scene import PdeConfig, Scene
+from fempdl.core import _dolfinx, mesh
+from fempdl import forms
+from fempdl.app.tasks.networks import ResidualMLP
+from fempdl.app.schema import PdeConfig, Scene, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import smooth_fields
-from fempdl.app.training import sample_nmse
+from fempdl.app.tasks.metrics import sample_nmse
 from fempdl.bridge_torch import SolveLayer
-from fempdl.ksp_adjoint import KSPOptions
+from fempdl.solve.options import KSPOptions
 
 __all__ = ["HybridTask", "channel_problem", "VelocityTransfer"]
 
@@ -139,6 +140,10 @@ def _fine_reference(mesh_name: str, coarse_h, fine_h: float, pde: PdeConfig, cou
 
 class HybridTask(Task):
     """Coarse Oseen stepper + network correction, trained over unrolled steps (module docstring)."""
+
+    specs = (TaskSpec(name="hybrid", pdes=("oseen",), required=frozenset({"scene", "mesh", "pde", "hybrid"}),
+                      optional=frozenset({"data", "network", "optimizer", "solver", "prdp"}),
+                      unused={"data": frozenset({"truths", "noise", "resample"})}, parallel=("data",)),)
 
     def __init__(self, scene: Scene, options: KSPOptions, *, comm: MPI.Comm = MPI.COMM_SELF,
                  seed: int | None = None):

@@ -6,13 +6,14 @@ import torch
 from mpi4py import MPI
 from scipy.spatial import cKDTree
 
-from fempdl import forms, mesh
-from fempdl.app.scene import Scene
+from fempdl import forms
+from fempdl.core import mesh
+from fempdl.app.schema import Scene, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import source_modes
-from fempdl.app.training import nmse
+from fempdl.app.tasks.metrics import nmse
 from fempdl.bridge_torch import SolveLayer
-from fempdl.ksp_adjoint import KSPOptions
+from fempdl.solve.options import KSPOptions
 
 __all__ = ["InverseTask"]
 
@@ -38,6 +39,12 @@ class InverseTask(Task):
     sums over all ranks, and theta is replicated (its gradient is the sum of
     the ranks' contributions: the Trainer's ``parallel="mesh"``).
     """
+
+    specs = (TaskSpec(name="inverse", pdes=("poisson",), required=frozenset({"scene", "mesh", "pde", "inverse"}),
+                      optional=frozenset({"data", "optimizer", "solver", "prdp"}),
+                      unused={"data": frozenset({"train", "validation", "modes", "rollout"}) | frozenset({"truths", "noise", "resample"}),
+                              "optimizer": frozenset({"batch"})},
+                      parallel=("mesh",), writes_fields=True),)
 
     train_size = 1
 

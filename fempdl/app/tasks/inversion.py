@@ -11,15 +11,15 @@ With ``[data] resample`` the training truths are drawn anew every epoch
 (seeded by the epoch, so a resumed run draws the same ones).
 The marker PDE (an initial velocity from the marker it moved, a rollout of
 flow and marker steps) has its own task, :mod:`fempdl.app.tasks.marker`
-(``TASKS``); :func:`run` and :mod:`fempdl.app.compare` treat it alike.
+(``TASKS``); :func:`run` and :mod:`fempdl.app.reports.compare` treat it alike.
 
 Three ways to train the same network (``method``):
 
 * ``"sip"``: the proxy loss 1/2 ||x0 - stopgrad(x*)||^2 (mean over samples)
-  with x* from the scene's inverse (:mod:`fempdl.sip`: the exact inverse of
+  with x* from the scene's inverse (:mod:`fempdl.methods.sip`: the exact inverse of
   an affine right-hand side, its Tikhonov-damped version, or damped
   Gauss-Newton CG), stepped by the scene's optimizer;
-* ``"hig"``: half-inverse gradient steps (:class:`fempdl.hig.HIG`) on
+* ``"hig"``: half-inverse gradient steps (:class:`fempdl.methods.hig.HIG`) on
   L = 1/2 ||P(x0) - y||^2 (mean over samples); the physics is linear, so its
   Jacobian is computed once;
 * ``"backprop"``: the baseline, Adam with ``[baseline] lr`` and ``decay`` on
@@ -38,18 +38,24 @@ import numpy as np
 import torch
 from mpi4py import MPI
 
-from fempdl import forms, mesh
-from fempdl.app.networks import mlp
-from fempdl.app.scene import Scene, SipConfig
+from fempdl import forms
+from fempdl.core import mesh
+from fempdl.app.tasks.networks import mlp
+from fempdl.app.schema import Scene, SipConfig, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import rectangle_fields, smooth_fields
-from fempdl.app.training import sample_nmse
+from fempdl.app.tasks.metrics import sample_nmse
 from fempdl.bridge_torch import SolveLayer
-from fempdl.hig import HIG
-from fempdl.ksp_adjoint import KSPOptions
-from fempdl.sip import ExactLinearInverse, GaussNewtonInverse, TikhonovInverse, proxy_loss
+from fempdl.methods.hig import HIG
+from fempdl.solve.options import KSPOptions
+from fempdl.methods.sip import ExactLinearInverse, GaussNewtonInverse, TikhonovInverse, proxy_loss
 
 __all__ = ["InversionTask", "method_of"]
+
+#: The sip task on a one-layer physics (poisson, heat); the marker task serves it on the marker rollout.
+SIP_SPEC = TaskSpec(name="sip", pdes=("poisson", "heat"), required=frozenset({"scene", "mesh", "pde", "sip"}),
+                    optional=frozenset({"data", "network", "optimizer", "baseline", "marker"}),
+                    unused={"data": frozenset({"k_eps_rtol", "rollout"})}, trains="method")
 
 
 def method_of(scene: Scene) -> str:
@@ -65,6 +71,12 @@ class InversionTask(Task):
     Shapes: observations (B, n_y) in, inferred inputs (B, n_x) out; the
     network is ``[network] layers`` tanh layers of width ``hidden``.
     """
+
+    specs = (SIP_SPEC, TaskSpec(name="hig", pdes=("poisson",), required=frozenset({"scene", "mesh", "pde", "hig"}),
+                                optional=frozenset({"data", "network", "optimizer", "baseline"}),
+                                unused={"data": frozenset({"k_eps_rtol", "rollout"}),
+                                        "optimizer": frozenset({"type", "lr", "decay"})},
+                                trains="method"))
 
     def __init__(self, scene: Scene, method: str):
         if scene.task not in ("sip", "hig"):

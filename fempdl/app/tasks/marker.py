@@ -2,7 +2,7 @@
 
 Data (drawn from ``[data] seed``): per sample a raw velocity g, a sum of
 ``[data] modes`` smooth sine modes per component scaled so that the initial
-velocity v0 = Pi g (:class:`fempdl.marker_flow.MarkerFlow`: divergence-free,
+velocity v0 = Pi g (:class:`fempdl.app.tasks.marker_rollout.MarkerFlow`: divergence-free,
 no-slip) has the largest speed ``[marker] speed``; an initial marker m0, a
 Gaussian blob of standard deviation ``[marker] width`` centred at a random node
 at least ``width`` from the walls (``shape = "blob"``), or a Gaussian band of
@@ -14,12 +14,12 @@ observation y = m_T = P(g, m0) after ``[marker] steps`` steps of ``[pde] dt``.
 The network (an MLP, ``[network]``) maps (m0, m_T), (B, 2 n_m), to a raw
 velocity x (B, n_v); the physics projects it, so only Pi x matters. With
 ``[marker] inputs = "standardized"`` (the default) a
-:class:`fempdl.app.networks.Standardize` built from the task's initial training
+:class:`fempdl.app.tasks.networks.Standardize` built from the task's initial training
 draw centres and scales the inputs first: raw marker values share a large
 common mode, and both methods then learn far slower (README, sip-flow). Training:
 
 * ``"sip"``: proxy loss 1/2 ||x - stopgrad(x*)||^2 (mean over samples), x*
-  from one damped Gauss-Newton step of :class:`fempdl.sip.LinearisedGaussNewton`
+  from one damped Gauss-Newton step of :class:`fempdl.methods.sip.LinearisedGaussNewton`
   on the rollout (``[sip] cg_iterations``, ``damping``, ``eta``; Tikhonov
   prior ``[marker] prior`` on x, a smoothness prior on v0 through Pi);
 * ``"backprop"``: Adam on 1/2 ||P(x, m0) - y||^2 (mean over samples), the
@@ -32,19 +32,22 @@ velocity, ||Pi x - v0||_M / ||v0||_M, mean over held-out samples;
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 from mpi4py import MPI
 from scipy.spatial import cKDTree
 
-from fempdl import _dolfinx, mesh
-from fempdl.app.networks import Standardize, mlp
-from fempdl.app.scene import Scene
+from fempdl.core import _dolfinx, mesh
+from fempdl.app.tasks.networks import Standardize, mlp
+from fempdl.app.schema import Scene
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import smooth_fields
+from fempdl.app.tasks.inversion import SIP_SPEC
 from fempdl.forms._common import make_function
-from fempdl.marker_flow import MarkerFlow
-from fempdl.sip import LinearisedGaussNewton, proxy_loss
+from fempdl.app.tasks.marker_rollout import MarkerFlow
+from fempdl.methods.sip import LinearisedGaussNewton, proxy_loss
 
 __all__ = ["MarkerInversionTask", "marker_flow"]
 
@@ -70,6 +73,8 @@ MARKER_SHAPES = {"blob": _blob, "band": _band}
 
 class MarkerInversionTask(Task):
     """Infer v0 from (m0, m_T), trained by ``method`` ("sip" or "backprop"); module docstring."""
+
+    specs = (dataclasses.replace(SIP_SPEC, pdes=("marker",)),)
 
     def __init__(self, scene: Scene, method: str):
         if scene.task != "sip" or scene.pde.type != "marker":

@@ -8,7 +8,7 @@ an allocator or gmsh after minutes:
   default half of the memory available now (``MemAvailable``);
 * :func:`estimated_cells`: the cell count of a bundled geometry meshed at size
   h, cells ~ density * h^-dim, with the densities measured by
-  :mod:`fempdl.meshgen` (gmsh 4.8.4; its docstring lists the sizes);
+  :mod:`fempdl.core.meshgen` (gmsh 4.8.4; its docstring lists the sizes);
   :data:`DEFAULT_MAX_CELLS` is the default cell budget of ``mesh.load``.
 
 This module imports nothing heavy, so the scene parser can use it.
@@ -29,7 +29,7 @@ DEFAULT_MEMORY_FRACTION = 0.5
 def bundled_meshes():
     """The folder of the bundled ``.msh`` files: ``meshes/`` beside the package in a
     checkout (or an editable install), ``fempdl/meshes/`` inside an installed wheel."""
-    checkout = Path(__file__).resolve().parent.parent / "meshes"
+    checkout = Path(__file__).resolve().parents[2] / "meshes"
     return checkout if checkout.is_dir() else importlib.resources.files("fempdl") / "meshes"
 
 # About 1M P1 DOFs in 2D; gmsh takes about a minute and a few GB for it.

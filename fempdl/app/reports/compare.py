@@ -22,11 +22,12 @@ import json
 import math
 from pathlib import Path
 
-from fempdl.app import runner, tasks
-from fempdl.app.runner import RunResult
-from fempdl.app.scene import Scene
-from fempdl.app.tradeoff import write_figure
-from fempdl.app.training import CHECKPOINT, write_atomically
+from fempdl.app.runs import runner
+from fempdl.app import tasks
+from fempdl.app.runs.runner import RunResult
+from fempdl.app.schema import Scene
+from fempdl.app.reports.tradeoff import write_figure
+from fempdl.app.runs.training import CHECKPOINT, write_atomically
 
 __all__ = ["compare", "compare_and_report", "summary", "summary_lines", "table", "write_report"]
 

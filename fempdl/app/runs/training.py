@@ -7,7 +7,7 @@ validates, steps the PRDP controller, and after every epoch writes
 iterations and times, and ``time_<part>`` for each of :data:`TIME_PARTS`,
 adding up to ``wall_time``) and ``checkpoint.pt`` (model, optimizer, scheduler,
 PRDP, layer counters, each rank's task state, RNG states, rows). Every file is written atomically
-(:mod:`fempdl.app.checkpoints`), so an interrupted run keeps its last epoch;
+(:mod:`fempdl.app.runs.checkpoints`), so an interrupted run keeps its last epoch;
 ``run(resume=True)`` continues it with the same metrics as an uninterrupted
 run, and refuses a resume whose settings differ (:meth:`Trainer.fingerprint`).
 
@@ -32,16 +32,17 @@ from tqdm import tqdm
 
 from mpi4py import MPI
 
-from fempdl import __version__, parallel
-from fempdl.app import checkpoints
-from fempdl.app import rundir
-from fempdl.app.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
-from fempdl.prdp import PRDP
+from fempdl import __version__
+from fempdl.core import parallel
+from fempdl.app.runs import checkpoints
+from fempdl.app.runs import rundir
+from fempdl.app.runs.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
+from fempdl.methods.prdp import PRDP
 
-__all__ = ["Trainer", "nmse", "sample_nmse", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES",
+__all__ = ["Trainer", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES",
            "CHECKPOINT"]
 # Fingerprint keys a resumed run may change: the run's length, which --epochs and an
-# equal-training-time extension (fempdl.app.compare) move.
+# equal-training-time extension (fempdl.app.reports.compare) move.
 RESUMABLE_CHANGES = ("run.scene.optimizer.epochs", "run.epochs")
 # Fingerprint keys that came later, with what a checkpoint written before them ran with.
 KEYS_ADDED_LATER = {"run.scene.solver.warm_start": False,      # the inverse task's solves started from zero
@@ -57,21 +58,6 @@ METRIC_FIELDS = ("epoch", "train_loss", "val_metric", "k", "forward_iterations",
 # The layers' own counters behind the solver parts of the split.
 _LAYER_PARTS = {"iterations": "solve_time", "setup": "setup_time", "assembly": "assembly_time",
                 "adjoint_operator": "adjoint_operator_time"}
-
-
-def sample_nmse(u: torch.Tensor, ref: torch.Tensor, comm: MPI.Comm = MPI.COMM_SELF) -> torch.Tensor:
-    """Per sample ||u_i - ref_i||^2 / ||ref_i||^2 for (B, n) rows, shape (B,).
-
-    On a mesh distributed over ``comm`` the rows hold each rank's owned DOFs
-    and the norms sum over all ranks (differentiably)."""
-    sums = torch.stack([((u - ref) ** 2).sum(-1), (ref ** 2).sum(-1)])
-    error, scale = parallel.allreduce_sum(sums, comm)
-    return error / scale
-
-
-def nmse(u: torch.Tensor, ref: torch.Tensor, comm: MPI.Comm = MPI.COMM_SELF) -> torch.Tensor:
-    """Normalised MSE, PRDP paper eq. 56: mean_i ||u_i - ref_i||^2 / ||ref_i||^2."""
-    return sample_nmse(u, ref, comm).mean()
 
 
 @dataclasses.dataclass
@@ -140,7 +126,7 @@ class Trainer:
     def run(self, resume: bool = False) -> list[dict]:
         """Train; returns the metric rows (one per epoch, including resumed ones).
 
-        The output directory is locked for the run (:class:`fempdl.app.rundir.RunLock`:
+        The output directory is locked for the run (:class:`fempdl.app.runs.rundir.RunLock`:
         a second run on it is refused); temporary files an interrupted write
         left there are removed; a fresh run (``resume=False``) first removes
         the checkpoints of a run it replaces."""
@@ -199,7 +185,7 @@ class Trainer:
         return self.rows
 
     def _log_epoch(self, row: dict) -> None:
-        """One INFO line per epoch on the "fempdl.app.training" logger (rank 0; the record
+        """One INFO line per epoch on the "fempdl.app.runs.training" logger (rank 0; the record
         carries ``epoch``, 1-based, so a handler can keep every N-th)."""
         if self._writer and _log.isEnabledFor(logging.INFO):
             run = f"{self.out_dir.name}: " if self.out_dir is not None else ""

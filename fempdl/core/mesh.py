@@ -1,6 +1,6 @@
 """Load the bundled meshes, or any gmsh ``.msh`` file, as DOLFINx meshes with tags.
 
-Bundled meshes (``meshes/*.msh``, built by :mod:`fempdl.meshgen`):
+Bundled meshes (``meshes/*.msh``, built by :mod:`fempdl.core.meshgen`):
 
 ==========  ====  ====  ==============  =====================================
 name        tdim  gdim  cells / P1 DOF  facet tags
@@ -42,8 +42,8 @@ import gmsh
 import numpy as np
 from mpi4py import MPI
 
-from fempdl import _dolfinx, meshgen
-from fempdl.resources import DEFAULT_MAX_CELLS, GEOMETRIES, bundled_meshes, estimated_cells
+from fempdl.core import _dolfinx, meshgen
+from fempdl.core.resources import DEFAULT_MAX_CELLS, GEOMETRIES, bundled_meshes, estimated_cells
 
 __all__ = ["TaggedMesh", "as_tagged", "available", "load"]
 
@@ -125,7 +125,7 @@ def as_tagged(obj) -> TaggedMesh:
         return obj
     if isinstance(obj, dolfinx.mesh.Mesh):
         return TaggedMesh(obj, None, None, obj.name)
-    raise TypeError(f"mesh must be a fempdl.mesh.TaggedMesh (from fempdl.mesh.load) or a "
+    raise TypeError(f"mesh must be a fempdl.core.mesh.TaggedMesh (from fempdl.core.mesh.load) or a "
                     f"dolfinx.mesh.Mesh, got {type(obj).__name__}")
 
 
@@ -144,7 +144,7 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
         gdim: For a path only: geometric dimension; ``None`` takes the
             smallest that holds the node coordinates (all ``z = 0`` -> 2).
         max_cells: For ``h``: refuse sizes whose estimated cell count
-            (:func:`fempdl.resources.estimated_cells`) exceeds this, before
+            (:func:`fempdl.core.resources.estimated_cells`) exceeds this, before
             gmsh runs (h = 1e-8 would take many GB and minutes).
 
     Returns:

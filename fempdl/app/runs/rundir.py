@@ -18,17 +18,16 @@
 from __future__ import annotations
 
 import os
-import re
 import socket
 from pathlib import Path
 
-from fempdl.app.checkpoints import CHECKPOINT
+from fempdl.app.runs.checkpoints import CHECKPOINT
+from fempdl.app.schema import check_slug
 
 __all__ = ["LOCK", "ResumeError", "RunDirectoryError", "RunLock", "check_slug", "child", "fingerprint", "differences",
            "holds_run"]
 
 LOCK = ".lock"
-_SLUG = re.compile(r"[A-Za-z0-9._-]{1,128}")
 # Files whose presence means a directory holds a run.
 RUN_FILES = (CHECKPOINT, "metrics.csv", "metrics.json")
 
@@ -39,14 +38,6 @@ class RunDirectoryError(RuntimeError):
 
 class ResumeError(ValueError):
     """A resume would not continue the run the checkpoint holds (its fingerprint differs)."""
-
-
-def check_slug(name, what: str = "name") -> str:
-    """``name`` if it is a safe path component: letters, digits and ``-_.``, at most 128, not ``.``/``..``."""
-    if not isinstance(name, str) or not _SLUG.fullmatch(name) or name in (".", ".."):
-        raise ValueError(f"{what} must be 1-128 letters, digits, '-', '_' or '.' (and not '.' or '..'), "
-                         f"got {name!r}; it becomes a directory name")
-    return name
 
 
 def child(parent: Path, name: str, what: str = "name") -> Path:

@@ -17,11 +17,12 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 from fempdl.iterative import unrolled
 from fempdl.iterative.sparse import SparseOperator
-from fempdl.ksp_adjoint import KSPOptions, capped_solve_stats
-from fempdl.system import INITIAL_GUESS, LinearSystem
+from fempdl.solve.options import KSPOptions
+from fempdl.solve.stats import capped_solve_stats
+from fempdl.solve.linear_system import INITIAL_GUESS, LinearSystem
 
 __all__ = ["UnrolledPath", "unrolled_method", "matrix_jacobian"]
 

@@ -15,22 +15,20 @@ from pathlib import Path
 import torch
 from mpi4py import MPI
 
-from fempdl import io
-from fempdl.app.scene import Scene
-from fempdl.app.tasks import METHOD_TASKS, TASKS
-from fempdl.app.training import Trainer
+from fempdl.core import io
+from fempdl.app.schema import Scene
+from fempdl.app.tasks import SPECS, spec_of, task_class
+from fempdl.app.runs.training import Trainer
 from fempdl.bridge_torch import SolveLayer
-from fempdl.ksp_adjoint import KSPOptions
-from fempdl.parallel import shard
-from fempdl.prdp import PRDP
+from fempdl.solve.options import KSPOptions
+from fempdl.core.parallel import shard
+from fempdl.methods.prdp import PRDP
 
-__all__ = ["build_task", "k_eps", "run", "run_method", "run_settings", "save_fields", "RunResult", "MODES",
-           "FIELD_TASKS"]
+__all__ = ["build_task", "check_parallel", "k_eps", "run", "run_method", "run_settings", "save_fields", "RunResult",
+           "MODES"]
 _log = logging.getLogger(__name__)
 
 MODES = ("fixed", "converged", "prdp")
-#: Tasks whose validation predictions and references :func:`save_fields` writes.
-FIELD_TASKS = ("emulator", "inverse")
 
 
 @dataclasses.dataclass
@@ -76,27 +74,35 @@ def build_task(scene: Scene, options: KSPOptions, parallel: str | None = None,
     builds the whole problem on each rank (``COMM_SELF``). ``seed`` initialises
     the network (default: the scene's data seed; the data stay the scene's)."""
     check_parallel(scene, parallel)
-    if scene.task not in TASKS:
+    if spec_of(scene.task).trains != "cap":
         raise ValueError(f"scene {scene.name!r} compares training methods, not solver caps: train it with "
                          "run_method (the commands `fempdl run` and `fempdl compare` do)")
-    return TASKS[scene.task](scene, options, comm=comm if parallel == "mesh" else MPI.COMM_SELF, seed=seed)
+    cls = task_class(scene.task, scene.pde.type)
+    return cls(scene, options, comm=comm if parallel == "mesh" else MPI.COMM_SELF, seed=seed)
 
 
 def check_parallel(scene: Scene, parallel: str | None) -> None:
     """Raise ``ValueError`` when the scene's task cannot train in the ``parallel`` mode."""
     if parallel not in (None, "data", "mesh"):
         raise ValueError(f"parallel must be None, 'data' or 'mesh', got {parallel!r}")
-    if parallel is not None and scene.task in ("sip", "hig"):
+    modes = spec_of(scene.task).parallel
+    if parallel is None or parallel in modes:
+        return
+    if not modes:
         raise ValueError(f"scene {scene.name!r}: {scene.task} scenes train on one process (the exact inverse "
                          "assembles serial scipy operators and HIG decomposes the whole batch's Jacobian at once); "
                          "run them without mpirun")
-    if parallel == "data" and scene.task == "inverse":
-        raise ValueError(f"scene {scene.name!r}: --parallel data splits batches of samples, and the inverse task "
-                         "has one; use --parallel mesh to distribute its mesh instead")
-    if parallel == "mesh" and scene.task != "inverse":
-        raise ValueError(f"scene {scene.name!r}: --parallel mesh distributes the mesh, but the {scene.task} task's "
-                         "network (an MLP or graph network on whole DOF vectors) needs the whole field on every "
-                         "rank; use --parallel data to spread its samples over the ranks instead")
+    if parallel == "data":
+        raise ValueError(f"scene {scene.name!r}: --parallel data splits batches of samples, and the {scene.task} "
+                         f"task has one; use --parallel {modes[0]} instead")
+    raise ValueError(f"scene {scene.name!r}: --parallel mesh distributes the mesh, but the {scene.task} task's "
+                     "network (an MLP or graph network on whole DOF vectors) needs the whole field on every "
+                     f"rank; use --parallel {modes[0]} to spread its samples over the ranks instead")
+
+
+def field_tasks() -> list[str]:
+    """The tasks whose validation predictions and references :func:`save_fields` writes."""
+    return [name for name, spec in SPECS.items() if spec.writes_fields]
 
 
 def solver_options(scene: Scene, k: int | None, rtol: float | None = None) -> KSPOptions:
@@ -156,7 +162,7 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
     """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp").
 
     ``parallel`` ("data" or "mesh") trains on the ranks of ``comm`` together
-    (:mod:`fempdl.parallel`); every rank returns the same result. ``seed``
+    (:mod:`fempdl.core.parallel`); every rank returns the same result. ``seed``
     sets the network initialisation and the minibatch order (default: the
     scene's data seed); the data are the scene's either way. ``save`` writes
     the validation fields after training (:func:`save_fields`, into
@@ -164,8 +170,8 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
     writes the metrics as TensorBoard scalars into ``out_dir``/tensorboard."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
-    if save and (out_dir is None or scene.task not in FIELD_TASKS or parallel == "mesh"):
-        raise ValueError(f"save=True writes validation fields of {list(FIELD_TASKS)} scenes into out_dir, serial "
+    if save and (out_dir is None or not spec_of(scene.task).writes_fields or parallel == "mesh"):
+        raise ValueError(f"save=True writes validation fields of {field_tasks()} scenes into out_dir, serial "
                          f"or with parallel='data'; got task {scene.task!r}, out_dir={out_dir!r}, "
                          f"parallel={parallel!r}")
     if (mode == "fixed") != (k is not None):
@@ -178,10 +184,7 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
     if mode == "converged":
         task.layer.max_it = keps
     elif mode == "prdp":
-        p = scene.prdp
-        prdp = PRDP(task.layers, k0=p.k0, dk=p.dk, tau_step=p.tau_step, tau_stop=p.tau_stop,
-                    delta=p.delta, ema_window=p.ema_window, k_cap=p.k_cap or keps,
-                    guard=p.guard, growth=p.growth)
+        prdp = PRDP(task.layers, dataclasses.replace(scene.prdp, k_cap=scene.prdp.k_cap or keps))
     try:
         trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=_batch(scene),
                           out_dir=out_dir, prdp=prdp, seed=scene.data.seed if seed is None else seed,
@@ -215,7 +218,7 @@ def run_method(scene: Scene, method: str, *, out_dir: Path | None = None, resume
 
     ``stop_at_time`` ends the run once its training steps took that many
     seconds (a resumed run can so be extended to equal training time)."""
-    task = METHOD_TASKS[scene.pde.type](scene, method)
+    task = task_class(scene.task, scene.pde.type)(scene, method)
     try:
         trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=scene.optimizer.batch,
                           out_dir=out_dir, seed=scene.data.seed, progress=progress, stop_after=stop_after,

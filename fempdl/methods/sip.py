@@ -21,7 +21,7 @@ import scipy.sparse.linalg as spla
 import torch
 
 from fempdl.bridge_torch import SolveLayer
-from fempdl.system import assemble_scipy
+from fempdl.solve.assembly import assemble_scipy
 
 __all__ = ["ExactLinearInverse", "GaussNewtonInverse", "GradientStep", "LinearisedGaussNewton", "TikhonovInverse",
            "batched_cg", "proxy_loss", "sip_step"]

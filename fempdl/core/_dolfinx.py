@@ -35,6 +35,14 @@ import numpy as np
 import ufl
 from petsc4py import PETSc
 
+# Importing dolfinx leaves the process's dlopen flags at RTLD_GLOBAL (its line that
+# restores them is commented out). torch.compile's CPU backend then loads every
+# compiled kernel with global symbols, all named ``kernel``, so a graph can run
+# another graph's kernel: silently wrong values and gradients. Restore the flags
+# dolfinx found (its own extension modules are loaded by now).
+if hasattr(dolfinx, "stored_dlopen_flags"):
+    sys.setdlopenflags(dolfinx.stored_dlopen_flags)
+
 #: (major, minor) of the DOLFINx in use, e.g. (0, 5) or (0, 11); for reports
 #: and for tests that must know the stack. Code branches on the capabilities below.
 DOLFINX_VERSION: tuple[int, int] = tuple(int(p) for p in dolfinx.__version__.split(".")[:2])

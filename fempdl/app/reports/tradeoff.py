@@ -28,10 +28,10 @@ import csv
 import json
 from pathlib import Path
 
-from fempdl.app import runner
-from fempdl.app.runner import RunResult
-from fempdl.app.scene import Scene
-from fempdl.app.training import TIME_PARTS, write_atomically
+from fempdl.app.runs import runner
+from fempdl.app.runs.runner import RunResult
+from fempdl.app.schema import Scene
+from fempdl.app.runs.training import TIME_PARTS, write_atomically
 
 __all__ = ["sweep", "savings", "comparison_table", "write_report", "geometric_caps", "summary_lines",
            "time_split", "plot_time_split"]
@@ -137,7 +137,7 @@ def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir:
 
 
 def time_split(run: RunResult) -> dict[str, float]:
-    """Seconds of the run's wall time per part (:data:`fempdl.app.training.TIME_PARTS`)."""
+    """Seconds of the run's wall time per part (:data:`fempdl.app.runs.training.TIME_PARTS`)."""
     last = run.rows[-1]
     return {part: float(last.get(f"time_{part}", 0.0)) for part in TIME_PARTS}
 

@@ -9,7 +9,7 @@ every rank with a non-zero exit. ``fempdl`` installs it whenever it runs on
 more than one rank; scripts can call it themselves, or run as
 ``mpirun -n P python -m mpi4py script.py``, which does the same.
 
-Parallel training (:class:`fempdl.app.training.Trainer`) has two modes:
+Parallel training (:class:`fempdl.app.runs.training.Trainer`) has two modes:
 
 * ``"data"``: every rank holds the whole problem (a mesh on ``COMM_SELF``) and
   the same model; a batch is cut into one contiguous :func:`shard` per rank,

@@ -40,7 +40,7 @@ from typing import Callable, Iterator
 import gmsh
 from mpi4py import MPI
 
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 
 CELL_TAG = 1
 #: The gmsh release (major, minor) that wrote the committed files: Debian
@@ -53,7 +53,7 @@ FACET_TAGS: dict[str, dict[str, int]] = {
     "box": {"bottom": 1, "top": 2, "sides": 3},
 }
 
-BUNDLED_DIR = Path(__file__).resolve().parent.parent / "meshes"   # the checkout's top-level folder
+BUNDLED_DIR = Path(__file__).resolve().parents[2] / "meshes"   # the checkout's top-level folder
 
 # Tolerance for classifying boundary pieces by their bounding box: OpenCASCADE
 # enlarges every bounding box by its 1e-7 confusion tolerance.

@@ -38,7 +38,7 @@ from ufl.algorithms import expand_derivatives
 
 from mpi4py import MPI
 
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 
 _LAND = MPI.LAND
 
@@ -195,7 +195,7 @@ class Problem:
         collapsed subspace; either that field's values, as :meth:`split` gives
         them, or the whole solution), or ``None``/``"u"`` for the solution space
         (``output_size`` values; the whole mixed space for a flow problem).
-        Use it to post-process or write a layer's output (:mod:`fempdl.io`).
+        Use it to post-process or write a layer's output (:mod:`fempdl.core.io`).
         """
         space, kind = self._space_of(name)
         array = _as_array(values, "values")

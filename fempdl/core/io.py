@@ -22,7 +22,7 @@ import dolfinx.fem
 import dolfinx.io
 import numpy as np
 
-from fempdl import _dolfinx
+from fempdl.core import _dolfinx
 
 __all__ = ["write_xdmf", "write_fields", "nodal_field", "plot_fields", "plot_data"]
 

@@ -14,25 +14,15 @@ that fold a vmapped dimension into the native batch, so torch.func
 from __future__ import annotations
 
 import itertools
-import sys
 import time
 import weakref
 
-import dolfinx
 import numpy as np
 import torch
 import torch._dynamo  # noqa: F401  (imported by a custom op's first call otherwise: 1-2 s inside a solve)
 from torch import Tensor
 
-from fempdl.system import INITIAL_GUESS
-
-# Importing dolfinx leaves the process's dlopen flags at RTLD_GLOBAL (its line that
-# restores them is commented out). torch.compile's CPU backend then loads every
-# compiled kernel with global symbols, all named ``kernel``, so a graph can run
-# another graph's kernel: silently wrong values and gradients. Restore the flags
-# dolfinx found (its own extension modules are loaded by now).
-if hasattr(dolfinx, "stored_dlopen_flags"):
-    sys.setdlopenflags(dolfinx.stored_dlopen_flags)
+from fempdl.solve.linear_system import INITIAL_GUESS
 
 __all__ = ["ImplicitSolve", "count_on_all_ranks", "register_layer", "nonfinite_control_message"]
 

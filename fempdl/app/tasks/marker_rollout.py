@@ -34,11 +34,12 @@ import scipy.sparse as sp
 import torch
 import ufl
 
-from fempdl import _dolfinx, forms
+from fempdl.core import _dolfinx
+from fempdl import forms
 from fempdl.bridge_torch import SolveLayer
-from fempdl.ksp_adjoint import KSPOptions
-from fempdl.mesh import as_tagged
-from fempdl.system import assemble_scipy
+from fempdl.solve.options import KSPOptions
+from fempdl.core.mesh import as_tagged
+from fempdl.solve.assembly import assemble_scipy
 
 __all__ = ["ENCLOSED_LU", "MarkerFlow"]
 
@@ -53,7 +54,7 @@ class MarkerFlow(torch.nn.Module):
     """P(g, m0) -> m_T on an enclosed domain (module docstring).
 
     Args:
-        msh: a :class:`fempdl.mesh.TaggedMesh` or dolfinx Mesh (2D or 3D).
+        msh: a :class:`fempdl.core.mesh.TaggedMesh` or dolfinx Mesh (2D or 3D).
         steps: number of time steps T (>= 1).
         dt: time step; nu: the fluid's viscosity; kappa: the marker's diffusivity.
         smoothing: the projection's smoothing length ell (> 0).

@@ -21,19 +21,22 @@ incoming gradients and adjoints are (B, n) with n = ``problem.output_size``.
 """
 from __future__ import annotations
 
-import time
 from typing import Mapping
 
 import numpy as np
 import scipy.sparse as sp
-from mpi4py import MPI
 from petsc4py import PETSc
 
-from fempdl import _dolfinx
-from fempdl.ksp_adjoint import CappedSolver, CumulativeStats, KSPOptions, capped_solve_stats, petsc_to_scipy
-from fempdl.problem import Problem
+from fempdl.core import _dolfinx
+from fempdl.ksp_adjoint import CappedSolver
+from fempdl.solve.assembly import (ControlValues, KeptMatrices, Timer, attach_nullspace, fingerprint,
+                                    fingerprint_matches, set_owned)
+from fempdl.solve.petsc import petsc_to_scipy
+from fempdl.solve.options import KSPOptions
+from fempdl.solve.stats import CumulativeStats, capped_solve_stats
+from fempdl.core.problem import Problem
 
-__all__ = ["LinearSystem", "assemble_scipy", "INITIAL_GUESS"]
+__all__ = ["LinearSystem", "INITIAL_GUESS"]
 
 INITIAL_GUESS = "initial_guess"   # the key of the starting point's gradient in LinearSystem.adjoint
 
@@ -65,14 +68,14 @@ class LinearSystem:
         self._A = _dolfinx.create_matrix(problem.a_form)
         self._b = _dolfinx.create_vector(problem.L_form)       # ghosted: assembly target
         self._x, self._rhs = self._A.createVecs()              # solution / transposed RHS
-        self._nullspace = _attach_nullspace(self._A, problem.nullspace)
+        self._nullspace = attach_nullspace(self._A, problem.nullspace)
         self._solver = CappedSolver(self._A, options, fields=problem.fields or None)
         self._A_inputs = None                                  # fingerprint of the assembled A
         self._A_version = 0                                    # bumped at every assembly of A
         self._b_base: dict = {}                                # frozenset(names) -> (Vec, fingerprint)
         self._rhs_mats: dict = {}                              # name -> (Mat, vec on m, vec on V, fingerprint)
         self._grad_vecs: dict = {}                             # name -> ghosted Vec on M
-        self._kept_matrices = _KeptMatrices(problem.matrix_controls)
+        self._kept_matrices = KeptMatrices(problem.matrix_controls)
         self._rhs_scipy: dict = {}                             # name -> (fingerprint, scipy C_m)
 
     # ------------------------------------------------------------ properties
@@ -111,7 +114,7 @@ class LinearSystem:
         use_batched = self._use_batched(batch, per_sample_matrix)
         U = np.empty((batch, p.output_size))
         kept = self._kept_matrices.start(controls, batch) if keep_matrices and per_sample_matrix else None
-        with _ControlValues(p, controls) as ctl:
+        with ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             b_base = self._base_rhs(names, ctl) if affine else None
             if affine and use_batched:
@@ -180,7 +183,7 @@ class LinearSystem:
             G[:, p.bc_dofs] = 0.0
         n_owned = p.output_size
         kept = self._kept_matrices.find(controls, batch) if per_sample_matrix else None
-        with _ControlValues(p, controls) as ctl:
+        with ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             rhs_mats = {name: self._rhs_matrix(name) for name in by_matrix}
             Lam = self._batched_solve(G, "backward") if use_batched else None
@@ -211,8 +214,8 @@ class LinearSystem:
                     C.multTranspose(self._x, on_control)       # C_m^T lam lives on m's space
                     grads[name][i] = on_control.getArray(readonly=True)
                 if by_form:
-                    _set_owned(p.lam, self._x.getArray(readonly=True), n_owned)
-                    _set_owned(p.u, U[i], n_owned)
+                    set_owned(p.lam, self._x.getArray(readonly=True), n_owned)
+                    set_owned(p.u, U[i], n_owned)
                     for name in by_form:
                         grads[name][i] = self._assemble_gradient(name)
             self._lag_preconditioner(False)
@@ -228,7 +231,7 @@ class LinearSystem:
             raise NotImplementedError(
                 f"controls {not_affine} enter the matrix or the right-hand side non-affinely "
                 f"(affine controls of this problem: {sorted(p.affine_rhs_controls)})")
-        with _ControlValues(p, dict.fromkeys(names)) as ctl:
+        with ControlValues(p, dict.fromkeys(names)) as ctl:
             b_base = self._base_rhs(names, ctl).getArray(readonly=True).copy()
         keep = np.ones(p.output_size)
         keep[p.bc_dofs] = 0.0  # BC rows of b come from the boundary data alone
@@ -243,7 +246,7 @@ class LinearSystem:
         """A assembled with control ``name`` set to ``values`` (owned DOFs) and
         ``bc_diagonal`` on the Dirichlet rows, as scipy CSR; the control keeps its value."""
         p = self.problem
-        with _ControlValues(p, {name: np.asarray(values)[None]}) as ctl:
+        with ControlValues(p, {name: np.asarray(values)[None]}) as ctl:
             ctl.set_sample(0)
             with self._assembling():
                 _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs, diagonal=bc_diagonal)
@@ -308,7 +311,7 @@ class LinearSystem:
         self._batched = None
 
     # ------------------------------------------------------- assembly caches
-    def _prepare_matrix(self, names: frozenset, per_sample: bool, ctl: "_ControlValues") -> None:
+    def _prepare_matrix(self, names: frozenset, per_sample: bool, ctl: "ControlValues") -> None:
         """Make A right for a call: the cached constant matrix, one assembly with
         shared controls, or nothing (assembled per sample by the caller)."""
         if not names & self.problem.matrix_controls:
@@ -325,9 +328,9 @@ class LinearSystem:
         (``KSPOptions.lag_preconditioner``)."""
         self._solver.reuse_preconditioner = later_sample and self.options.lag_preconditioner
 
-    def _assembling(self) -> "_Timer":
+    def _assembling(self) -> "Timer":
         """Counts the enclosed seconds as assembly in the layer's stats."""
-        return _Timer(self.stats, "assembly_time")
+        return Timer(self.stats, "assembly_time")
 
     def _assemble_matrix(self) -> None:
         with self._assembling():
@@ -336,21 +339,21 @@ class LinearSystem:
 
     def _ensure_constant_matrix(self) -> None:
         inputs = self.problem.matrix_inputs()
-        if self._A_inputs is None or not _fingerprint_matches(self._A_inputs, inputs, self._comm):
+        if self._A_inputs is None or not fingerprint_matches(self._A_inputs, inputs, self._comm):
             self._assemble_matrix()
-            self._A_inputs = _fingerprint(inputs)
+            self._A_inputs = fingerprint(inputs)
 
-    def _base_rhs(self, names: frozenset, ctl: "_ControlValues") -> PETSc.Vec:
+    def _base_rhs(self, names: frozenset, ctl: "ControlValues") -> PETSc.Vec:
         """b with the passed affine controls set to zero (lifting and BC values included)."""
         p = self.problem
         with ctl.zeroed(names):
             cached = self._b_base.get(names)
-            if cached is not None and _fingerprint_matches(cached[1], p.rhs_inputs(), self._comm):
+            if cached is not None and fingerprint_matches(cached[1], p.rhs_inputs(), self._comm):
                 return cached[0]
             vec = cached[0] if cached is not None else self._b.duplicate()
             with self._assembling():
                 _dolfinx.assemble_vector_into(vec, p.L_form, p.a_form, p.bcs)
-            self._b_base[names] = (vec, _fingerprint(p.rhs_inputs()))
+            self._b_base[names] = (vec, fingerprint(p.rhs_inputs()))
         return vec
 
     def _affine_rhs(self, b_base: PETSc.Vec, rhs_mats: dict, controls, i: int) -> None:
@@ -392,7 +395,7 @@ class LinearSystem:
         p = self.problem
         inputs = p.rhs_matrix_inputs(name)
         cached = self._rhs_mats.get(name)
-        if cached is not None and _fingerprint_matches(cached[3], inputs, self._comm):
+        if cached is not None and fingerprint_matches(cached[3], inputs, self._comm):
             return cached
         form = p.rhs_matrix_form(name)
         if cached is None:
@@ -402,7 +405,7 @@ class LinearSystem:
             C, vin, out, _ = cached
         with self._assembling():
             _dolfinx.assemble_matrix_into(C, form)
-        entry = (C, vin, out, _fingerprint(inputs))
+        entry = (C, vin, out, fingerprint(inputs))
         self._rhs_mats[name] = entry
         return entry
 
@@ -418,173 +421,3 @@ class LinearSystem:
         with self._assembling():
             _dolfinx.assemble_vector_into(vec, form)
         return vec.getArray(readonly=True)[:n].copy()
-
-
-class _KeptMatrices:
-    """Copies of the per-sample matrices of recent forward calls, for their adjoints.
-
-    An adjoint finds a call's matrices by the values of its matrix controls;
-    the oldest call is dropped beyond ``calls`` calls or ``max_bytes`` of
-    matrix values (unrolled multi-step chains run several forward calls before
-    their adjoints)."""
-
-    def __init__(self, matrix_controls, calls: int = 4, max_bytes: int = 256 * 2 ** 20):
-        self._names = frozenset(matrix_controls)
-        self._calls, self._max_bytes = calls, max_bytes
-        self._entries: list[_KeptCall] = []
-
-    def start(self, controls: Mapping[str, np.ndarray], batch: int) -> "_KeptCall | None":
-        if self._calls == 0:
-            return None
-        key = {n: np.array(v) for n, v in controls.items() if n in self._names}
-        spare = self._entries.pop(0).mats if len(self._entries) >= self._calls else []
-        entry = _KeptCall(key, batch, spare, self._max_bytes)
-        self._entries.append(entry)
-        return entry
-
-    def find(self, controls: Mapping[str, np.ndarray], batch: int) -> "_KeptCall | None":
-        for entry in reversed(self._entries):
-            if entry.matches(controls, batch):
-                return entry
-        return None
-
-    def clear(self) -> None:
-        for entry in self._entries:
-            entry.destroy()
-        self._entries.clear()
-
-
-class _KeptCall:
-    def __init__(self, key: dict, batch: int, spare: list, max_bytes: int):
-        self.key, self.batch, self.mats, self._spare, self._max_bytes = key, batch, [], spare, max_bytes
-        self.complete = True
-
-    def append(self, A: PETSc.Mat) -> None:
-        if not self.complete:
-            return
-        if (len(self.mats) + 1) * A.getInfo()["nz_used"] * 8 > self._max_bytes:
-            self.complete = False          # too big to keep: the adjoint assembles again
-            self.destroy()
-            return
-        if self._spare:
-            target = self._spare.pop()
-            A.copy(target, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
-        else:
-            target = A.duplicate(copy=True)
-        self.mats.append(target)
-
-    def matches(self, controls: Mapping[str, np.ndarray], batch: int) -> bool:
-        return (self.complete and batch == self.batch == len(self.mats)
-                and all(n in controls and np.array_equal(controls[n], v) for n, v in self.key.items()))
-
-    def restore(self, i: int, A: PETSc.Mat) -> None:
-        """Copy sample ``i``'s matrix into ``A`` (same pattern)."""
-        self.mats[i].copy(A, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
-
-    def destroy(self) -> None:
-        for mat in self.mats + self._spare:
-            mat.destroy()
-        self.mats, self._spare = [], []
-
-
-class _Timer:
-    """Adds the seconds spent inside a ``with`` block to a counter of ``stats``."""
-
-    def __init__(self, stats, field: str):
-        self._stats, self._field = stats, field
-
-    def __enter__(self):
-        self._t0 = time.perf_counter()
-
-    def __exit__(self, *exc):
-        setattr(self._stats, self._field, getattr(self._stats, self._field) + time.perf_counter() - self._t0)
-
-
-class _ControlValues:
-    """Sets control Functions per sample and restores their values on exit."""
-
-    def __init__(self, problem: Problem, controls: Mapping[str, np.ndarray]):
-        self._fns = {n: problem.control(n) for n in controls}
-        self._sizes = {n: problem.control_size(n) for n in controls}
-        self._values = controls
-        self._saved = {}
-
-    def __enter__(self):
-        self._saved = {n: fn.x.array.copy() for n, fn in self._fns.items()}
-        return self
-
-    def __exit__(self, *exc):
-        for n, fn in self._fns.items():
-            fn.x.array[:] = self._saved[n]
-
-    def set_sample(self, i: int) -> None:
-        for n, fn in self._fns.items():
-            _set_owned(fn, self._values[n][i], self._sizes[n])
-
-    def zeroed(self, names):
-        return _Zeroed([self._fns[n] for n in names])
-
-
-class _Zeroed:
-    def __init__(self, fns):
-        self._fns = fns
-
-    def __enter__(self):
-        self._saved = [fn.x.array.copy() for fn in self._fns]
-        for fn in self._fns:
-            fn.x.array[:] = 0.0
-
-    def __exit__(self, *exc):
-        for fn, saved in zip(self._fns, self._saved):
-            fn.x.array[:] = saved
-
-
-def _attach_nullspace(A: PETSc.Mat, basis: np.ndarray):
-    """Attach the (orthonormal, owned values) null space of A and A^T to A."""
-    if not len(basis):
-        return None
-    vectors = []
-    for values in basis:
-        vec = A.createVecRight()
-        vec.setArray(values)
-        vectors.append(vec)
-    nsp = PETSc.NullSpace().create(vectors=vectors, comm=A.getComm())
-    A.setNullSpace(nsp)
-    A.setTransposeNullSpace(nsp)
-    for vec in vectors:
-        vec.destroy()
-    return nsp
-
-
-def _set_owned(fn, values: np.ndarray, n_owned: int) -> None:
-    """Write owned DOF values into a Function and update its ghosts."""
-    fn.x.array[:n_owned] = values
-    fn.x.scatter_forward()
-
-
-def _fingerprint(inputs) -> tuple:
-    return tuple(_value_of(obj).copy() for obj in inputs)
-
-
-def _fingerprint_matches(fp: tuple, inputs, comm) -> bool:
-    """Whether every input still has its fingerprinted value, on every rank (the
-    answer decides on collective reassembly, so all ranks must agree)."""
-    local = len(fp) == len(inputs) and all(np.array_equal(old, _value_of(obj)) for old, obj in zip(fp, inputs))
-    return comm.allreduce(local, op=MPI.LAND)
-
-
-def _value_of(obj) -> np.ndarray:
-    """The values an assembled form depends on: a Function's array or a Constant's value."""
-    if hasattr(obj, "x"):
-        return obj.x.array
-    return np.asarray(obj.value)
-
-
-def assemble_scipy(form) -> sp.csr_matrix:
-    """A compiled bilinear form assembled without boundary conditions, as scipy CSR (local rows)."""
-    A = _dolfinx.create_matrix(form)
-    try:
-        _dolfinx.assemble_matrix_into(A, form)
-        return petsc_to_scipy(A)
-    finally:
-        A.destroy()

@@ -1,0 +1,210 @@
+"""What the ``fempdl`` command does once its arguments are parsed (:mod:`fempdl.app.cli`): load the
+scene, lock the output directory, train the runs, print and write the reports."""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import sys
+from pathlib import Path
+
+from mpi4py import MPI
+
+from fempdl.app import scene
+from fempdl.app.reports import compare, tradeoff
+from fempdl.app.runs import rundir, runner
+from fempdl.app.runs.checkpoints import CheckpointError, remove_stale_temporaries
+from fempdl.app.runs.training import CHECKPOINT
+from fempdl.app.tasks import spec_of
+from fempdl.core import parallel
+
+__all__ = ["execute"]
+
+
+def execute(args) -> int:
+    """Run the command ``args`` (parsed by :func:`fempdl.app.cli.build_parser`); returns the exit code."""
+    parallel.abort_on_error()  # under mpirun: one rank's error ends the job, never a hang
+    if args.command != "scenes":
+        parallel.fit_threads(args.threads)
+    if args.command != "scenes" and getattr(args, "parallel", None) is None and MPI.COMM_WORLD.size > 1:
+        # Without a mode every rank would train the same run and write the same files.
+        print(f"fempdl: running on {MPI.COMM_WORLD.size} ranks needs `fempdl run SCENE --parallel data|mesh`",
+              file=sys.stderr)
+        return 2
+
+    if args.command == "scenes":
+        return _scenes(args)
+    with _library_log(getattr(args, "log_every", None), MPI.COMM_WORLD.rank):
+        return _load_and_run(args)
+
+
+def _scenes(args) -> int:
+    """``fempdl scenes``: the bundled scenes, one's TOML (``--show``) or the schema (``--schema``)."""
+    if args.schema:
+        print(scene.schema_text())
+        return 0
+    if args.show is not None:
+        try:
+            print(scene.bundled_text(args.show), end="")
+        except scene.SceneError as err:
+            print(f"fempdl: {err}", file=sys.stderr)
+            return 2
+        return 0
+    for name in scene.available():
+        print(f"{name:<22} {scene.load(name).description}")
+    return 0
+
+
+def _load_and_run(args) -> int:
+    try:
+        sc = scene.load(args.scene, args.set)
+    except (scene.SceneError, FileNotFoundError) as err:
+        print(f"fempdl: {err}", file=sys.stderr)
+        return 2
+    if args.epochs is not None:
+        sc = dataclasses.replace(sc, optimizer=dataclasses.replace(sc.optimizer, epochs=args.epochs))
+    try:
+        out = _output_directory(args, sc)
+        # The whole command holds the lock: a second command on the same --out is refused,
+        # not only a second run in one of its subdirectories.
+        with rundir.RunLock(out) if MPI.COMM_WORLD.rank == 0 else contextlib.nullcontext():
+            if MPI.COMM_WORLD.rank == 0:
+                remove_stale_temporaries(out)       # of reports a killed command was writing
+            return _command(args, sc, out)
+    except (rundir.RunDirectoryError, rundir.ResumeError, CheckpointError) as err:
+        if MPI.COMM_WORLD.size > 1:
+            raise      # the other ranks are in a collective call: abort_on_error ends them all
+        print(f"fempdl: {err}", file=sys.stderr)
+        return 2
+
+
+@contextlib.contextmanager
+def _library_log(every: int | None, rank: int):
+    """Show the "fempdl" logger's messages on stderr while a command runs: its INFO
+    lines (epochs, PRDP refinements, K_eps) when stderr is not a terminal or
+    ``--log-every`` is given, only warnings otherwise and on ranks other than 0.
+    Epoch lines are kept every ``every`` epochs."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("fempdl: %(message)s"))
+    show = rank == 0 and (every is not None or not sys.stderr.isatty())
+    handler.setLevel(logging.INFO if show else logging.WARNING)
+    every = every or 1
+    handler.addFilter(lambda record: getattr(record, "epoch", 0) % every == 0)
+    logger = logging.getLogger("fempdl")
+    level, propagate = logger.level, logger.propagate
+    logger.addHandler(handler)
+    logger.setLevel(min(level or logging.WARNING, logging.INFO))
+    # Not also through the root logger: importing dolfinx installs a stderr handler there,
+    # which would print every line a second time.
+    logger.propagate = False
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+        logger.propagate = propagate
+
+
+def _output_directory(args, sc) -> Path:
+    """--out, or runs/<scene name>[/tradeoff|/compare]; refused (RunDirectoryError) when it holds a run
+    that neither --resume nor --overwrite says what to do with."""
+    default = rundir.child(Path("runs"), sc.name, "scene name")
+    out = args.out or {"run": default, "tradeoff": default / "tradeoff", "compare": default / "compare"}[args.command]
+    resume = getattr(args, "resume", False)
+    if resume and args.overwrite:
+        raise rundir.RunDirectoryError("--resume and --overwrite contradict each other: give one")
+    if not (resume or args.overwrite) and rundir.holds_run(out):
+        raise rundir.RunDirectoryError(f"{str(out)!r} holds the files of an earlier run; pass --resume to continue "
+                                       "it, --overwrite to replace it, or choose another --out")
+    return out
+
+
+def _command(args, sc, out: Path) -> int:
+    """The run, tradeoff or compare command of a loaded scene, into ``out``."""
+    progress = not args.no_progress and sys.stderr.isatty()
+    method_scene = spec_of(sc.task).trains == "method"
+    if (args.command == "compare") != method_scene and args.command != "run":
+        use = "fempdl compare" if method_scene else "fempdl tradeoff"
+        print(f"fempdl: `fempdl {args.command}` does not apply to the {sc.task} scene {sc.name!r}; use `{use}`",
+              file=sys.stderr)
+        return 2
+    if method_scene:
+        return _methods(args, sc, progress, out)
+    if args.command == "tradeoff":
+        runs = tradeoff.sweep(sc, ks=args.ks, out_dir=out, progress=progress)
+        split = tradeoff.savings(runs, stop_at=sc.optimizer.stop_at)
+        paths = tradeoff.write_report(sc, runs, split, out)
+        print(tradeoff.comparison_table(runs))
+        print("\n".join(tradeoff.summary_lines(split)))
+        print("wrote " + ", ".join(str(p) for p in paths))
+        return 0
+
+    try:
+        runner.check_parallel(sc, args.parallel)
+    except ValueError as err:
+        print(f"fempdl: {err}", file=sys.stderr)
+        return 2
+    if args.save_fields and (not spec_of(sc.task).writes_fields or args.parallel == "mesh"):
+        print(f"fempdl: --save-fields writes the fields of {' and '.join(runner.field_tasks())} scenes, "
+              f"serial or with --parallel data; {sc.name!r} is of task {sc.task!r}"
+              + (" on a distributed mesh" if args.parallel == "mesh" else ""), file=sys.stderr)
+        return 2
+    runs = {}
+    baseline = None
+    common = {"progress": progress, "parallel": args.parallel, "seed": args.seed, "save": args.save_fields,
+              "tensorboard": args.tensorboard}
+    if not args.no_baseline or args.converged:
+        baseline = runner.run(sc, "converged", out_dir=out / "converged",
+                                   resume=_can_resume(args, out / "converged"), **common)
+    if not args.converged:
+        mode, k, label = ("fixed", args.k, f"K={args.k}") if args.k else ("prdp", None, "PRDP")
+        sub = out / (f"k{args.k}" if args.k else "prdp")
+        runs[label] = runner.run(sc, mode, k, out_dir=sub, resume=_can_resume(args, sub),
+                                      k_eps_value=None if baseline is None else baseline.k_eps, **common)
+    if baseline is not None:
+        runs[f"K_eps={baseline.k_eps}"] = baseline
+    if MPI.COMM_WORLD.rank == 0:
+        ranks = f" on {MPI.COMM_WORLD.size} ranks ({args.parallel})" if args.parallel else ""
+        print(f"scene {sc.name}: {sc.description}{ranks}")
+        print(tradeoff.comparison_table(runs))
+        print("where the time went [s]:")
+        for label, r in runs.items():
+            print(f"  {label:<12} " + ", ".join(f"{part.replace('_', ' ')} {sec:.2f}"
+                                               for part, sec in tradeoff.time_split(r).items()))
+        tradeoff.plot_time_split(runs, out / "time_split.png", sc.name)
+        print(f"metrics, checkpoints and time_split.png in {out}")
+    return 0
+
+
+def _methods(args, sc, progress: bool, out: Path) -> int:
+    """`fempdl run` and `fempdl compare` on a sip or hig scene: its method and Adam with backpropagation."""
+    if args.command == "run":
+        if args.save_fields:
+            print(f"fempdl: --save-fields writes the fields of PRDP scenes; the {sc.task} scene {sc.name!r} "
+                  "reports its errors in metrics.json", file=sys.stderr)
+            return 2
+        if args.k or args.prdp or args.converged or args.parallel:
+            print(f"fempdl: --k, --prdp, --converged and --parallel choose solver caps and ranks for PRDP scenes; "
+                  f"the {sc.task} scene {sc.name!r} solves with LU on one process", file=sys.stderr)
+            return 2
+        names = [sc.task] + ([] if args.no_baseline else [compare.BASELINE])
+        runs = {name: runner.run_method(sc, name, out_dir=out / name, progress=progress,
+                                        resume=_can_resume(args, out / name), tensorboard=args.tensorboard)
+                for name in names}
+        print(f"scene {sc.name}: {sc.description}")
+        print(compare.table(sc, runs))
+        print(f"metrics and checkpoints in {out}")
+        return 0
+    runs, split, paths = compare.compare_and_report(sc, out, equal_time=not args.equal_iterations_only,
+                                                    resume=args.resume, progress=progress)
+    print(f"scene {sc.name}: {sc.description}")
+    print(compare.table(sc, runs))
+    print("\n".join(compare.summary_lines(split)))
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+def _can_resume(args, run_dir: Path) -> bool:
+    """--resume continues every run that has a checkpoint (a finished run is not repeated)."""
+    return args.resume and (run_dir / CHECKPOINT).exists()
+

@@ -1,0 +1,1 @@
+"""Reports over several runs: the PRDP trade-off sweep and the method-against-Adam comparison."""

@@ -1,0 +1,259 @@
+"""PRDP: raise a solver's iteration cap K only when the validation metric plateaus.
+
+The controller of "Progressively Refined Differentiable Physics" (Algorithm 4).
+After every validation, :meth:`PRDP.step` takes the metric (lower is better):
+it smooths the history with an EMA, and when the progress over the last
+``delta`` entries stalls (ratio above ``tau_step``) it refines K by ``dk``
+(never above ``k_cap``) unless the previous refinement bought less than
+1 - ``tau_stop`` (then it holds, until the metric moves again). The interface
+follows ``ReduceLROnPlateau``: ``step(metric) -> bool``, ``state_dict()``.
+
+:func:`k_eps` measures a layer's converged cap K_eps, the usual ``k_cap``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from typing import Callable, Iterable
+
+import torch
+
+from fempdl.bridge_torch import SolveLayer
+from fempdl.core.checks import check_int
+
+__all__ = ["PRDP", "PRDPRecord", "PRDPSettings", "k_eps"]
+_log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class PRDPRecord:
+    """One call of :meth:`PRDP.step`: the K in force while ``metric`` was
+    measured, the smoothed metric, the ratios (None before a decision is
+    possible or when not computed) and whether K was raised afterwards."""
+
+    step: int
+    k: int
+    metric: float
+    ema: float
+    r: float | None
+    rc: float | None
+    refined: bool
+    cause: str | None = None      # "plateau" or "rise" (the guard) when refined
+
+
+def _setting(default, doc: str, kind: type, **bounds):
+    """A field of :class:`PRDPSettings`; its metadata (kind, doc, bounds) is what scene files are checked
+    against (``[prdp]`` of :mod:`fempdl.app.schema`)."""
+    return dataclasses.field(default=default, metadata={"kind": kind, "doc": doc, **bounds})
+
+
+_POSITIVE = 1e-300      # a minimum of "> 0"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class PRDPSettings:
+    """The settings of a :class:`PRDP` controller, validated once (change one with
+    :func:`dataclasses.replace`). They are also the ``[prdp]`` section of a scene file."""
+
+    k0: int = _setting(1, "first cap", int, minimum=1)
+    dk: int = _setting(1, "least increase of a refinement", int, minimum=1)
+    tau_step: float = _setting(0.95, "refine when the metric improves less than this factor", float,
+                               minimum=_POSITIVE, maximum=1.0)
+    tau_stop: float = _setting(0.9, "stop refining when a refinement improves less than this factor", float,
+                               minimum=_POSITIVE, maximum=1.0)
+    delta: int = _setting(3, "epochs compared for a plateau", int, minimum=2)
+    ema_window: int = _setting(6, "epochs of the metric's moving average", int, minimum=1)
+    k_cap: int | None = _setting(None, "largest cap (none: K_eps in a scene, unbounded in PRDP)", int, minimum=1)
+    guard: float | None = _setting(None, "refine at once when the metric rises above guard x its best "
+                                         "(none: never)", float, minimum=1.0 + 1e-12)
+    growth: float = _setting(1.0, "a refinement sets K to max(K + dk, ceil(growth K))", float, minimum=1.0)
+
+    def __post_init__(self):
+        check_int("k0", self.k0, minimum=1)
+        check_int("dk", self.dk, minimum=1)
+        check_int("delta", self.delta, minimum=2)
+        check_int("ema_window", self.ema_window, minimum=1)
+        if self.k_cap is not None:
+            check_int("k_cap", self.k_cap, minimum=self.k0)
+        for name in ("tau_step", "tau_stop"):
+            value = getattr(self, name)
+            if not _is_number(value) or not 0.0 < value <= 1.0:
+                raise ValueError(f"{name} must be a number in (0, 1], got {value!r}")
+            object.__setattr__(self, name, float(value))
+        if self.guard is not None:
+            if not (_is_number(self.guard) and 1.0 < self.guard < math.inf):
+                raise ValueError(f"guard must be a finite number > 1 (or None: off), got {self.guard!r}")
+            object.__setattr__(self, "guard", float(self.guard))
+        if not (_is_number(self.growth) and 1.0 <= self.growth < math.inf):
+            raise ValueError(f"growth must be a finite number >= 1, got {self.growth!r}")
+        object.__setattr__(self, "growth", float(self.growth))
+
+
+_SETTING_NAMES = frozenset(f.name for f in dataclasses.fields(PRDPSettings))
+
+
+class PRDP:
+    """Progressive refinement of an iteration cap K.
+
+    At every :meth:`step`: ema is the EMA of the metrics (alpha =
+    2 / (ema_window + 1), ema[0] = m[0]); with more than ``delta`` entries,
+    r = ema[-1] / ema[-delta]. If r > tau_step (a plateau), rc = ema[-1] / c
+    compares it with the checkpoint c of the previous plateau (c starts at the
+    first metric): if rc < tau_stop (the last refinement still helped) or
+    rc > 1 (the metric got worse), c = ema[-1] and K is refined; otherwise K
+    holds. ``guard`` and ``growth`` are optional departures, off by default.
+
+    Args:
+        target: a layer (anything with a ``max_it`` attribute), a list of them,
+            a callable ``f(k)``, or ``None`` (read :attr:`k` yourself). Its cap is
+            set to ``k0`` at construction.
+        settings: a :class:`PRDPSettings`, or none to give its fields as keywords:
+        k0: the starting cap (>= 1).
+        dk: increment per refinement (>= 1).
+        tau_step: plateau threshold on r in (0, 1].
+        tau_stop: stagnation threshold on rc in (0, 1].
+        delta: grace interval (>= 2): r compares with delta - 1 steps earlier.
+        ema_window: EMA window (alpha = 2 / (ema_window + 1)); >= 1.
+        k_cap: upper bound for K (``None``: unbounded).
+        guard: refine at once when the metric exceeds ``guard`` (> 1) times the
+            best metric so far and the previous one (``None``: off).
+        growth: a refinement sets K = max(K + dk, ceil(growth * K)) (>= 1; 1: K + dk).
+
+    The settings read as attributes too (``ctrl.k_cap``, ``ctrl.tau_step``, ...).
+    """
+
+    def __init__(self, target=None, settings: PRDPSettings | None = None, **fields):
+        if settings is None:
+            settings = PRDPSettings(**fields)
+        elif fields:
+            raise TypeError(f"give PRDP either settings= or the settings' fields as keywords, not both "
+                            f"(got settings and {sorted(fields)})")
+        elif not isinstance(settings, PRDPSettings):
+            raise TypeError(f"settings must be PRDPSettings, got {type(settings).__name__}")
+        self.settings = settings
+        self._apply = _setter(target)
+        self.alpha = 2.0 / (settings.ema_window + 1.0)
+        self.k = settings.k0
+        self.checkpoint: float | None = None
+        self.history: list[PRDPRecord] = []
+        self._apply(self.k)
+
+    def __getattr__(self, name: str):
+        if name in _SETTING_NAMES and "settings" in self.__dict__:
+            return getattr(self.__dict__["settings"], name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    @property
+    def ema(self) -> list[float]:
+        return [rec.ema for rec in self.history]
+
+    def step(self, metric: float) -> bool:
+        """Record a validation metric; returns True if K was raised."""
+        if isinstance(metric, bool) or not isinstance(metric, (int, float)) and not hasattr(metric, "__float__"):
+            raise TypeError(f"metric must be a number, got {type(metric).__name__}")
+        metric = float(metric)
+        if not math.isfinite(metric) or metric <= 0.0:
+            raise ValueError(f"metric must be finite and > 0 (a validation error), got {metric!r}")
+        ema = metric if not self.history else self.alpha * metric + (1.0 - self.alpha) * self.history[-1].ema
+        if self.checkpoint is None:
+            self.checkpoint = metric
+        k_used = self.k
+        r = rc = None
+        cause = None
+        if self.guard is not None and self.history and metric > self.history[-1].metric \
+                and metric > self.guard * min(rec.metric for rec in self.history):
+            cause = "rise"
+            self.checkpoint = ema
+        elif len(self.history) + 1 > self.delta:
+            emas = self.ema + [ema]
+            r = emas[-1] / emas[-self.delta]
+            if r > self.tau_step:
+                rc = emas[-1] / self.checkpoint
+                if rc < self.tau_stop or rc > 1.0:
+                    self.checkpoint = emas[-1]
+                    cause = "plateau"
+        refine = cause is not None and (self.k_cap is None or self.k < self.k_cap)
+        self.history.append(PRDPRecord(step=len(self.history), k=k_used, metric=metric, ema=ema,
+                                       r=r, rc=rc, refined=refine, cause=cause if refine else None))
+        if refine:
+            k = max(self.k + self.dk, math.ceil(self.growth * self.k - 1e-9))
+            self.k = k if self.k_cap is None else min(k, self.k_cap)
+            self._apply(self.k)
+            _log.info("PRDP: K %d -> %d (%s) at step %d, metric %.3e", k_used, self.k, cause,
+                      len(self.history) - 1, metric)
+        return refine
+
+    def state_dict(self) -> dict:
+        """Everything needed to continue: K, the checkpoint, the history and the settings."""
+        return {
+            "k": self.k, "checkpoint": self.checkpoint,
+            "history": [dataclasses.asdict(rec) for rec in self.history],
+            "settings": dataclasses.asdict(self.settings),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore from :meth:`state_dict` (and set the target's cap to the saved K)."""
+        # States saved before guard and growth existed ran plain Algorithm 4.
+        settings = {"guard": None, "growth": 1.0, **state["settings"]}
+        mine = self.state_dict()["settings"]
+        if settings != mine:
+            changed = {k: (settings.get(k), v) for k, v in mine.items() if settings.get(k) != v}
+            raise ValueError(f"saved PRDP settings differ from this controller's (saved, current): {changed}")
+        self.k = int(state["k"])
+        self.checkpoint = state["checkpoint"]
+        self.history = [PRDPRecord(**rec) for rec in state["history"]]
+        self._apply(self.k)
+
+    def __repr__(self) -> str:
+        settings = ", ".join(f"{key}={value}" for key, value in dataclasses.asdict(self.settings).items())
+        return f"PRDP(k={self.k}, {settings}, steps={len(self.history)})"
+
+
+def k_eps(layer: SolveLayer, *, rtol: float = 1e-8, **controls) -> int:
+    """K_eps: the most iterations ``layer``'s solver needs to reach ``rtol`` on
+    ``controls`` (the layer's keyword inputs, (B, n) or (n,), e.g. validation
+    samples), found by converged solves of a probe layer with the same
+    solver and preconditioner (PETSc; ``layer`` itself and its counters are
+    left as they are). Use it as PRDP's ``k_cap``.
+
+    Example:
+        ``ctrl = PRDP(layer, k0=1, dk=1, k_cap=k_eps(layer, f=f_val, rtol=1e-6))``
+    """
+    if not isinstance(layer, SolveLayer):
+        raise TypeError(f"layer must be a SolveLayer, got {type(layer).__name__}")
+    if not controls:
+        raise ValueError(f"give the inputs to measure K_eps on as keyword arguments, e.g. "
+                         f"{layer.problem.control_names[0] if layer.problem.control_names else 'f'}=tensor")
+    if layer.options.direct:
+        raise ValueError(f"layer solves directly (ksp_type={layer.options.ksp_type!r}): it has no iteration cap")
+    options = dataclasses.replace(layer.options, max_it=None, rtol=rtol, atol=None, divtol=None, adjoint=None,
+                                  engine="petsc", options_prefix=None)
+    probe = SolveLayer(layer.problem, options)
+    try:
+        with torch.no_grad():
+            probe(**controls)
+        return probe.stats.max_forward_iterations
+    finally:
+        probe.close()
+
+
+def _setter(target) -> Callable[[int], None]:
+    if target is None:
+        return lambda k: None
+    if callable(target) and not hasattr(target, "max_it"):
+        return target
+    targets = list(target) if isinstance(target, Iterable) and not hasattr(target, "max_it") else [target]
+    for i, t in enumerate(targets):
+        if not hasattr(t, "max_it"):
+            raise TypeError(f"PRDP target {i} ({type(t).__name__}) has no max_it attribute; pass SolveLayers, "
+                            "a callable f(k), or None")
+
+    def apply(k: int) -> None:
+        for t in targets:
+            t.max_it = k
+    return apply
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)

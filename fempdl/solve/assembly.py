@@ -1,0 +1,196 @@
+"""What the assembled system of a Problem keeps between calls, and the conversions it needs.
+
+* :class:`ControlValues` sets the control Functions sample by sample and restores them afterwards;
+* :func:`fingerprint` / :func:`fingerprint_matches` tell whether the coefficients and constants an
+  assembled object was built from still have their values (on every rank);
+* :class:`KeptMatrices` keeps copies of per-sample matrices of recent forward calls for their adjoints;
+* :class:`Timer` adds the seconds of a block to a stats counter;
+* :func:`assemble_scipy` gives an assembled form as a scipy CSR matrix.
+"""
+from __future__ import annotations
+
+import time
+from typing import Mapping
+
+import numpy as np
+import scipy.sparse as sp
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from fempdl.core import _dolfinx
+from fempdl.core.problem import Problem
+from fempdl.solve.petsc import petsc_to_scipy
+
+__all__ = ["ControlValues", "KeptMatrices", "Timer", "attach_nullspace", "set_owned", "fingerprint",
+           "fingerprint_matches", "assemble_scipy"]
+
+
+class KeptMatrices:
+    """Copies of the per-sample matrices of recent forward calls, for their adjoints.
+
+    An adjoint finds a call's matrices by the values of its matrix controls;
+    the oldest call is dropped beyond ``calls`` calls or ``max_bytes`` of
+    matrix values (unrolled multi-step chains run several forward calls before
+    their adjoints)."""
+
+    def __init__(self, matrix_controls, calls: int = 4, max_bytes: int = 256 * 2 ** 20):
+        self._names = frozenset(matrix_controls)
+        self._calls, self._max_bytes = calls, max_bytes
+        self._entries: list[KeptCall] = []
+
+    def start(self, controls: Mapping[str, np.ndarray], batch: int) -> "KeptCall | None":
+        if self._calls == 0:
+            return None
+        key = {n: np.array(v) for n, v in controls.items() if n in self._names}
+        spare = self._entries.pop(0).mats if len(self._entries) >= self._calls else []
+        entry = KeptCall(key, batch, spare, self._max_bytes)
+        self._entries.append(entry)
+        return entry
+
+    def find(self, controls: Mapping[str, np.ndarray], batch: int) -> "KeptCall | None":
+        for entry in reversed(self._entries):
+            if entry.matches(controls, batch):
+                return entry
+        return None
+
+    def clear(self) -> None:
+        for entry in self._entries:
+            entry.destroy()
+        self._entries.clear()
+
+
+class KeptCall:
+    def __init__(self, key: dict, batch: int, spare: list, max_bytes: int):
+        self.key, self.batch, self.mats, self._spare, self._max_bytes = key, batch, [], spare, max_bytes
+        self.complete = True
+
+    def append(self, A: PETSc.Mat) -> None:
+        if not self.complete:
+            return
+        if (len(self.mats) + 1) * A.getInfo()["nz_used"] * 8 > self._max_bytes:
+            self.complete = False          # too big to keep: the adjoint assembles again
+            self.destroy()
+            return
+        if self._spare:
+            target = self._spare.pop()
+            A.copy(target, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        else:
+            target = A.duplicate(copy=True)
+        self.mats.append(target)
+
+    def matches(self, controls: Mapping[str, np.ndarray], batch: int) -> bool:
+        return (self.complete and batch == self.batch == len(self.mats)
+                and all(n in controls and np.array_equal(controls[n], v) for n, v in self.key.items()))
+
+    def restore(self, i: int, A: PETSc.Mat) -> None:
+        """Copy sample ``i``'s matrix into ``A`` (same pattern)."""
+        self.mats[i].copy(A, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+
+    def destroy(self) -> None:
+        for mat in self.mats + self._spare:
+            mat.destroy()
+        self.mats, self._spare = [], []
+
+
+class Timer:
+    """Adds the seconds spent inside a ``with`` block to a counter of ``stats``."""
+
+    def __init__(self, stats, field: str):
+        self._stats, self._field = stats, field
+
+    def __enter__(self):
+        self._t0 = time.perf_counter()
+
+    def __exit__(self, *exc):
+        setattr(self._stats, self._field, getattr(self._stats, self._field) + time.perf_counter() - self._t0)
+
+
+class ControlValues:
+    """Sets control Functions per sample and restores their values on exit."""
+
+    def __init__(self, problem: Problem, controls: Mapping[str, np.ndarray]):
+        self._fns = {n: problem.control(n) for n in controls}
+        self._sizes = {n: problem.control_size(n) for n in controls}
+        self._values = controls
+        self._saved = {}
+
+    def __enter__(self):
+        self._saved = {n: fn.x.array.copy() for n, fn in self._fns.items()}
+        return self
+
+    def __exit__(self, *exc):
+        for n, fn in self._fns.items():
+            fn.x.array[:] = self._saved[n]
+
+    def set_sample(self, i: int) -> None:
+        for n, fn in self._fns.items():
+            set_owned(fn, self._values[n][i], self._sizes[n])
+
+    def zeroed(self, names):
+        return Zeroed([self._fns[n] for n in names])
+
+
+class Zeroed:
+    def __init__(self, fns):
+        self._fns = fns
+
+    def __enter__(self):
+        self._saved = [fn.x.array.copy() for fn in self._fns]
+        for fn in self._fns:
+            fn.x.array[:] = 0.0
+
+    def __exit__(self, *exc):
+        for fn, saved in zip(self._fns, self._saved):
+            fn.x.array[:] = saved
+
+
+def attach_nullspace(A: PETSc.Mat, basis: np.ndarray):
+    """Attach the (orthonormal, owned values) null space of A and A^T to A."""
+    if not len(basis):
+        return None
+    vectors = []
+    for values in basis:
+        vec = A.createVecRight()
+        vec.setArray(values)
+        vectors.append(vec)
+    nsp = PETSc.NullSpace().create(vectors=vectors, comm=A.getComm())
+    A.setNullSpace(nsp)
+    A.setTransposeNullSpace(nsp)
+    for vec in vectors:
+        vec.destroy()
+    return nsp
+
+
+def set_owned(fn, values: np.ndarray, n_owned: int) -> None:
+    """Write owned DOF values into a Function and update its ghosts."""
+    fn.x.array[:n_owned] = values
+    fn.x.scatter_forward()
+
+
+def fingerprint(inputs) -> tuple:
+    return tuple(value_of(obj).copy() for obj in inputs)
+
+
+def fingerprint_matches(fp: tuple, inputs, comm) -> bool:
+    """Whether every input still has its fingerprinted value, on every rank (the
+    answer decides on collective reassembly, so all ranks must agree)."""
+    local = len(fp) == len(inputs) and all(np.array_equal(old, value_of(obj)) for old, obj in zip(fp, inputs))
+    return comm.allreduce(local, op=MPI.LAND)
+
+
+def value_of(obj) -> np.ndarray:
+    """The values an assembled form depends on: a Function's array or a Constant's value."""
+    if hasattr(obj, "x"):
+        return obj.x.array
+    return np.asarray(obj.value)
+
+
+def assemble_scipy(form) -> sp.csr_matrix:
+    """A compiled bilinear form assembled without boundary conditions, as scipy CSR (local rows)."""
+    A = _dolfinx.create_matrix(form)
+    try:
+        _dolfinx.assemble_matrix_into(A, form)
+        return petsc_to_scipy(A)
+    finally:
+        A.destroy()
+
