@@ -35,7 +35,7 @@ if they differ) and their device (CUDA tensors are solved on the CPU).
 In implicit mode the layer composes with torch.func (grad, vjp, jacrev; vmap
 folds the mapped dimension into the native batch: one solve call) and with
 torch.compile (each solve and each adjoint solve is one opaque operator, no
-graph break); see :mod:`fempdl.layer.implicit`.
+graph break); see :mod:`fempdl.layer.implicit_diff`.
 """
 from __future__ import annotations
 
@@ -43,9 +43,9 @@ import time
 
 import torch
 
-from fempdl.layer.implicit import ImplicitSolve, count_on_all_ranks, nonfinite_control_message, register_layer
+from fempdl.layer.implicit_diff import ImplicitSolve, count_on_all_ranks, nonfinite_control_message, register_layer
 from fempdl.iterative.batched import BatchedEngine
-from fempdl.layer.unrolled import UnrolledPath, unrolled_method
+from fempdl.layer.unrolled_diff import UnrolledPath, unrolled_method
 from fempdl.solve.options import KSPOptions
 from fempdl.solve.stats import CumulativeStats, warn_at_caller
 from fempdl.core.problem import Problem

@@ -70,7 +70,7 @@ def bench_scene(name: str, seeds: list[int], sweep: bool) -> dict:
 
 
 def markdown_table(results: dict) -> str:
-    """The README's table: per scene, PRDP against the converged baseline (means over the seeds)."""
+    """The table of docs/scenes.md: per scene, PRDP against the converged baseline (means over the seeds)."""
     lines = ["| scene | K_eps | PRDP's final K | metric / baseline (seeds' range) | inner iterations | wall time "
              "| wall-time saving / iteration saving | IC / PR savings |",
              "|---|---|---|---|---|---|---|---|"]

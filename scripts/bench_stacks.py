@@ -9,7 +9,7 @@ is faster). Torch runs on one thread in both.
 Measured in each venv:
 
 * ``import``: seconds to import fempdl (DOLFINx, PETSc, torch) in a fresh process.
-* ``layer``: the README's Poisson layer on the L-shape at h = 0.02 (8.9k DOFs),
+* ``layer``: the Poisson layer of docs/stacks.md on the L-shape at h = 0.02 (8.9k DOFs),
   batch 16, forward + backward (sum of squares), median of ``--repeats`` calls
   after one warm-up call, in ms per sample, for the ``jacobi`` preset capped at
   K = 100 (the batched torch engine), ``cg`` to rtol 1e-8 (PETSc, one KSP solve

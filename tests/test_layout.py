@@ -169,7 +169,7 @@ def test_the_checker_sees_wrong_way_imports_cycles_and_dolfinx(tmp_path):
     assert "later room of the app floor" in wrong_way("fempdl.app.schema", "fempdl.app.tasks.base")
     assert "later room of the solve floor" in wrong_way("fempdl.solve.options", "fempdl.ksp_adjoint")
     assert wrong_way("fempdl.app.runs.runner", "fempdl.app.scene") is None
-    assert wrong_way("fempdl.bridge_torch", "fempdl.layer.implicit") is None
+    assert wrong_way("fempdl.bridge_torch", "fempdl.layer.implicit_diff") is None
     (tmp_path / "b.py").write_text("from . import linear_system\n")
     assert imports_of(tmp_path / "b.py", "fempdl.core.problem", {"fempdl.core.linear_system"}) \
         == {"fempdl.core.linear_system"}

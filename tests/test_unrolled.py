@@ -8,7 +8,7 @@ import torch
 
 from fempdl.iterative import unrolled
 from fempdl.iterative.sparse import sparse_to_torch
-from fempdl.layer.unrolled import matrix_jacobian
+from fempdl.layer.unrolled_diff import matrix_jacobian
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 
@@ -132,7 +132,7 @@ def test_stored_values_bounds_what_autograd_keeps(method, matrix_grad):
     """stored_values is the memory statement users size max_unrolled_values by:
     count the distinct storages autograd saves (saved-tensor hooks) at two K and
     check the per-iteration growth against it; Jacobi on a constant operator keeps none."""
-    from fempdl.layer.unrolled import _EntryMatrix
+    from fempdl.layer.unrolled_diff import _EntryMatrix
     n, batch = 300, 3
     S = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n)).tocoo()
     rows, cols = torch.from_numpy(S.row.astype(np.int64)), torch.from_numpy(S.col.astype(np.int64))

@@ -139,7 +139,7 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
         name_or_path: One of :func:`available`, or a path to a ``.msh`` file.
         comm: Communicator the mesh is distributed over.
         h: For a bundled name only: mesh the geometry at this size instead of
-            loading the committed file (sizes vs cell counts: the README's bundled-mesh table).
+            loading the committed file (sizes vs cell counts: docs/meshes.md).
         rank: The rank that reads or meshes with gmsh.
         gdim: For a path only: geometric dimension; ``None`` takes the
             smallest that holds the node coordinates (all ``z = 0`` -> 2).

@@ -49,7 +49,7 @@ class Geometry:
 
 
 # cells ~ density * h^-dim: the larger of the densities at the coarsest and finest sizes of the
-# README's bundled-mesh table.
+# bundled-mesh table in docs/meshes.md.
 GEOMETRIES = {
     "lshape": Geometry(dim=2, cell_density=7.0, max_h=1.0, vertices_per_cell=0.53),
     "obstacle": Geometry(dim=2, cell_density=3.2, max_h=0.41, vertices_per_cell=0.54),

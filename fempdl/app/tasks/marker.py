@@ -16,7 +16,7 @@ velocity x (B, n_v); the physics projects it, so only Pi x matters. With
 ``[marker] inputs = "standardized"`` (the default) a
 :class:`fempdl.app.tasks.networks.Standardize` built from the task's initial training
 draw centres and scales the inputs first: raw marker values share a large
-common mode, and both methods then learn far slower (README, sip-flow). Training:
+common mode, and both methods then learn far slower (docs/sip-hig.md, sip-flow). Training:
 
 * ``"sip"``: proxy loss 1/2 ||x - stopgrad(x*)||^2 (mean over samples), x*
   from one damped Gauss-Newton step of :class:`fempdl.methods.sip.LinearisedGaussNewton`
