@@ -10,7 +10,7 @@ from fempdl import mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 
-from conftest import build, control_values
+from helpers import build, control_values
 
 
 @pytest.fixture(scope="module")

@@ -20,51 +20,10 @@ import pytest
 from fempdl.app import cli, scene, schema
 from fempdl.app.runs import runner
 
+from helpers import CLI_TINY, tiny_scene
+
 TRAIN, BATCH, EPOCHS = 16, 8, 6
-TINY = f"""
-[scene]
-name = "tiny-emulator"
-task = "emulator"
-description = "tiny heat emulator for the CLI tests"
-
-[mesh]
-name = "lshape"
-h = 0.2
-
-[pde]
-type = "heat"
-dt = 0.002
-kappa = 1.0
-
-[data]
-train = {TRAIN}
-validation = 4
-modes = 2
-seed = 0
-
-[network]
-type = "mlp"
-hidden = 16
-layers = 2
-
-[optimizer]
-type = "adam"
-lr = 1e-3
-decay = 0.98
-epochs = {EPOCHS}
-batch = {BATCH}
-
-[solver]
-preset = "jacobi"
-
-[prdp]
-k0 = 1
-dk = 2
-tau_step = 0.95
-tau_stop = 0.9
-delta = 3
-ema_window = 4
-"""
+TINY = tiny_scene("emulator", CLI_TINY, data={"train": TRAIN}, optimizer={"epochs": EPOCHS, "batch": BATCH})
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -257,7 +216,7 @@ def test_missing_scene_file_returns_2(tmp_path, capsys):
 
 def test_bad_scene_file_returns_2_with_the_scene_error(tmp_path, capsys):
     path = tmp_path / "bad.toml"
-    path.write_text(TINY.replace("lr = 1e-3", "lr = -1e-3"))
+    path.write_text(tiny_scene("emulator", CLI_TINY, optimizer={"lr": -1e-3}))
     assert cli.main(["run", str(path), "--out", str(tmp_path / "out")]) == 2
     assert f"fempdl: {path}: [optimizer] lr must be > 0, got -0.001" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
@@ -344,28 +303,8 @@ def test_tradeoff_csv_matches_json(tradeoff_run):
 
 
 # ------------------------------------------------------------------ sip / hig scenes: run and compare
-TINY_SIP = """
-[scene]
-name = "tiny-sip"
-task = "sip"
-description = "tiny Poisson source inference for the CLI tests"
-[mesh]
-name = "lshape"
-h = 0.3
-[pde]
-type = "poisson"
-[data]
-train = 8
-validation = 4
-[network]
-layers = 0
-[sip]
-inverse = "exact"
-[optimizer]
-lr = 3e-2
-epochs = 4
-batch = 8
-"""
+TINY_SIP = tiny_scene("sip", description="tiny Poisson source inference for the CLI tests",
+                      data={"train": 8, "validation": 4}, optimizer={"epochs": 4, "batch": 8})
 METHOD_ROW = re.compile(r"^(?P<run>sip|backprop) +(?P<its>[\d,]+) +(?P<metric>\S+e[+-]\d+) +(?P<time>[\d.]+) +"
                         r"(?P<ratio>[\d.]+)x +(?P<per_it>[\d.]+)$")
 

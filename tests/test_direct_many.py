@@ -7,7 +7,7 @@ import torch
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import CappedSolver, KSPOptions
 
-from conftest import build, control_values
+from helpers import build, control_values
 
 
 def test_batch_of_direct_solves_equals_one_at_a_time(coarse_lshape, monkeypatch):

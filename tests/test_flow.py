@@ -16,7 +16,7 @@ from fempdl.core import _dolfinx
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
-from conftest import integral
+from helpers import integral
 from fempdl.core.mesh import TaggedMesh
 
 CONVERGED_SCHUR = KSPOptions.preset("schur", rtol=1e-12)

@@ -21,72 +21,13 @@ from fempdl.app.tasks.hybrid import HybridTask, VelocityTransfer, channel_proble
 from fempdl.ksp_adjoint import KSPOptions
 from fempdl.app.tasks.networks import ResidualMLP
 
-BURGERS = """
-[scene]
-name = "tiny-burgers"
-task = "emulator"
-[mesh]
-name = "lshape"
-h = 0.25
-[pde]
-type = "burgers"
-nu = 0.01
-dt = 0.5
-[data]
-train = 8
-validation = 4
-modes = 3
-rollout = 2
-[network]
-hidden = 16
-[optimizer]
-lr = 3e-3
-epochs = 12
-batch = 4
-[solver]
-preset = "gmres"
-[prdp]
-k0 = 1
-dk = 3
-delta = 2
-ema_window = 2
-"""
+from helpers import tiny_scene
 
-HYBRID = """
-[scene]
-name = "tiny-hybrid"
-task = "hybrid"
-[mesh]
-name = "obstacle"
-h = 0.15
-[pde]
-type = "oseen"
-nu = 1e-3
-dt = 0.02
-inflow = 1.5
-[hybrid]
-fine_h = 0.08
-steps = 2
-spinup = 2
-[data]
-train = 6
-validation = 3
-modes = 2
-rollout = 3
-[network]
-hidden = 16
-[optimizer]
-lr = 1e-3
-epochs = 8
-batch = 3
-[solver]
-preset = "schur"
-[prdp]
-k0 = 2
-dk = 2
-delta = 2
-ema_window = 2
-"""
+BURGERS = tiny_scene(name="tiny-burgers", mesh={"h": 0.25}, pde={"type": "burgers", "nu": 0.01, "dt": 0.5},
+                     data={"train": 8, "rollout": 2}, optimizer={"lr": 3e-3, "epochs": 12, "batch": 4},
+                     solver={"preset": "gmres"}, prdp={"dk": 3, "tau_step": None})
+
+HYBRID = tiny_scene("hybrid")
 
 
 @pytest.fixture(scope="module")
@@ -301,7 +242,7 @@ def test_cli_runs_a_flow_scene_file_with_prdp_and_the_baseline(tmp_path, capsys)
 def test_hybrid_warm_start_begins_at_the_state(hybrid):
     """The capped Oseen step starts from (u_t, 0 pressure): after one iteration its velocity is
     closer to the converged step's than from zero, and the warm-started chain trains."""
-    warm_scene = scene.parse(HYBRID.replace('preset = "schur"', 'preset = "schur"\nwarm_start = true'))
+    warm_scene = scene.parse(tiny_scene("hybrid", solver={"warm_start": True}))
     cold = runner.build_task(hybrid, runner.solver_options(hybrid, 1))
     warm = runner.build_task(warm_scene, runner.solver_options(warm_scene, 1))
     try:

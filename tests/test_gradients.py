@@ -16,7 +16,7 @@ from fempdl.core import _dolfinx
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 
-from conftest import CAPPED, CONVERGED, FORM_CONTROL_PAIRS, build, control_values
+from helpers import CAPPED, CONVERGED, FORM_CONTROL_PAIRS, build, control_values
 
 
 def layer_fn(layer, name, fixed=None):

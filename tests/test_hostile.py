@@ -26,23 +26,14 @@ from fempdl.app import scene
 from fempdl.app.runs.checkpoints import CheckpointError
 from fempdl.ksp_adjoint import KSPOptions
 
-INVERSE = """
-[scene]
-name = "hostile-inverse"
-task = "inverse"
-[mesh]
-name = "lshape"
-h = 0.25
-[pde]
-type = "poisson"
-[inverse]
-theta_ref = [0.6, 1.9]
-theta_init = [3.0, 3.0]
-[optimizer]
-type = "sgd"
-lr = 1.0
-epochs = 6
-"""
+from helpers import tiny_scene
+
+
+def inverse_text(**sections) -> str:
+    return tiny_scene("inverse", {"scene": {"name": "hostile-inverse"}, "optimizer": {"epochs": 6}}, **sections)
+
+
+INVERSE = inverse_text()
 
 
 def inverse(text: str = INVERSE) -> scene.Scene:
@@ -155,8 +146,7 @@ def test_stale_temporary_files_are_removed_and_files_follow_the_umask(tmp_path):
 # ------------------------------------------------------------------ resume of another run
 def test_resume_refuses_a_changed_scene_and_names_the_keys(tmp_path):
     train(tmp_path, stop_after=2)
-    changed = inverse(INVERSE.replace("theta_ref = [0.6, 1.9]", "theta_ref = [0.5, 1.9]").replace("lr = 1.0",
-                                                                                                   "lr = 0.5"))
+    changed = inverse(inverse_text(inverse={"theta_ref": [0.5, 1.9]}, optimizer={"lr": 0.5}))
     with pytest.raises(rundir.ResumeError) as info:
         train(tmp_path, changed, resume=True)
     message = str(info.value)
@@ -168,7 +158,7 @@ def test_resume_refuses_a_changed_scene_and_names_the_keys(tmp_path):
 
 def test_resume_may_change_the_number_of_epochs(tmp_path):
     train(tmp_path, stop_after=2)
-    longer = inverse(INVERSE.replace("epochs = 6", "epochs = 8"))
+    longer = inverse(inverse_text(optimizer={"epochs": 8}))
     assert len(train(tmp_path, longer, resume=True).rows) == 8
 
 
@@ -200,14 +190,14 @@ def test_the_command_refuses_a_directory_holding_a_run_unless_resume_or_overwrit
     assert call(base + ["--resume"])[0] == 0
     assert call(base + ["--resume", "--overwrite"])[0] == 2
     assert not (out / rundir.LOCK).exists()
-    path.write_text(INVERSE.replace("theta_ref = [0.6, 1.9]", "theta_ref = [0.6, 2.0]"))
+    path.write_text(inverse_text(inverse={"theta_ref": [0.6, 2.0]}))
     code, err = call(base + ["--resume"])
     assert code == 2 and "was written by a different run; changed since: run.scene.inverse.theta_ref" in err
 
 
 @pytest.mark.parametrize("name", ["../../../x", "/tmp/x", "..", "a/b", "", "x" * 129, "na me"])
 def test_scene_names_that_are_not_slugs_are_refused(name):
-    text = INVERSE.replace('name = "hostile-inverse"', f'name = "{name}"')
+    text = inverse_text(name=name)
     with pytest.raises(scene.SceneError, match=r"\[scene\] name must be 1-128 letters"):
         scene.parse(text)
     with pytest.raises(ValueError):
@@ -216,7 +206,7 @@ def test_scene_names_that_are_not_slugs_are_refused(name):
 
 def test_a_scene_file_that_is_not_utf8_is_a_scene_error(tmp_path):
     path = tmp_path / "latin1.toml"
-    path.write_bytes(INVERSE.replace("hostile-inverse", "hostile").encode() + "# caf\xe9\n".encode("latin-1"))
+    path.write_bytes(inverse_text(name="hostile").encode() + "# caf\xe9\n".encode("latin-1"))
     with pytest.raises(scene.SceneError, match="not a UTF-8 text file"):
         scene.load(path)
 
@@ -235,17 +225,14 @@ def test_a_mesh_size_beyond_the_geometry_is_refused():
 
 @pytest.mark.parametrize("section,key,value", [("network", "hidden", 10 ** 9), ("data", "train", 10 ** 12)])
 def test_scene_sizes_beyond_memory_are_scene_errors_with_the_estimate(section, key, value):
-    from test_training import TINY
-    text = TINY.replace(f"[{section}]\n", f"[{section}]\n{key} = {value}\n", 1)
-    text = text.replace("train = 16\n", "") if key == "train" else text.replace("hidden = 16\n", "")
+    text = tiny_scene(**{section: {key: value}})
     with pytest.raises(scene.SceneError, match=r"the scene needs about [\d.]+ [TPG]iB .* more than the memory budget"):
         scene.parse(text)
 
 
 def test_more_modes_than_the_mesh_resolves_is_a_scene_error():
-    from test_training import TINY
     with pytest.raises(scene.SceneError, match=r"\[data\] modes = 1000000 gives 1000000\^2 sine modes"):
-        scene.parse(TINY.replace("modes = 3", "modes = 1000000"))
+        scene.parse(tiny_scene(data={"modes": 1000000}))
 
 
 # ------------------------------------------------------------------ solver options
@@ -391,7 +378,7 @@ def test_the_interrupt_monitor_is_installed_only_on_long_solves(coarse_problems)
 
 def test_a_second_command_on_the_same_output_directory_is_refused_while_the_first_runs(tmp_path):
     path = tmp_path / "long.toml"
-    path.write_text(INVERSE.replace("epochs = 6", "epochs = 100000"))
+    path.write_text(inverse_text(optimizer={"epochs": 100000}))
     out = tmp_path / "out"
     argv = ["run", str(path), "--k", "4", "--out", str(out), "--no-progress", "--no-baseline"]
     first = subprocess.Popen([sys.executable, "-m", "fempdl.app.cli", *argv], stdout=subprocess.DEVNULL,

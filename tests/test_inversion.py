@@ -17,61 +17,17 @@ from fempdl.app.tasks.data import rectangle_fields
 from fempdl.app.tasks.inversion import InversionTask
 from fempdl.app.runs.training import Trainer
 
-SIP = """
-[scene]
-name = "tiny-sip"
-task = "sip"
-[mesh]
-name = "lshape"
-h = 0.3
-[pde]
-type = "{pde}"
-{dt}
-[data]
-train = 16
-validation = 8
-truths = "{truths}"
-noise = {noise}
-resample = {resample}
-[network]
-layers = 0
-[sip]
-{inverse}
-[optimizer]
-lr = 3e-2
-epochs = {epochs}
-batch = {batch}
-"""
+from helpers import tiny_scene
 
 
-def sip_scene(*, pde="poisson", truths="smooth", noise=0.0, resample=False, epochs=10, batch=16,
-              inverse='inverse = "exact"'):
-    return scene.parse(SIP.format(pde=pde, dt="dt = 0.05" if pde == "heat" else "", truths=truths, noise=noise,
-                                  resample=str(resample).lower(), epochs=epochs, batch=batch, inverse=inverse))
+def sip_scene(*, pde="poisson", truths="smooth", noise=0.0, resample=False, epochs=10, batch=16, sip=None):
+    return scene.parse(tiny_scene("sip", pde={"type": pde, "dt": 0.05 if pde == "heat" else None},
+                                  data={"truths": truths, "noise": noise, "resample": resample}, sip=sip or {},
+                                  optimizer={"epochs": epochs, "batch": batch}))
 
 
 def hig_scene(epochs=10):
-    return scene.parse(f"""
-[scene]
-name = "tiny-hig"
-task = "hig"
-[mesh]
-name = "lshape"
-h = 0.3
-[pde]
-type = "poisson"
-[data]
-train = 4
-validation = 4
-[network]
-hidden = 8
-layers = 1
-[hig]
-lr = 0.5
-[optimizer]
-epochs = {epochs}
-batch = 4
-""")
+    return scene.parse(tiny_scene("hig", optimizer={"epochs": epochs}))
 
 
 # ------------------------------------------------------------------ data
@@ -200,7 +156,7 @@ def test_sip_infers_the_source_better_than_adam_with_backprop_at_equal_iteration
 
 def test_the_damped_gauss_newton_sip_scene_trains():
     sc = sip_scene(pde="heat", noise=0.01, epochs=15,
-                   inverse='inverse = "gauss-newton"\ndamping = 1e-2\ncg_iterations = 5')
+                   sip={"inverse": "gauss-newton", "damping": 1e-2, "cg_iterations": 5})
     task = InversionTask(sc, "sip")
     try:
         assert task.inverse.max_it == 5 and task.inverse.damping == 1e-2
@@ -211,7 +167,7 @@ def test_the_damped_gauss_newton_sip_scene_trains():
 
 
 def test_the_tikhonov_sip_heat_scene_beats_adam_and_the_baseline_follows_its_schedule():
-    sc = sip_scene(pde="heat", noise=0.01, epochs=40, inverse='inverse = "tikhonov"\ndamping = 1e-2')
+    sc = sip_scene(pde="heat", noise=0.01, epochs=40, sip={"inverse": "tikhonov", "damping": 1e-2})
     task = InversionTask(dataclasses.replace(sc, baseline=dataclasses.replace(sc.baseline, decay=0.9)), "backprop")
     try:
         assert task.scheduler.gamma == 0.9 and task.optimizer.param_groups[0]["lr"] == 3e-2
@@ -244,7 +200,7 @@ def test_the_wrong_method_or_task_is_refused():
 
 # ------------------------------------------------------------------ comparison and files
 def test_compare_extends_the_baseline_to_equal_time_and_reports_the_ratios(tmp_path):
-    sc = sip_scene(pde="heat", noise=0.01, epochs=4, batch=8, inverse='inverse = "gauss-newton"\ndamping = 1e-2')
+    sc = sip_scene(pde="heat", noise=0.01, epochs=4, batch=8, sip={"inverse": "gauss-newton", "damping": 1e-2})
     runs = compare.compare(sc, tmp_path, max_factor=5)
     sip, base = runs["sip"].rows, runs["backprop"].rows
     assert len(sip) == 4 and 4 <= len(base) <= 20

@@ -15,7 +15,7 @@ import torch
 from fempdl import forms, mesh
 from fempdl.core import io
 
-from conftest import smooth
+from helpers import smooth
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import dolfinx.fem.petsc
 from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import CappedSolver, KSPOptions
 
-from conftest import CAPPED
+from helpers import CAPPED
 
 
 @pytest.fixture(scope="module")

@@ -18,6 +18,8 @@ import pytest
 
 from fempdl.core import _dolfinx
 
+from helpers import tiny_scene
+
 SCRIPTS = Path(__file__).parent / "mpi"
 EXAMPLES = Path(__file__).parent.parent / "scripts"
 TIMEOUT = 300
@@ -133,26 +135,8 @@ def test_ranks_that_disagree_are_an_error_that_names_the_values(training_results
     assert results[1]["check_message"] == ""
 
 
-TINY_SCENE = """
-[scene]
-name = "tiny-cli-parallel"
-task = "emulator"
-[mesh]
-name = "lshape"
-h = 0.25
-[pde]
-type = "heat"
-dt = 0.002
-[data]
-train = 8
-validation = 2
-modes = 2
-[network]
-hidden = 8
-[optimizer]
-epochs = 2
-batch = 4
-"""
+TINY_SCENE = tiny_scene(name="tiny-cli-parallel", mesh={"h": 0.25}, data={"train": 8, "validation": 2, "modes": 2},
+                        network={"hidden": 8}, optimizer={"lr": None, "epochs": 2, "batch": 4}, prdp=None)
 
 
 def test_fempdl_run_parallel_data_under_mpirun(tmp_path):

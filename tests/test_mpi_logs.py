@@ -8,14 +8,14 @@ import sys
 
 from fempdl.core import _dolfinx
 
-from test_cli import TINY
+from helpers import CLI_TINY, tiny_scene
 
 MPI_ENV = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1", "OMP_NUM_THREADS": "1"}
 
 
 def test_epoch_lines_under_mpirun(tmp_path):
     scene = tmp_path / "tiny.toml"
-    scene.write_text(TINY)
+    scene.write_text(tiny_scene("emulator", CLI_TINY))
     done = subprocess.run([*_dolfinx.mpi_launcher(), "-n", "2", sys.executable, "-m", "fempdl.app.cli", "run", str(scene),
                            "--k", "2", "--no-baseline", "--parallel", "data", "--out", str(tmp_path / "out"),
                            "--set", "optimizer.epochs=3"], env=MPI_ENV, capture_output=True, text=True, timeout=300)

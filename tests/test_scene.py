@@ -444,20 +444,8 @@ def test_strings_are_never_evaluated(tmp_path):
 
 
 def test_warm_start_applies_to_the_inverse_task_and_is_off_unless_set():
-    text = """
-[scene]
-name = "inv"
-task = "inverse"
-[mesh]
-name = "lshape"
-[pde]
-type = "poisson"
-[inverse]
-theta_ref = [1.0]
-theta_init = [2.0]
-[solver]
-warm_start = true
-"""
+    text = toml({"solver": "warm_start = true"}, base={**INVERSE, "scene": 'name = "inv"\ntask = "inverse"',
+                                                       "inverse": "theta_ref = [1.0]\ntheta_init = [2.0]"})
     assert scene.parse(text).solver.warm_start is True
     parsed = scene.parse(text.replace("warm_start = true", ""))
     assert parsed.solver.warm_start is False and parsed.as_dict()["solver"]["warm_start"] is False

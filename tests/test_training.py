@@ -8,39 +8,9 @@ import pytest
 from fempdl.app.runs import runner
 from fempdl.app import scene
 
-TINY = """
-[scene]
-name = "tiny-heat"
-task = "emulator"
+from helpers import tiny_scene
 
-[mesh]
-name = "lshape"
-h = 0.2
-
-[pde]
-type = "heat"
-dt = 0.002
-
-[data]
-train = 16
-validation = 4
-modes = 3
-
-[network]
-hidden = 16
-
-[optimizer]
-lr = 1e-2
-epochs = 30
-batch = 8
-
-[prdp]
-k0 = 1
-dk = 2
-tau_step = 0.95
-delta = 2
-ema_window = 2
-"""
+TINY = tiny_scene()
 
 
 @pytest.fixture(scope="module")
@@ -85,42 +55,24 @@ def test_resume_without_a_checkpoint_is_an_error(tiny, tmp_path):
 
 
 def test_stop_at_ends_training_at_the_target():
-    text = TINY.replace('task = "emulator"', 'task = "inverse"').replace("[network]\nhidden = 16\n", "")
-    text = text.replace("[data]\ntrain = 16\nvalidation = 4\nmodes = 3\n", "")
-    text = text.replace('type = "heat"\ndt = 0.002', 'type = "poisson"')
-    text += "\n[inverse]\ntheta_ref = [2.0]\ntheta_init = [5.0]\n"
-    text = text.replace("lr = 1e-2\nepochs = 30\nbatch = 8", 'type = "sgd"\nlr = 1.5\nepochs = 500\nstop_at = 1e-6')
-    inverse = scene.parse(text)
+    inverse = scene.parse(tiny_scene("inverse", name="tiny-heat", mesh={"h": 0.2},
+                                      inverse={"theta_ref": [2.0], "theta_init": [5.0]},
+                                      optimizer={"lr": 1.5, "epochs": 500, "stop_at": 1e-6},
+                                      prdp={"k0": 1, "dk": 2, "tau_step": 0.95, "delta": 2, "ema_window": 2}))
     run = runner.run(inverse, "converged")
     assert run.final_metric <= 1e-6 < run.rows[-2]["val_metric"]
     assert len(run.rows) < 500
 
 
-def inverse_scene(extra: str = "") -> scene.Scene:
-    return scene.parse("""
-[scene]
-name = "tiny-inverse"
-task = "inverse"
-[mesh]
-name = "lshape"
-h = 0.25
-[pde]
-type = "poisson"
-[inverse]
-theta_ref = [0.6, 1.9]
-theta_init = [3.0, 3.0]
-[optimizer]
-type = "sgd"
-lr = 1.0
-epochs = 15
-""" + extra)
+def inverse_scene(**sections) -> scene.Scene:
+    return scene.parse(tiny_scene("inverse", **sections))
 
 
 def test_unrolled_and_implicit_jacobi_train_identically():
     """For Richardson+Jacobi and a source control both diff modes give the exact
     gradient of the capped map: the whole optimisation must coincide."""
     implicit = runner.run(inverse_scene(), "fixed", 6, k_eps_value=50)
-    unrolled = runner.run(inverse_scene('[solver]\ndiff = "unrolled"\n'), "fixed", 6, k_eps_value=50)
+    unrolled = runner.run(inverse_scene(solver={"diff": "unrolled"}), "fixed", 6, k_eps_value=50)
     for a, b in zip(implicit.rows, unrolled.rows):
         assert a["val_metric"] == pytest.approx(b["val_metric"], rel=1e-10, abs=1e-14)
         assert a["total_iterations"] == b["total_iterations"]

@@ -15,7 +15,7 @@ from fempdl.core import _dolfinx
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
-from conftest import integral
+from helpers import integral
 
 X, Y = sympy.symbols("x y")
 M_EXACT = sympy.sin(sympy.pi * X) * sympy.cos(sympy.pi * Y / 2) + X * Y

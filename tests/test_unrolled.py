@@ -12,7 +12,7 @@ from fempdl.layer.unrolled_diff import matrix_jacobian
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 
-from conftest import CONVERGED, control_values
+from helpers import CONVERGED, build, control_values
 
 UNROLLED_SOLVERS = {
     "jacobi": lambda k: KSPOptions(max_it=k),
@@ -208,7 +208,6 @@ def test_unrolled_matrix_control_gradcheck_and_forward(coarse_problems, form, ot
 
 @pytest.mark.parametrize("form", ["poisson-p2-dg0", "heat"])
 def test_matrix_jacobian_reproduces_the_assembled_matrix(coarse_lshape, form):
-    from conftest import build
     from fempdl.core import _dolfinx
     from fempdl.solve.petsc import petsc_to_scipy
     prob = build(form, coarse_lshape)
@@ -226,7 +225,6 @@ def test_matrix_jacobian_reproduces_the_assembled_matrix(coarse_lshape, form):
 
 
 def test_what_unrolled_mode_refuses(coarse_problems, coarse_lshape):
-    from conftest import build
     prob = coarse_problems["poisson"]
     with pytest.raises(ValueError, match=r"diff='unrolled' supports .*got bcgs\+jacobi"):
         SolveLayer(prob, KSPOptions(ksp_type="bcgs", pc_type="jacobi", max_it=5), diff="unrolled")

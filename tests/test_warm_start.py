@@ -15,7 +15,7 @@ from fempdl import forms
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 
-from conftest import CAPPED, build, control_values
+from helpers import CAPPED, build, control_values
 
 
 @pytest.fixture(scope="module")

@@ -159,7 +159,7 @@ def parse(text: str, source: str = "<string>", overrides=()) -> Scene:
         _check_solver(values, source)
     if "inverse" in values:
         _check_inverse(values["inverse"], source)
-    _check_size(task, values, source)
+    _check_size(values, source)
     sections = {name: SECTIONS[name](**values[name]) if name in values else None
                 for name in SECTIONS if name != "scene"}
     return Scene(name=header["name"], task=task, description=header["description"], source=source,
@@ -323,7 +323,7 @@ def _checked(value, spec: Spec, where: str):
     return value
 
 
-def estimated_memory(task: str, values: dict) -> tuple[float, float, dict] | None:
+def estimated_memory(values: dict) -> tuple[float, float, dict] | None:
     """(bytes, DOFs, parts) a scene's data and network take, estimated before anything is built; None
     for a mesh file (its size is unknown until read). Parts: ``data`` (float64 states and their float32
     copies), ``network`` (parameters, gradients and two Adam moments), by the bundled mesh's size at h."""
@@ -336,9 +336,10 @@ def estimated_memory(task: str, values: dict) -> tuple[float, float, dict] | Non
     dofs = estimated_dofs(name, from_h, pde["degree"] or 1, components)
     data, network = values["data"], values.get("network")
     parts = {}
-    if task != "inverse":
+    if data["train"] is not None:          # tasks with a data set (the inverse task has one fixed sample)
         samples = data["train"] + data["validation"]
-        states = 2 * data["rollout"] + 1 if task in ("emulator", "hybrid") else 2
+        # A rollout keeps 2 rollout + 1 states per sample (emulator, hybrid), an inversion its (x, y) pair.
+        states = 2 * data["rollout"] + 1 if data["rollout"] is not None else 2
         parts["data"] = samples * dofs * states * 12.0
     if network is not None:
         width, depth = network["hidden"], network["layers"]
@@ -351,10 +352,10 @@ def estimated_memory(task: str, values: dict) -> tuple[float, float, dict] | Non
 _BUNDLED_H = {"lshape": 0.05, "obstacle": 0.035, "box": 0.1}
 
 
-def _check_size(task: str, values: dict, source: str) -> None:
+def _check_size(values: dict, source: str) -> None:
     """Refuse a scene whose data and network would not fit in the memory budget, or whose number of
     smooth modes exceeds what the mesh resolves, with the estimate."""
-    estimate = estimated_memory(task, values)
+    estimate = estimated_memory(values)
     if estimate is None:
         return
     total, dofs, parts = estimate

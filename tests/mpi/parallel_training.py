@@ -16,65 +16,23 @@ from fempdl.core import parallel
 from fempdl.app.runs import runner
 from fempdl.app import scene
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # tests/, for helpers
+from helpers import tiny_scene  # noqa: E402
+
 parallel.abort_on_error()
 
-EMULATOR = """
-[scene]
-name = "tiny-heat-parallel"
-task = "emulator"
-[mesh]
-name = "lshape"
-h = 0.2
-[pde]
-type = "heat"
-dt = 0.002
-[data]
-train = 17        # the last batch of 1 leaves a rank without samples
-validation = 5
-modes = 3
-[network]
-hidden = 16
-[optimizer]
-lr = 1e-2
-epochs = 8
-batch = 8
-[prdp]
-k0 = 1
-dk = 2
-tau_step = 0.95
-delta = 2
-ema_window = 1
-"""
-
-INVERSE = """
-[scene]
-name = "tiny-inverse-parallel"
-task = "inverse"
-[mesh]
-name = "lshape"
-h = 0.1
-[pde]
-type = "poisson"
-[inverse]
-theta_ref = [0.6, 1.9]
-theta_init = [3.0, 3.0]
-[optimizer]
-type = "sgd"
-lr = 1.0
-epochs = 8
-[prdp]
-k0 = 5
-dk = 5
-tau_step = 0.95
-delta = 2
-ema_window = 1
-"""
+# The emulator's last batch of 1 (17 samples in batches of 8) leaves a rank without samples.
+EMULATOR = tiny_scene(name="tiny-heat-parallel", data={"train": 17, "validation": 5}, optimizer={"epochs": 8},
+                      prdp={"ema_window": 1})
+INVERSE_EDITS = {"scene": {"name": "tiny-inverse-parallel"}, "mesh": {"h": 0.1}, "optimizer": {"epochs": 8},
+                 "prdp": {"k0": 5, "dk": 5, "tau_step": 0.95, "delta": 2, "ema_window": 1}}
+SCENES = {"data": EMULATOR, "mesh": tiny_scene("inverse", INVERSE_EDITS),
+          # "mesh-warm": the inverse with warm-started solves, whose last solution each rank keeps and saves.
+          "mesh-warm": tiny_scene("inverse", INVERSE_EDITS, solver={"warm_start": True})}
 
 mode, out = sys.argv[1], Path(sys.argv[2])
 comm = MPI.COMM_WORLD
-# "mesh-warm": the inverse with warm-started solves, whose last solution each rank keeps and saves.
-WARM_INVERSE = INVERSE.replace("[prdp]", "[solver]\nwarm_start = true\n[prdp]")
-sc = scene.parse({"data": EMULATOR, "mesh": INVERSE, "mesh-warm": WARM_INVERSE}[mode])
+sc = scene.parse(SCENES[mode])
 with tempfile.TemporaryDirectory() as tmp:
     run_dir = Path(comm.bcast(tmp if comm.rank == 0 else None))   # one directory, seen by every rank
     parallel_mode = mode.partition("-")[0]
