@@ -51,9 +51,21 @@ from fempdl.solve.stats import CumulativeStats, warn_at_caller
 from fempdl.core.problem import Problem
 from fempdl.solve.linear_system import INITIAL_GUESS, LinearSystem
 
-__all__ = ["SolveLayer", "DIFF_MODES"]
+__all__ = ["SolveLayer", "DIFF_MODES", "default_options", "DIRECT_MAX_DOFS"]
 
 DIFF_MODES = ("implicit", "unrolled")
+#: The most unknowns a layer without options solves directly (MUMPS LU). The fill of a 3D
+#: factorisation grows like n^(4/3); beyond a few hundred thousand unknowns a converged
+#: iterative solve is the safer default.
+DIRECT_MAX_DOFS = 300_000
+
+
+def default_options(problem: Problem) -> KSPOptions:
+    """The options of ``SolveLayer(problem)``: a converged solve, never a cap (a cap is what a user
+    asks for): the ``"lu"`` preset up to :data:`DIRECT_MAX_DOFS` unknowns, the converged ``"gmres"``
+    preset (GMRES(30) + Jacobi to rtol 1e-10, an error if not reached) above it."""
+    n = problem.V.mesh.comm.allreduce(problem.output_size)
+    return KSPOptions.preset("lu" if n <= DIRECT_MAX_DOFS else "gmres")
 _FLOAT_DTYPES = (torch.float32, torch.float64)
 
 
@@ -63,7 +75,9 @@ class SolveLayer(torch.nn.Module):
     Args:
         problem: the variational problem; its controls become keyword inputs.
         options: :class:`KSPOptions`, or a preset name (``"jacobi"``, ``"cg"``,
-            ``"gmres"``, ``"lu"``). Default: Richardson + Jacobi capped at 20.
+            ``"gmres"``, ``"lu"``; converged unless ``KSPOptions.preset(name,
+            max_it=K)`` caps them). Default (:func:`default_options`): a solution,
+            never a cap: LU where a direct solve fits, else GMRES to rtol 1e-10.
         diff: ``"implicit"`` (adjoint solve with the same cap) or ``"unrolled"``
             (autograd through the K iterations: the exact derivative of the
             capped iterate; Richardson, CG and GMRES(m) with Jacobi or no
@@ -100,7 +114,7 @@ class SolveLayer(torch.nn.Module):
             raise TypeError(f"problem must be a fempdl.Problem, got {type(problem).__name__}; "
                             "build one with fempdl.forms.<pde>.problem(...) or fempdl.Problem(a, L, bcs, controls)")
         if options is None:
-            options = KSPOptions(max_it=20)
+            options = default_options(problem)
         elif isinstance(options, str):
             options = KSPOptions.preset(options)
         elif not isinstance(options, KSPOptions):
@@ -158,7 +172,7 @@ class SolveLayer(torch.nn.Module):
     def stats(self) -> CumulativeStats:
         return self.system.stats
 
-    def forward(self, *, initial_guess: torch.Tensor | None = None, **controls: torch.Tensor) -> torch.Tensor:
+    def forward(self, *positional, initial_guess: torch.Tensor | None = None, **controls: torch.Tensor) -> torch.Tensor:
         """Solve for the given controls (keyword per control name); see the module docstring.
 
         ``initial_guess`` ((B, n) or (n,), like the output) warm-starts the
@@ -167,9 +181,15 @@ class SolveLayer(torch.nn.Module):
         differentiable: exactly for Richardson + Jacobi in both modes and for
         every method in unrolled mode; in implicit mode the adjoint residual is
         the gradient (module docstring)."""
+        if positional:
+            names = self.problem.control_names
+            raise TypeError(f"SolveLayer takes its controls as keywords, got {len(positional)} positional "
+                            f"argument(s); call it as layer({', '.join(f'{n}=...' for n in names)})")
         if initial_guess is not None:
             controls = {**controls, INITIAL_GUESS: initial_guess}
         names, tensors, batch, batched = self._validate(controls)
+        if self.problem.V.mesh.comm.size > 1:
+            self._check_ranks_agree(names, batch)
         dtype = tensors[0].dtype if tensors else torch.float64
         if any(t.dtype != dtype for t in tensors):
             dtype = torch.float64
@@ -189,6 +209,19 @@ class SolveLayer(torch.nn.Module):
                 and count_on_all_ranks(~torch.isfinite(out), self.problem)):
             self._report_overflow(dtype)
         return out if batched else out[0]
+
+    def _check_ranks_agree(self, names, batch: int) -> None:
+        """On a distributed mesh every rank must make the same call (the solves are collective): one
+        allgather of (cap, batch, controls), and a ValueError on every rank if they differ, instead of
+        ranks waiting in different collectives (a hang)."""
+        comm = self.problem.V.mesh.comm
+        mine = (self.max_it, batch, tuple(names))
+        every = comm.allgather(mine)
+        if any(call != mine for call in every):
+            raise ValueError(
+                "the ranks called this distributed-mesh SolveLayer differently (max_it, batch, controls by rank: "
+                f"{every}); every rank must call it with the same cap, batch size and controls. A PRDP step on "
+                "per-rank metrics moves the caps apart: step PRDP with the same (reduced) metric on every rank")
 
     def _check_finite(self, names, tensors) -> None:
         for name, t in zip(names, tensors):

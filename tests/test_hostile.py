@@ -395,6 +395,8 @@ def test_a_second_command_on_the_same_output_directory_is_refused_while_the_firs
         first.send_signal(signal.SIGINT)
         first.wait(timeout=60)
     assert not (out / rundir.LOCK).exists()                      # released on Ctrl-C
+    err = first.stderr.read().decode()
+    assert first.returncode == 130 and "Traceback" not in err and "fempdl: interrupted;" in err, err[-2000:]
 
 
 def test_an_output_directory_that_is_a_file_is_refused(tmp_path):

@@ -188,3 +188,32 @@ def test_the_data_parallel_example_script_trains_a_scene(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     assert "on 2 ranks (data)" in done.stdout
     assert (tmp_path / "out" / "k2" / "metrics.csv").exists()
+
+
+def test_ranks_that_disagree_get_an_error_not_a_hang(tmp_path):
+    """A distributed layer called with other caps or batches on the ranks, and PRDP stepped with per-rank
+    metrics, used to hang (one rank in KSPSolve, one in VecNorm); now every rank raises."""
+    out = tmp_path / "guards"
+    done = mpirun(2, "guards.py", str(out), timeout=120)
+    assert done.returncode == 0, done.stderr[-3000:]
+    caught = [json.loads(Path(f"{out}.rank{r}.json").read_text()) for r in range(2)]
+    for rank in caught:
+        assert "called this distributed-mesh SolveLayer differently" in rank["cap"] and "[(5, 1, ('f',))" in rank["cap"]
+        assert "(5, 1, ('f',)), (5, 2, ('f',))" in rank["batch"]
+        assert "PRDP.step got different metrics on the 2 ranks ([0.5, 1.5])" in rank["prdp"]
+        assert rank["k"] == 2 and rank["agreed"] > 0
+
+
+def test_the_data_parallel_example_trains_as_one_process(tmp_path):
+    """examples/data_parallel_loop.py: on two ranks the same metric, K schedule and iterations as on one."""
+    example = str(Path(__file__).parent.parent / "examples" / "data_parallel_loop.py")
+    results = {}
+    for ranks in (1, 2):
+        out = tmp_path / f"ranks{ranks}.json"
+        done = mpirun(ranks, example, "--epochs", "12", "--out", str(out), timeout=240)
+        assert done.returncode == 0, done.stderr[-3000:]
+        results[ranks] = json.loads(out.read_text())
+    one, two = results[1], results[2]
+    assert one["history"] == two["history"] and one["k"] == two["k"] > 1
+    assert one["iterations"] == two["iterations"]
+    assert abs(one["metric"] - two["metric"]) <= 1e-9 * one["metric"]

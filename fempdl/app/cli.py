@@ -45,6 +45,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def seed_int(text: str) -> int:
+    """A seed: a whole number in [0, 2^63 - 1] (what torch's and numpy's generators take)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if not 0 <= value < 2 ** 63:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2^63 - 1], got {value}")
+    return value
+
+
 def _k_list(text: str) -> list[int]:
     values = sorted({positive_int(part) for part in text.split(",") if part.strip()})
     if not values:
@@ -69,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--epochs", type=positive_int, help="override the scene's number of epochs")
     run.add_argument("--no-baseline", action="store_true", help="skip the converged baseline run")
     run.add_argument("--no-progress", action="store_true", help="hide progress bars")
-    run.add_argument("--seed", type=int, help="network initialisation and minibatch order (default: the "
+    run.add_argument("--seed", type=seed_int, help="network initialisation and minibatch order (default: the "
                                               "scene's data seed; the data stay the scene's)")
     run.add_argument("--tensorboard", action="store_true",
                      help="also write each run's metrics as TensorBoard scalars into RUN/tensorboard "

@@ -17,6 +17,7 @@ from fempdl.app.runs.checkpoints import CheckpointError, remove_stale_temporarie
 from fempdl.app.runs.training import CHECKPOINT
 from fempdl.app.tasks import spec_of
 from fempdl.core import parallel
+from fempdl.solve.stats import SolverFailedError
 
 __all__ = ["execute"]
 
@@ -32,10 +33,36 @@ def execute(args) -> int:
               file=sys.stderr)
         return 2
 
-    if args.command == "scenes":
-        return _scenes(args)
-    with _library_log(getattr(args, "log_every", None), MPI.COMM_WORLD.rank):
-        return _load_and_run(args)
+    try:
+        if args.command == "scenes":
+            return _scenes(args)
+        with _library_log(getattr(args, "log_every", None), MPI.COMM_WORLD.rank):
+            return _load_and_run(args)
+    except KeyboardInterrupt:
+        print("fempdl: interrupted; a run's last finished epoch is in its checkpoint (continue with --resume)",
+              file=sys.stderr)
+        return 130
+    except USER_ERRORS as err:
+        return _refuse(err)
+
+
+#: Errors that are about the inputs, the machine or the run's files, not fempdl's code: the command
+#: reports them in one line (exit 2) instead of a traceback.
+USER_ERRORS = (ValueError, TypeError, OSError, MemoryError, SolverFailedError, rundir.RunDirectoryError,
+               CheckpointError)
+
+
+def _refuse(err: BaseException) -> int:
+    """Print ``err`` as one line and return the exit code 2; under mpirun end every rank (the others may
+    wait in a collective call), without a traceback."""
+    message = " ".join(str(err).split()) or type(err).__name__
+    if isinstance(err, OSError) and not isinstance(err, FileNotFoundError) and err.strerror:
+        message = f"{err.strerror}: {err.filename or message}" if err.filename else message
+    comm = MPI.COMM_WORLD
+    print(f"fempdl: {f'[rank {comm.rank}] ' if comm.size > 1 else ''}{message}", file=sys.stderr, flush=True)
+    if comm.size > 1:
+        comm.Abort(2)
+    return 2
 
 
 def _scenes(args) -> int:
@@ -56,26 +83,16 @@ def _scenes(args) -> int:
 
 
 def _load_and_run(args) -> int:
-    try:
-        sc = scene.load(args.scene, args.set)
-    except (scene.SceneError, FileNotFoundError) as err:
-        print(f"fempdl: {err}", file=sys.stderr)
-        return 2
+    sc = scene.load(args.scene, args.set)
     if args.epochs is not None:
         sc = dataclasses.replace(sc, optimizer=dataclasses.replace(sc.optimizer, epochs=args.epochs))
-    try:
-        out = _output_directory(args, sc)
-        # The whole command holds the lock: a second command on the same --out is refused,
-        # not only a second run in one of its subdirectories.
-        with rundir.RunLock(out) if MPI.COMM_WORLD.rank == 0 else contextlib.nullcontext():
-            if MPI.COMM_WORLD.rank == 0:
-                remove_stale_temporaries(out)       # of reports a killed command was writing
-            return _command(args, sc, out)
-    except (rundir.RunDirectoryError, rundir.ResumeError, CheckpointError) as err:
-        if MPI.COMM_WORLD.size > 1:
-            raise      # the other ranks are in a collective call: abort_on_error ends them all
-        print(f"fempdl: {err}", file=sys.stderr)
-        return 2
+    out = _output_directory(args, sc)
+    # The whole command holds the lock: a second command on the same --out is refused,
+    # not only a second run in one of its subdirectories.
+    with rundir.RunLock(out) if MPI.COMM_WORLD.rank == 0 else contextlib.nullcontext():
+        if MPI.COMM_WORLD.rank == 0:
+            remove_stale_temporaries(out)       # of reports a killed command was writing
+        return _command(args, sc, out)
 
 
 @contextlib.contextmanager
@@ -131,7 +148,7 @@ def _command(args, sc, out: Path) -> int:
     if method_scene:
         return _methods(args, sc, progress, out)
     if args.command == "tradeoff":
-        runs = tradeoff.sweep(sc, ks=args.ks, out_dir=out, progress=progress)
+        runs = tradeoff.sweep(sc, ks=args.ks, out_dir=out, progress=progress, overwrite=True)
         split = tradeoff.savings(runs, stop_at=sc.optimizer.stop_at)
         paths = tradeoff.write_report(sc, runs, split, out)
         print(tradeoff.comparison_table(runs))
@@ -151,8 +168,9 @@ def _command(args, sc, out: Path) -> int:
         return 2
     runs = {}
     baseline = None
+    # The command checked its directory (_output_directory): what is there may be replaced.
     common = {"progress": progress, "parallel": args.parallel, "seed": args.seed, "save": args.save_fields,
-              "tensorboard": args.tensorboard}
+              "tensorboard": args.tensorboard, "overwrite": True}
     if not args.no_baseline or args.converged:
         baseline = runner.run(sc, "converged", out_dir=out / "converged",
                                    resume=_can_resume(args, out / "converged"), **common)
@@ -188,7 +206,7 @@ def _methods(args, sc, progress: bool, out: Path) -> int:
                   f"the {sc.task} scene {sc.name!r} solves with LU on one process", file=sys.stderr)
             return 2
         names = [sc.task] + ([] if args.no_baseline else [compare.BASELINE])
-        runs = {name: runner.run_method(sc, name, out_dir=out / name, progress=progress,
+        runs = {name: runner.run_method(sc, name, out_dir=out / name, progress=progress, overwrite=True,
                                         resume=_can_resume(args, out / name), tensorboard=args.tensorboard)
                 for name in names}
         print(f"scene {sc.name}: {sc.description}")
@@ -196,7 +214,7 @@ def _methods(args, sc, progress: bool, out: Path) -> int:
         print(f"metrics and checkpoints in {out}")
         return 0
     runs, split, paths = compare.compare_and_report(sc, out, equal_time=not args.equal_iterations_only,
-                                                    resume=args.resume, progress=progress)
+                                                    resume=args.resume, progress=progress, overwrite=True)
     print(f"scene {sc.name}: {sc.description}")
     print(compare.table(sc, runs))
     print("\n".join(compare.summary_lines(split)))

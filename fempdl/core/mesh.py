@@ -30,6 +30,8 @@ tag. ``TaggedMesh.facet_tag("inlet")`` turns a boundary name into its tag::
 """
 from __future__ import annotations
 
+import hashlib
+
 import importlib.resources
 import os
 from dataclasses import dataclass, field
@@ -170,6 +172,23 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
     if gdim is not None:
         _check_int_choice("gdim", gdim, (1, 2, 3))
     return _read_msh(path, comm, rank, gdim)
+
+
+def source_digest(name_or_path, h: float | None = None) -> str | None:
+    """The SHA-256 of the ``.msh`` file :func:`load` reads for these arguments (the committed file of a
+    bundled name without ``h``, or the path), or None when the mesh is generated (a bundled name at
+    ``h``) or the file does not exist. A run's fingerprint holds it, so that a resume notices a mesh
+    file that changed at the same path."""
+    if isinstance(name_or_path, str) and name_or_path in available():
+        if h is not None:
+            return None
+        path = bundled_meshes() / f"{name_or_path}.msh"
+    else:
+        path = Path(name_or_path)
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None
 
 
 def _load_bundled(name: str, comm, h, rank, gdim, max_cells: int = DEFAULT_MAX_CELLS) -> TaggedMesh:

@@ -24,7 +24,7 @@ from torch import Tensor
 
 from fempdl.solve.linear_system import INITIAL_GUESS
 
-__all__ = ["ImplicitSolve", "count_on_all_ranks", "register_layer", "nonfinite_control_message"]
+__all__ = ["ImplicitSolve", "FirstOrderOnly", "SECOND_DERIVATIVE_MESSAGE", "count_on_all_ranks", "register_layer", "nonfinite_control_message"]
 
 # Live layers by integer handle: the operators take the handle, not the layer
 # (an operator's arguments are tensors and plain values).
@@ -179,8 +179,8 @@ class ImplicitSolve(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_out):
-        # First order only (like once_differentiable): the adjoint operator gets
-        # detached operands, so under torch.func it sees plain or vmapped tensors.
+        # First order: the adjoint operator gets detached operands, so under torch.func
+        # it sees plain or vmapped tensors (a second derivative raises, below).
         needs = ctx.needs_input_grad[5:]
         wanted = [n for n, need in zip(ctx.names, needs) if need]
         if not wanted:
@@ -196,7 +196,40 @@ class ImplicitSolve(torch.autograd.Function):
                 g = g.sum(0) if dim == 1 else g  # a shared (n,) control collects all samples
                 g = g.to(device=device, dtype=dtype)
             result.append(g)
+        if torch.is_grad_enabled():
+            # create_graph=True: the gradient is first order only; differentiating it again
+            # raises instead of silently dropping the layer's second-order term.
+            anchors = [t for t in (*tensors, grad_out) if t.requires_grad]
+            if anchors:
+                result = [None if g is None else FirstOrderOnly.apply(g, *anchors) for g in result]
         return (None,) * 5 + tuple(result)
+
+
+SECOND_DERIVATIVE_MESSAGE = (
+    "second derivatives through SolveLayer(diff='implicit') are not implemented: its backward is the "
+    "first-order adjoint solve, so a Hessian-vector product or a gradient of a gradient would miss the "
+    "layer's second-order term. Use diff='unrolled' (the exact derivatives of every order of the capped "
+    "Richardson or CG iterate), or finite differences of the first-order gradient")
+
+
+class FirstOrderOnly(torch.autograd.Function):
+    """The identity on a first-order gradient whose backward raises: built into the graph when a
+    backward runs with ``create_graph=True`` and tied to the tensors the gradient depends on, so
+    that only an actual second derivative (not the first-order gradient itself) fails."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(grad, *anchors):
+        return grad.clone()
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        pass
+
+    @staticmethod
+    def backward(ctx, _):
+        raise RuntimeError(SECOND_DERIVATIVE_MESSAGE)
 
 
 # ------------------------------------------------------------------ helpers

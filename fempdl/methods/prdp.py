@@ -119,11 +119,15 @@ class PRDP:
         guard: refine at once when the metric exceeds ``guard`` (> 1) times the
             best metric so far and the previous one (``None``: off).
         growth: a refinement sets K = max(K + dk, ceil(growth * K)) (>= 1; 1: K + dk).
+        comm: the ranks that train together (an ``mpi4py`` communicator); default:
+            the communicator of the target layers' mesh. With more than one rank,
+            :meth:`step` checks that every rank passes the same metric (else a
+            rank would refine alone and the collective solves hang).
 
     The settings read as attributes too (``ctrl.k_cap``, ``ctrl.tau_step``, ...).
     """
 
-    def __init__(self, target=None, settings: PRDPSettings | None = None, **fields):
+    def __init__(self, target=None, settings: PRDPSettings | None = None, *, comm=None, **fields):
         if settings is None:
             settings = PRDPSettings(**fields)
         elif fields:
@@ -133,6 +137,7 @@ class PRDP:
             raise TypeError(f"settings must be PRDPSettings, got {type(settings).__name__}")
         self.settings = settings
         self._apply = _setter(target)
+        self.comm = comm if comm is not None else _layers_comm(target)
         self.alpha = 2.0 / (settings.ema_window + 1.0)
         self.k = settings.k0
         self.checkpoint: float | None = None
@@ -153,6 +158,13 @@ class PRDP:
         if isinstance(metric, bool) or not isinstance(metric, (int, float)) and not hasattr(metric, "__float__"):
             raise TypeError(f"metric must be a number, got {type(metric).__name__}")
         metric = float(metric)
+        if self.comm is not None and self.comm.size > 1:
+            every = self.comm.allgather(metric)
+            if any(m != metric for m in every):
+                raise ValueError(
+                    f"PRDP.step got different metrics on the {self.comm.size} ranks ({every}); every rank must "
+                    "step with the same metric, or one rank refines K alone and the collective solves hang: "
+                    "reduce it first, e.g. comm.allreduce(error_sum) / comm.allreduce(count)")
         if not math.isfinite(metric) or metric <= 0.0:
             raise ValueError(f"metric must be finite and > 0 (a validation error), got {metric!r}")
         ema = metric if not self.history else self.alpha * metric + (1.0 - self.alpha) * self.history[-1].ema
@@ -236,6 +248,16 @@ def k_eps(layer: SolveLayer, *, rtol: float = 1e-8, **controls) -> int:
         return probe.stats.max_forward_iterations
     finally:
         probe.close()
+
+
+def _layers_comm(target):
+    """The communicator of the first target layer's mesh (``None`` for other targets)."""
+    targets = list(target) if isinstance(target, Iterable) and not hasattr(target, "max_it") else [target]
+    for t in targets:
+        problem = getattr(t, "problem", None)
+        if problem is not None:
+            return problem.V.mesh.comm
+    return None
 
 
 def _setter(target) -> Callable[[int], None]:

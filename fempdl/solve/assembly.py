@@ -5,6 +5,7 @@
   assembled object was built from still have their values (on every rank);
 * :class:`KeptMatrices` keeps copies of per-sample matrices of recent forward calls for their adjoints;
 * :class:`Timer` adds the seconds of a block to a stats counter;
+* :func:`check_operator` refuses an assembled matrix with an empty row (singular) or a non-finite entry;
 * :func:`assemble_scipy` gives an assembled form as a scipy CSR matrix.
 """
 from __future__ import annotations
@@ -21,7 +22,7 @@ from fempdl.core import _dolfinx
 from fempdl.core.problem import Problem
 from fempdl.solve.petsc import petsc_to_scipy
 
-__all__ = ["ControlValues", "KeptMatrices", "Timer", "attach_nullspace", "set_owned", "fingerprint",
+__all__ = ["check_operator", "ControlValues", "KeptMatrices", "Timer", "attach_nullspace", "set_owned", "fingerprint",
            "fingerprint_matches", "assemble_scipy"]
 
 
@@ -194,3 +195,28 @@ def assemble_scipy(form) -> sp.csr_matrix:
     finally:
         A.destroy()
 
+
+def check_operator(A: PETSc.Mat, controls: list[str]) -> None:
+    """Raise ValueError on every rank when the assembled ``A`` has a NaN/inf entry or an empty row.
+
+    An empty row is a singular matrix, and neither a factorisation nor Jacobi says so: MUMPS returns
+    a tiny or huge finite vector, PCJACOBI takes 1 for the zero diagonal and iterates on. It is what
+    a zero coefficient gives (kappa = 0 on a node's support); Dirichlet rows hold 1. The message
+    names ``controls``, the matrix controls set for this assembly. Costs a pass over the entries."""
+    finite = np.isfinite(A.norm(PETSc.NormType.INFINITY))   # the largest row sum: inf or NaN iff an entry is
+    diagonal = A.getDiagonal()
+    suspects = np.flatnonzero(diagonal.getArray(readonly=True) == 0.0)
+    diagonal.destroy()
+    empty = 0
+    if len(suspects):                   # rare: a zero diagonal entry; is its whole row zero?
+        indptr, _, data = A.getValuesCSR()
+        nonzero = np.concatenate([[0], np.cumsum(data != 0.0)])
+        empty = int(np.count_nonzero(nonzero[indptr[suspects + 1]] == nonzero[indptr[suspects]]))
+    empty = A.getComm().tompi4py().allreduce(empty)
+    if finite and not empty:
+        return
+    source = (f"control(s) {controls}" if controls else
+              "the problem's coefficients (no matrix control was passed: check its fixed Functions and Constants)")
+    what = "NaN or inf entries" if not finite else f"{empty} empty row{'s' if empty > 1 else ''} (it is singular)"
+    raise ValueError(f"the assembled matrix has {what} with {source}; check for a zero or non-finite "
+                     "coefficient (e.g. kappa = 0 somewhere) or a missing Dirichlet condition")

@@ -29,7 +29,7 @@ from petsc4py import PETSc
 
 from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import CappedSolver
-from fempdl.solve.assembly import (ControlValues, KeptMatrices, Timer, attach_nullspace, fingerprint,
+from fempdl.solve.assembly import (ControlValues, KeptMatrices, Timer, attach_nullspace, check_operator, fingerprint,
                                     fingerprint_matches, set_owned)
 from fempdl.solve.petsc import petsc_to_scipy
 from fempdl.solve.options import KSPOptions
@@ -130,7 +130,7 @@ class LinearSystem:
                 else:
                     ctl.set_sample(i)
                     if per_sample_matrix:
-                        self._assemble_matrix()
+                        self._assemble_matrix(names)
                         if kept is not None:
                             kept.append(self._A)
                     with self._assembling():
@@ -203,7 +203,7 @@ class LinearSystem:
                         kept.restore(i, self._A)
                         self._A_version += 1
                     elif per_sample_matrix:
-                        self._assemble_matrix()
+                        self._assemble_matrix(names)
                     self._lag_preconditioner(per_sample_matrix and i > 0)
                     self._rhs.setArray(G[i])
                     self._solver.solve_transpose(self._rhs, self._x)
@@ -321,7 +321,7 @@ class LinearSystem:
         self._A_inputs = None
         if not per_sample:
             ctl.set_sample(0)
-            self._assemble_matrix()
+            self._assemble_matrix(names)
 
     def _lag_preconditioner(self, later_sample: bool) -> None:
         """Keep the first sample's preconditioner for the later samples of a call
@@ -332,9 +332,12 @@ class LinearSystem:
         """Counts the enclosed seconds as assembly in the layer's stats."""
         return Timer(self.stats, "assembly_time")
 
-    def _assemble_matrix(self) -> None:
+    def _assemble_matrix(self, controls: frozenset = frozenset()) -> None:
+        """Assemble A with the controls' current values; refuse a singular or non-finite one
+        (:func:`~fempdl.solve.assembly.check_operator`), naming the matrix ``controls`` set for it."""
         with self._assembling():
             _dolfinx.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
+            check_operator(self._A, sorted(frozenset(controls) & self.problem.matrix_controls))
         self._A_version += 1
 
     def _ensure_constant_matrix(self) -> None:

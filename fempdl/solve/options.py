@@ -26,7 +26,7 @@ from petsc4py import PETSc
 
 from fempdl.core.checks import check_int
 
-__all__ = ["KSPOptions", "PRESETS", "ENGINES", "ADJOINT_OPERATORS", "MAX_PETSC_INT", "DEFAULT_RTOL", "DEFAULT_CAP",
+__all__ = ["KSPOptions", "PRESETS", "ENGINES", "ADJOINT_OPERATORS", "MAX_PETSC_INT", "DEFAULT_RTOL",
            "DEFAULT_CONVERGED_MAX_IT", "PRIVATE_PREFIX", "NORM_FREE_KSP_TYPES"]
 
 _KSP_TYPES = frozenset(getattr(PETSc.KSP.Type, n) for n in dir(PETSc.KSP.Type) if n.isupper())
@@ -38,7 +38,7 @@ NORM_FREE_KSP_TYPES = frozenset({"richardson", "cg", "chebyshev"})
 _DIRECT_KSP_TYPES = frozenset({"preonly"})
 # Preconditioners that solve the system exactly (a factorisation): only with one of
 # them is a single application (KSPPREONLY) a direct solve.
-_FACTORISING_PC_TYPES = frozenset({"lu", "cholesky", "qr", "svd", "redundant"})
+_FACTORISING_PC_TYPES = frozenset({"lu", "cholesky", "qr", "svd"})
 # PETSc's largest int in this build (32- or 64-bit indices): larger caps overflow inside PETSc.
 MAX_PETSC_INT = int(np.iinfo(PETSc.IntType).max)
 # Keys that have a first-class field; setting them through petsc_options would
@@ -82,8 +82,6 @@ _LSC_INNER = ({"fieldsplit_p_lsc_pc_type": "hypre"} if PETSc.Sys.hasExternalPack
 _AMG = (dict(pc_type="hypre", petsc_options={"pc_hypre_type": "boomeramg"})
         if PETSc.Sys.hasExternalPackage("hypre") else dict(pc_type="gamg"))
 DEFAULT_RTOL = 1e-10
-DEFAULT_CAP = 20  # max_it when not given, for iterative methods (direct ones get None)
-_UNSET = object()  # max_it not given
 DEFAULT_CONVERGED_MAX_IT = 10_000
 
 
@@ -95,9 +93,10 @@ class KSPOptions:
         ksp_type: any PETSc KSP type name (``"richardson"``, ``"cg"``, ``"gmres"``,
             ``"preonly"``, ...).
         pc_type: any PETSc PC type name (``"jacobi"``, ``"none"``, ``"lu"``, ...).
-        max_it: the iteration cap K (int >= 1), or ``None`` to run to ``rtol``.
-            Default 20 for iterative methods and ``None`` for direct solves
-            (``ksp_type="preonly"``), where a cap has no meaning.
+        max_it: the iteration cap K (int >= 1), or ``None`` (the default) to run
+            to ``rtol`` and fail if it is not reached. A cap is only ever what you
+            ask for: the same options never mean capped in one place and
+            converged in another (a preset is converged unless given ``max_it``).
         rtol: relative tolerance. With a cap it applies only if given; without a
             cap it defaults to 1e-10.
         atol: absolute tolerance (default 0 with a cap, PETSc's 1e-50 without).
@@ -163,7 +162,7 @@ class KSPOptions:
 
     ksp_type: str = "richardson"
     pc_type: str = "jacobi"
-    max_it: int | None = _UNSET  # type: ignore[assignment]
+    max_it: int | None = None
     rtol: float | None = None
     atol: float | None = None
     divtol: float | None = None
@@ -179,8 +178,6 @@ class KSPOptions:
     def __post_init__(self):
         _check_choice("ksp_type", self.ksp_type, _KSP_TYPES)
         _check_choice("pc_type", self.pc_type, _PC_TYPES)
-        if self.max_it is _UNSET:
-            object.__setattr__(self, "max_it", None if self.ksp_type in _DIRECT_KSP_TYPES else DEFAULT_CAP)
         if self.max_it is not None:
             check_int("max_it", self.max_it, minimum=1, maximum=MAX_PETSC_INT,
                        hint="use max_it=None to run to rtol instead of capping")
@@ -202,12 +199,6 @@ class KSPOptions:
             raise ValueError(f"atol must be >= 0, got {self.atol!r}")
         if self.divtol is not None and self.divtol <= 1.0:
             raise ValueError(f"divtol must be > 1 (a growth factor of the residual), got {self.divtol!r}")
-        if self.ksp_type in _DIRECT_KSP_TYPES and self.pc_type not in _FACTORISING_PC_TYPES:
-            raise ValueError(
-                f"ksp_type={self.ksp_type!r} applies the preconditioner once, which solves the system only "
-                f"when it is a factorisation ({sorted(_FACTORISING_PC_TYPES)}); with pc_type={self.pc_type!r} "
-                "the result is not the solution. Use pc_type='lu' (KSPOptions.preset('lu')) for a direct "
-                "solve, or an iterative ksp_type such as 'richardson' (max_it=1 applies the preconditioner once)")
         if self.gmres_restart is not None:
             check_int("gmres_restart", self.gmres_restart, minimum=1, maximum=MAX_PETSC_INT)
             if self.ksp_type not in _RESTARTED_KSP_TYPES:
@@ -215,6 +206,13 @@ class KSPOptions:
                     f"gmres_restart is only meaningful for {sorted(_RESTARTED_KSP_TYPES)}, "
                     f"got ksp_type={self.ksp_type!r}; drop gmres_restart or change ksp_type")
         object.__setattr__(self, "petsc_options", _frozen_petsc_options(self.petsc_options))
+        if self.ksp_type in _DIRECT_KSP_TYPES and not _factorises(self.pc_type, self.petsc_options):
+            raise ValueError(
+                f"ksp_type={self.ksp_type!r} applies the preconditioner once, which solves the system only "
+                f"when it is a factorisation ({sorted(_FACTORISING_PC_TYPES)}, or 'redundant' around one); with "
+                f"pc_type={self.pc_type!r}{_inner_pc(self.petsc_options)} the result is not the solution. Use "
+                "pc_type='lu' (KSPOptions.preset('lu')) for a direct solve, or an iterative ksp_type such as "
+                "'richardson' (max_it=1 applies the preconditioner once)")
         if self.adjoint is not None:
             if not isinstance(self.adjoint, KSPOptions):
                 raise TypeError(f"adjoint must be KSPOptions or None, got {type(self.adjoint).__name__}")
@@ -367,6 +365,21 @@ def _frozen_petsc_options(options) -> Mapping[str, Any]:
             raise TypeError(f"petsc_options[{key!r}] must be str, number, bool or None, got {value!r}")
         clean[key] = value
     return types.MappingProxyType(clean)
+
+
+def _factorises(pc_type: str, petsc_options: Mapping[str, Any]) -> bool:
+    """Whether one application of ``pc_type`` solves the system: a factorisation, or PCREDUNDANT
+    whose inner solver (``redundant_ksp_type``, ``redundant_pc_type``; PETSc's defaults preonly + LU)
+    is one."""
+    if pc_type == "redundant":
+        return (petsc_options.get("redundant_ksp_type", "preonly") == "preonly"
+                and petsc_options.get("redundant_pc_type", "lu") in _FACTORISING_PC_TYPES)
+    return pc_type in _FACTORISING_PC_TYPES
+
+
+def _inner_pc(petsc_options: Mapping[str, Any]) -> str:
+    inner = {k: v for k, v in petsc_options.items() if k in ("redundant_ksp_type", "redundant_pc_type")}
+    return f" ({', '.join(f'{k}={v!r}' for k, v in inner.items())})" if inner else ""
 
 
 def _parse_option(key: str, value, kind: type):

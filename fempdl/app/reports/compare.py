@@ -35,18 +35,20 @@ BASELINE = "backprop"
 
 
 def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_time: bool = True,
-            max_factor: int = 20, resume: bool = False, progress: bool = False) -> dict[str, RunResult]:
+            max_factor: int = 20, resume: bool = False, progress: bool = False,
+            overwrite: bool = False) -> dict[str, RunResult]:
     """Train the scene's method and the baseline (module docstring); runs keyed by method.
 
     Each run keeps its metrics and checkpoint under ``out_dir``/<method>;
-    ``resume`` continues runs that have a checkpoint."""
+    ``resume`` continues runs that have a checkpoint; ``overwrite`` replaces the others' files."""
     out_dir = Path(out_dir)
     method = tasks.method_of(scene)
 
     def train(name: str, **kwargs) -> RunResult:
         sub = out_dir / name
-        return runner.run_method(scene, name, out_dir=sub, progress=progress,
-                             resume=resume and (sub / CHECKPOINT).exists(), **kwargs)
+        again = resume and (sub / CHECKPOINT).exists()
+        return runner.run_method(scene, name, out_dir=sub, progress=progress, resume=again,
+                                 overwrite=overwrite and not again, **kwargs)
 
     runs = {method: train(method, epochs=epochs)}
     n = len(runs[method].rows)
@@ -60,9 +62,9 @@ def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_tim
 
 
 def compare_and_report(scene: Scene, out_dir: Path, *, equal_time: bool = True, resume: bool = False,
-                       progress: bool = False) -> tuple[dict[str, RunResult], dict, list[Path]]:
+                       progress: bool = False, overwrite: bool = False) -> tuple[dict[str, RunResult], dict, list[Path]]:
     """:func:`compare`, :func:`summary` and :func:`write_report` into ``out_dir``: (runs, summary, paths)."""
-    runs = compare(scene, out_dir, equal_time=equal_time, resume=resume, progress=progress)
+    runs = compare(scene, out_dir, equal_time=equal_time, resume=resume, progress=progress, overwrite=overwrite)
     split = summary(scene, runs, equal_time=equal_time)
     return runs, split, write_report(scene, runs, split, out_dir)
 

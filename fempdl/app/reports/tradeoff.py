@@ -47,17 +47,19 @@ def geometric_caps(k_eps: int) -> list[int]:
 
 
 def sweep(scene: Scene, *, ks: list[int] | None = None, out_dir: Path | None = None,
-          progress: bool = False) -> dict[str, RunResult]:
-    """Train ``scene`` with every fixed K, the converged baseline and PRDP."""
-    baseline = runner.run(scene, "converged", out_dir=_sub(out_dir, "converged"), progress=progress)
+          progress: bool = False, overwrite: bool = False) -> dict[str, RunResult]:
+    """Train ``scene`` with every fixed K, the converged baseline and PRDP (``overwrite``: replace
+    the runs of an earlier sweep in ``out_dir``, which is refused otherwise)."""
+    baseline = runner.run(scene, "converged", out_dir=_sub(out_dir, "converged"), progress=progress,
+                          overwrite=overwrite)
     keps = baseline.k_eps
     runs = {}
     for k in ks or geometric_caps(keps):
         runs[f"K={k}"] = runner.run(scene, "fixed", k, out_dir=_sub(out_dir, f"k{k}"), progress=progress,
-                                         k_eps_value=keps)
+                                    k_eps_value=keps, overwrite=overwrite)
     runs[f"K_eps={keps}"] = baseline
     runs["PRDP"] = runner.run(scene, "prdp", out_dir=_sub(out_dir, "prdp"), progress=progress,
-                                   k_eps_value=keps)
+                              k_eps_value=keps, overwrite=overwrite)
     return runs
 
 

@@ -155,7 +155,11 @@ def save(directory: Path, state: dict) -> Path:
             os.replace(link, previous)
         except OSError:
             link.unlink(missing_ok=True)
-    write_atomically(path, lambda p: torch.save(state, p))
+    try:
+        write_atomically(path, lambda p: torch.save(state, p))
+    except RuntimeError as err:     # torch's writer reports a failed write (a full disk) as "iostream error"
+        raise CheckpointError(f"cannot write the checkpoint {str(path)!r} ({str(err).splitlines()[0]}); is the "
+                              "disk full? Free some space and continue the run with --resume") from None
     return path
 
 
@@ -197,4 +201,36 @@ def load(path: Path) -> dict:
     if missing:
         raise CheckpointError(f"checkpoint {str(path)!r} is incomplete or was written by an older fempdl "
                               f"(missing {missing}); to continue: {remedy}")
+    wrong = _malformed(state)
+    if wrong:
+        raise CheckpointError(f"checkpoint {str(path)!r} is malformed ({wrong}); it was not written by fempdl "
+                              f"or was edited since. To continue: {remedy}")
     return state
+
+
+def _malformed(state: dict) -> str | None:
+    """What is wrong with the plain values of a loaded checkpoint (None: nothing found)."""
+    def whole(value, least=0):
+        return isinstance(value, int) and not isinstance(value, bool) and value >= least
+
+    def seconds(value):
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and 0.0 <= value < float("inf")
+
+    epoch, rows = state["epoch"], state["rows"]
+    if not whole(epoch):
+        return f"epoch {epoch!r} is not a whole number >= 0"
+    if not isinstance(rows, list) or len(rows) != epoch + 1:
+        return f"it holds {len(rows) if isinstance(rows, list) else type(rows).__name__} metric rows for {epoch + 1} epochs"
+    if any(not isinstance(row, dict) or row.get("epoch") != i for i, row in enumerate(rows)):
+        return "its metric rows are not numbered 0, 1, ... in order"
+    if not seconds(state["elapsed"]) or not seconds(state.get("train_time", 0.0)):
+        return f"elapsed {state['elapsed']!r} or train_time {state.get('train_time')!r} is not a time in seconds"
+    if state["k"] is not None and not whole(state["k"], 1):
+        return f"k {state['k']!r} is not an iteration cap >= 1"
+    by_rank = state["layer_stats_by_rank"]
+    if not isinstance(by_rank, list) or not by_rank or not all(isinstance(r, list) for r in by_rank):
+        return "layer_stats_by_rank is not one list per rank"
+    for key in ("model", "optimizer", "rng", "fingerprint"):
+        if not isinstance(state[key], dict):
+            return f"{key} is a {type(state[key]).__name__}, not a dict"
+    return None

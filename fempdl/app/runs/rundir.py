@@ -4,11 +4,13 @@
   (a scene's name under ``runs/``) is a slug of letters, digits and ``-_.``
   that is not ``.`` or ``..``, and the path built from it stays inside its
   parent.
-* :class:`RunLock`: an exclusive lock on a directory, the file ``.lock``
-  holding the owner's host and PID. It is created with ``O_EXCL`` (atomic);
-  a lock whose process no longer runs on this host is stale and taken over;
-  it is removed when the run ends, also on an exception or Ctrl-C. A second
-  run on the same directory is refused with a message naming the owner.
+* :class:`RunLock`: an exclusive lock on a directory: the kernel's lock
+  (``flock``) on the file ``.lock``, which holds the owner's host and PID for
+  messages. Two processes acquiring at the same instant cannot both hold it,
+  and a process that dies frees it; a lock file written by a live process
+  that holds no kernel lock is respected too. It is removed when the run
+  ends, also on an exception or Ctrl-C. A second run on the same directory
+  is refused with a message naming the owner.
 * :func:`fingerprint` and :func:`differences`: what defines a run (the parsed
   scene, the mode, K, the number of ranks, the package version, ...) as a
   flat dict of plain values; a resumed run compares its own with the
@@ -17,6 +19,7 @@
 """
 from __future__ import annotations
 
+import fcntl
 import os
 import socket
 from pathlib import Path
@@ -28,6 +31,8 @@ __all__ = ["LOCK", "ResumeError", "RunDirectoryError", "RunLock", "check_slug", 
            "holds_run"]
 
 LOCK = ".lock"
+#: In :func:`differences`' ``absent_means``: a checkpoint written before the key existed did not record it.
+NOT_RECORDED = object()
 # Files whose presence means a directory holds a run.
 RUN_FILES = (CHECKPOINT, "metrics.csv", "metrics.json")
 
@@ -71,6 +76,7 @@ class RunLock:
         self.directory = Path(directory)
         self.path = self.directory / LOCK
         self._mine = False
+        self._fd = None
 
     def __enter__(self) -> "RunLock":
         self.acquire()
@@ -88,46 +94,91 @@ class RunLock:
         except OSError as err:      # a file in the way, no permission, read-only file system
             raise RunDirectoryError(f"cannot use {str(self.directory)!r} as an output directory ({err.strerror}); "
                                     "choose another (--out)") from None
-        me = f"{socket.gethostname()} {os.getpid()}\n"
+        me = (socket.gethostname(), os.getpid())
         for _ in range(3):
+            fd = self._open()
             try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
-            except PermissionError as err:
-                raise RunDirectoryError(f"cannot write to {str(self.directory)!r} ({err.strerror}); choose another "
-                                        "output directory (--out)") from None
-            except FileExistsError:
-                owner = self._owner()
-                if owner is not None and _alive(*owner):
-                    raise RunDirectoryError(
-                        f"{str(self.directory)!r} is in use by another run (process {owner[1]} on {owner[0]}, "
-                        f"lock file {str(self.path)!r}); wait for it to finish or choose another output "
-                        "directory (--out); if that process is not a fempdl run, delete the lock file") from None
-                self.path.unlink(missing_ok=True)      # stale: its process is gone
+                # The kernel's lock decides, atomically, and frees it when its process dies:
+                # two processes acquiring at the same instant cannot both hold it.
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                raise self._in_use(self._owner()) from None
+            if not _is_at(fd, self.path):     # a holder released (unlinked) it meanwhile: lock the new one
+                os.close(fd)
                 continue
-            with os.fdopen(fd, "w") as fh:
-                fh.write(me)
+            owner = _read_owner(fd)
+            if owner is not None and owner != me and _alive(*owner):
+                os.close(fd)                  # written by a live process that holds no kernel lock
+                raise self._in_use(owner)
+            try:
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"{me[0]} {me[1]}\n".encode(), 0)
+            except OSError as err:            # e.g. no space left on the device
+                os.close(fd)
+                raise RunDirectoryError(f"cannot write the lock file {str(self.path)!r} ({err.strerror}); free "
+                                        "some space or choose another output directory (--out)") from None
+            self._fd = fd
             RunLock._held.add(key)
             self._mine = True
             return
-        raise RunDirectoryError(f"could not take the lock {str(self.path)!r}: another process keeps "
-                                "creating it; choose another output directory (--out)")
+        raise RunDirectoryError(f"could not take the lock {str(self.path)!r}: other processes keep taking and "
+                                "releasing it; choose another output directory (--out)")
 
     def release(self) -> None:
         if not self._mine:
             return
         RunLock._held.discard(os.path.abspath(self.path))
         self._mine = False
-        owner = self._owner()
-        if owner == (socket.gethostname(), os.getpid()):
+        # Unlinked while still locked, so no process can lock this file after it left the directory
+        # and believe it holds the directory's lock (acquire checks the path still names its file).
+        if _is_at(self._fd, self.path):
             self.path.unlink(missing_ok=True)
+        os.close(self._fd)
+        self._fd = None
+
+    def _open(self) -> int:
+        try:
+            return os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as err:
+            raise RunDirectoryError(f"cannot write to {str(self.directory)!r} ({err.strerror}); choose another "
+                                    "output directory (--out)") from None
+
+    def _in_use(self, owner) -> RunDirectoryError:
+        who = f"process {owner[1]} on {owner[0]}" if owner else "a process that is starting"
+        return RunDirectoryError(
+            f"{str(self.directory)!r} is in use by another run ({who}, lock file {str(self.path)!r}); wait for "
+            "it to finish or choose another output directory (--out); if that process is not a fempdl run, "
+            "delete the lock file")
 
     def _owner(self) -> tuple[str, int] | None:
         """(host, pid) written in the lock file, or None when it is unreadable (being written, or garbage)."""
         try:
-            host, pid = self.path.read_text().split()
-            return host, int(pid)
-        except (OSError, ValueError):
+            return _parse_owner(self.path.read_text())
+        except OSError:
             return None
+
+
+def _read_owner(fd: int) -> tuple[str, int] | None:
+    return _parse_owner(os.pread(fd, 4096, 0).decode(errors="replace"))
+
+
+def _parse_owner(text: str) -> tuple[str, int] | None:
+    try:
+        host, pid = text.split()
+        return host, int(pid)
+    except ValueError:
+        return None
+
+
+def _is_at(fd: int, path: Path) -> bool:
+    """Whether ``path`` still names the open file ``fd``."""
+    try:
+        here = os.stat(path)
+    except FileNotFoundError:
+        return False
+    mine = os.fstat(fd)
+    return (here.st_dev, here.st_ino) == (mine.st_dev, mine.st_ino)
 
 
 def _alive(host: str, pid: int) -> bool:
@@ -162,8 +213,11 @@ def differences(saved: dict, current: dict, allowed: tuple = (), absent_means: d
     """``"key: saved -> now"`` for every key of the two fingerprints that differs and is not ``allowed``.
 
     ``absent_means``: keys added to the fingerprint later, with the value a run
-    written before them had (a checkpoint without the key behaves so)."""
-    old = {**(absent_means or {}), **saved}
+    written before them had (a checkpoint without the key behaves so), or
+    :data:`NOT_RECORDED` when that value is unknown (such a checkpoint is not checked on the key)."""
+    absent_means = absent_means or {}
+    old = {**absent_means, **saved}
     keys = sorted(set(saved) | set(current))
+    unknown = {key for key, value in absent_means.items() if value is NOT_RECORDED and key not in saved}
     return [f"{key}: {saved.get(key, '<absent>')!r} -> {current.get(key, '<absent>')!r}" for key in keys
-            if key not in allowed and old.get(key, "<absent>") != current.get(key, "<absent>")]
+            if key not in allowed and key not in unknown and old.get(key, "<absent>") != current.get(key, "<absent>")]

@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 from mpi4py import MPI
 
-from fempdl.core import io
+from fempdl.core import io, mesh
 from fempdl.app.schema import Scene
 from fempdl.app.tasks import SPECS, spec_of, task_class
 from fempdl.app.runs.training import Trainer
@@ -149,16 +149,18 @@ def save_fields(task, out_dir: Path, samples: int = 4, title: str | None = None)
 
 def run_settings(scene: Scene, **settings) -> dict:
     """What defines a run of ``scene``, for the checkpoint's fingerprint: the parsed
-    scene (not its file's location or description) and ``settings`` (mode, K, ...)."""
+    scene (not its file's location or description), the SHA-256 of its mesh file,
+    and ``settings`` (mode, K, ...)."""
     parsed = {key: value for key, value in scene.as_dict().items() if key not in ("source", "description")}
-    return {"scene": parsed, **settings}
+    # The mesh file's content, not only its name: a resume refuses a file that changed at the same path.
+    return {"scene": parsed, "mesh_sha256": mesh.source_digest(scene.mesh.name, scene.mesh.h), **settings}
 
 
 def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None = None, resume: bool = False,
         epochs: int | None = None, progress: bool = False, k_eps_value: int | None = None,
         stop_after: int | None = None, parallel: str | None = None,
         comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None, save: bool = False,
-        tensorboard: bool = False) -> RunResult:
+        tensorboard: bool = False, overwrite: bool = False) -> RunResult:
     """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp").
 
     ``parallel`` ("data" or "mesh") trains on the ranks of ``comm`` together
@@ -167,7 +169,9 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
     scene's data seed); the data are the scene's either way. ``save`` writes
     the validation fields after training (:func:`save_fields`, into
     ``out_dir``; rank 0; not with ``parallel="mesh"``). ``tensorboard`` also
-    writes the metrics as TensorBoard scalars into ``out_dir``/tensorboard."""
+    writes the metrics as TensorBoard scalars into ``out_dir``/tensorboard. An
+    ``out_dir`` holding an earlier run needs ``resume`` (continue it) or
+    ``overwrite`` (replace it)."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
     if save and (out_dir is None or not spec_of(scene.task).writes_fields or parallel == "mesh"):
@@ -190,7 +194,7 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
                           out_dir=out_dir, prdp=prdp, seed=scene.data.seed if seed is None else seed,
                           progress=progress, tensorboard=_board_dir(out_dir, tensorboard),
                           stop_after=stop_after, stop_at=scene.optimizer.stop_at, parallel=parallel, comm=comm,
-                          settings=run_settings(scene, mode=mode, k=k, seed=seed))
+                          settings=run_settings(scene, mode=mode, k=k, seed=seed), overwrite=overwrite)
         rows = trainer.run(resume=resume)
         if save and comm.rank == 0:
             save_fields(task, out_dir, title=f"{scene.name}, {mode}" + (f" K={k}" if k else ""))
@@ -213,7 +217,7 @@ def _batch(scene: Scene) -> int:
 
 def run_method(scene: Scene, method: str, *, out_dir: Path | None = None, resume: bool = False, epochs: int | None = None,
         progress: bool = False, stop_after: int | None = None, stop_at_time: float | None = None,
-        tensorboard: bool = False) -> RunResult:
+        tensorboard: bool = False, overwrite: bool = False) -> RunResult:
     """Train a sip or hig scene with ``method`` (its own, or "backprop"); metrics and checkpoints in ``out_dir``.
 
     ``stop_at_time`` ends the run once its training steps took that many
@@ -224,7 +228,7 @@ def run_method(scene: Scene, method: str, *, out_dir: Path | None = None, resume
                           out_dir=out_dir, seed=scene.data.seed, progress=progress, stop_after=stop_after,
                           tensorboard=_board_dir(out_dir, tensorboard),
                           stop_at=scene.optimizer.stop_at, stop_at_time=stop_at_time,
-                          settings=run_settings(scene, method=method))
+                          settings=run_settings(scene, method=method), overwrite=overwrite)
         rows = trainer.run(resume=resume)
     finally:
         task.close()

@@ -46,7 +46,8 @@ __all__ = ["Trainer", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES"
 RESUMABLE_CHANGES = ("run.scene.optimizer.epochs", "run.epochs")
 # Fingerprint keys that came later, with what a checkpoint written before them ran with.
 KEYS_ADDED_LATER = {"run.scene.solver.warm_start": False,      # the inverse task's solves started from zero
-                    "run.scene.marker.inputs": "raw"}           # the marker network took raw inputs
+                    "run.scene.marker.inputs": "raw",           # the marker network took raw inputs
+                    "run.mesh_sha256": rundir.NOT_RECORDED}     # the mesh file's content was not recorded
 PARALLEL_MODES = ("data", "mesh")
 _log = logging.getLogger(__name__)
 
@@ -87,6 +88,10 @@ class Trainer:
             forms the run's fingerprint, stored in the checkpoint: a resume
             whose fingerprint differs is refused (:data:`RESUMABLE_CHANGES`
             may differ).
+        overwrite: a fresh run (``resume=False``) replaces the files of a run
+            already in ``out_dir``; without it that is refused
+            (:class:`~fempdl.app.runs.rundir.RunDirectoryError`), as the command
+            refuses without ``--overwrite``.
     """
 
     task: object
@@ -104,6 +109,7 @@ class Trainer:
     comm: MPI.Comm = dataclasses.field(default_factory=lambda: MPI.COMM_WORLD)
     settings: dict | None = None
     rows: list = dataclasses.field(default_factory=list)
+    overwrite: bool = False
 
     def __post_init__(self):
         if self.parallel not in (None, *PARALLEL_MODES):
@@ -130,6 +136,12 @@ class Trainer:
         a second run on it is refused); temporary files an interrupted write
         left there are removed; a fresh run (``resume=False``) first removes
         the checkpoints of a run it replaces."""
+        held = (not resume and not self.overwrite and self.out_dir is not None and self._writer
+                and any((self.out_dir / name).exists() for name in rundir.RUN_FILES))
+        if self.comm.bcast(held, root=0):       # every rank takes the same branch
+            raise rundir.RunDirectoryError(
+                f"{str(self.out_dir)!r} holds the files of an earlier run; pass resume=True to continue it, "
+                "overwrite=True to replace it (the command: --resume, --overwrite), or choose another out_dir")
         lock = rundir.RunLock(self.out_dir) if self.out_dir is not None and self._writer else None
         if lock is not None:
             lock.acquire()
@@ -324,10 +336,20 @@ class Trainer:
                 f"resume: {path} was written by a different run; changed since: {'; '.join(changed)}. A resume "
                 "continues the same run (only the number of epochs may change); to start afresh with these "
                 "settings pass --overwrite (Python: resume=False), or choose another output directory")
-        self.task.model.load_state_dict(state["model"])
-        self.task.optimizer.load_state_dict(state["optimizer"])
-        if self.task.scheduler is not None:
-            self.task.scheduler.load_state_dict(state["scheduler"])
+        done = state["epoch"] + 1
+        if done > self.epochs:
+            raise rundir.ResumeError(
+                f"resume: {path} already holds {done} epochs, more than the {self.epochs} asked for, so there is "
+                f"nothing to continue; ask for more (--epochs N with N > {done}) or start afresh (--overwrite)")
+        try:
+            self.task.model.load_state_dict(state["model"])
+            self.task.optimizer.load_state_dict(state["optimizer"])
+            if self.task.scheduler is not None:
+                self.task.scheduler.load_state_dict(state["scheduler"])
+        except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as err:
+            raise CheckpointError(f"{path}: its model or optimizer state does not fit this run's "
+                                  f"({type(err).__name__}: {str(err).splitlines()[0]}); start afresh (--overwrite) "
+                                  "or restore a checkpoint of this run") from None
         if self.prdp is not None:
             if state["prdp"] is None:
                 raise ValueError(f"{path} was written by a run without PRDP; resume it without --prdp")
