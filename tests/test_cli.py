@@ -503,9 +503,6 @@ def test_validation_fields_are_what_the_metric_measures(tiny):
 
 @pytest.mark.parametrize("argv, fragment", [
     (["run", "{sip}", "--save-fields"], "--save-fields writes the fields of PRDP scenes; the sip scene 'tiny-sip'"),
-    (["run", "poisson-inverse", "--save-fields", "--parallel", "mesh"],
-     "--save-fields writes the fields of emulator and inverse scenes, serial or with --parallel data; "
-     "'poisson-inverse' is of task 'inverse' on a distributed mesh"),
 ])
 def test_save_fields_refusals(argv, fragment, tiny, tiny_sip, tmp_path):
     code, _, stderr = call([a.format(sip=tiny_sip, tiny=tiny) for a in argv] + ["--out", tmp_path / "o"])

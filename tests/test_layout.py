@@ -31,7 +31,7 @@ FLOORS = [
     ("layer", [["fempdl.layer"], ["fempdl.bridge_torch"]]),
     ("methods", [["fempdl.methods"], ["fempdl.prdp"]]),
     ("public", [["fempdl"]]),                    # __init__: the public names
-    ("app", [["fempdl.app.schema", "fempdl.app.scenes"], ["fempdl.app.tasks"], ["fempdl.app.scene"],
+    ("app", [["fempdl.app.schema", "fempdl.app.scenes", "fempdl.app.scene_budget"], ["fempdl.app.tasks"], ["fempdl.app.scene"],
              ["fempdl.app.runs"], ["fempdl.app.reports"], ["fempdl.app.cli", "fempdl.app.commands"], ["fempdl.app"]]),
 ]
 # Third-party packages the torch-only floor must not reach.

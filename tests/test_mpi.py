@@ -217,3 +217,25 @@ def test_the_data_parallel_example_trains_as_one_process(tmp_path):
     assert one["history"] == two["history"] and one["k"] == two["k"] > 1
     assert one["iterations"] == two["iterations"]
     assert abs(one["metric"] - two["metric"]) <= 1e-9 * one["metric"]
+
+
+def test_save_fields_on_a_distributed_mesh(tmp_path):
+    """--save-fields with --parallel mesh: the ranks write one XDMF file together (it was refused)."""
+    path = tmp_path / "inverse.toml"
+    path.write_text(tiny_scene("inverse", optimizer={"epochs": 2}))
+    out = tmp_path / "out"
+    done = mpirun(2, "-m", "fempdl.app.cli", "run", str(path), "--parallel", "mesh", "--k", "3", "--no-baseline",
+                  "--no-progress", "--save-fields", "--out", str(out), timeout=180)
+    assert done.returncode == 0, done.stderr[-3000:]
+    xdmf = (out / "k3" / "fields.xdmf").read_text()
+    assert all(f'Name="{label}"' in xdmf for label in ("prediction", "reference", "error"))
+    assert (out / "k3" / "fields.h5").exists() and not (out / "k3" / "fields.png").exists()
+
+
+def test_two_processes_writing_one_xdmf_file_get_an_error(tmp_path):
+    """Every rank of a data-parallel loop writing the same file from its own copy of the mesh: the second
+    writer gets an error instead of interleaving HDF5 writes."""
+    done = mpirun(2, str(SCRIPTS / "one_file.py"), str(tmp_path / "u.xdmf"), timeout=120)
+    assert done.returncode == 0, done.stderr[-3000:]
+    outcomes = sorted((tmp_path / f"rank{r}.txt").read_text() for r in range(2))
+    assert outcomes[1] == "wrote" and outcomes[0].startswith("another process is writing"), outcomes

@@ -433,8 +433,14 @@ def test_strings_are_never_evaluated(tmp_path):
                                            f'description = "{quoted}"\n[mesh]\nname = "{quoted}"\n')
     path = tmp_path / "evil.toml"
     path.write_text(text)
+    # The mesh name is a name or a path, looked up, never run: refused as neither.
+    for parse in (lambda: scene.parse(text), lambda: scene.load(path)):
+        with pytest.raises(scene.SceneError, match=r"\[mesh\] name .* is neither a bundled mesh"):
+            parse()
+    text = text.replace(f'[mesh]\nname = "{quoted}"', '[mesh]\nname = "lshape"')
+    path.write_text(text)
     for sc in (scene.parse(text), scene.load(path)):
-        assert sc.description == payload and sc.mesh.name == payload
+        assert sc.description == payload
     # The name becomes a directory: only a slug is accepted.
     with pytest.raises(scene.SceneError, match=r"\[scene\] name must be 1-128 letters"):
         scene.parse(text.replace('name = "evil"', f'name = "{quoted}"'))

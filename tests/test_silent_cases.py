@@ -130,3 +130,40 @@ def test_first_derivatives_under_torch_func_still_work(prob):
     f, kappa = inputs(prob, batch=1)
     jac = torch.func.jacrev(lambda x: layer(f=x, kappa=kappa))(f[0])
     assert jac.shape == (prob.output_size, prob.control_size("f")) and torch.isfinite(jac).all()
+
+
+# ------------------------------------------------------------------ folded meshes
+def grid_msh(path, centre=(0.5, 0.5)):
+    """A gmsh 2.2 file of the unit square in 8 triangles around the node ``centre`` (0.5, 0.5 when unfolded)."""
+    nodes = [(i * 0.5, j * 0.5) for j in range(3) for i in range(3)]
+    nodes[4] = centre
+    triangles = []
+    for j in range(2):
+        for i in range(2):
+            a, b, c, d = j * 3 + i, j * 3 + i + 1, (j + 1) * 3 + i, (j + 1) * 3 + i + 1
+            triangles += [(a, b, d), (a, d, c)]
+    lines = (["$MeshFormat", "2.2 0 8", "$EndMeshFormat", "$PhysicalNames", "1", '2 1 "domain"', "$EndPhysicalNames",
+              "$Nodes", str(len(nodes))] + [f"{k + 1} {x} {y} 0" for k, (x, y) in enumerate(nodes)]
+             + ["$EndNodes", "$Elements", str(len(triangles))]
+             + [f"{k + 1} 2 2 1 1 {a + 1} {b + 1} {c + 1}" for k, (a, b, c) in enumerate(triangles)] + ["$EndElements"])
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_a_folded_mesh_is_refused_on_load(tmp_path):
+    """Moving the middle node past the edge inverts three triangles (the area integral grows): refused."""
+    from fempdl import mesh
+    good = mesh.load(grid_msh(tmp_path / "good.msh"))
+    assert good.mesh.topology.index_map(2).size_local == 8
+    with pytest.raises(ValueError, match=r"folded.msh: 3 interior facet\(s\) have both their cells on the same "
+                                         r"side, e.g. near .*: the mesh is folded"):
+        mesh.load(grid_msh(tmp_path / "folded.msh", centre=(1.2, 0.5)))
+    with pytest.raises(ValueError, match="flat cells"):                  # the node on an edge: flat cells
+        mesh.load(grid_msh(tmp_path / "flat.msh", centre=(1.0, 0.5)))
+
+
+def test_a_positional_control_names_the_keywords(prob):
+    f, kappa = inputs(prob)
+    with pytest.raises(TypeError, match=r"SolveLayer takes its controls as keywords, got 1 positional argument\(s\); "
+                                        r"call it as layer\(f=\.\.\., kappa=\.\.\.\)"):
+        SolveLayer(prob, "lu")(f)

@@ -86,8 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="also write each run's metrics as TensorBoard scalars into RUN/tensorboard "
                           "(needs pip install 'fempdl[tensorboard]')")
     run.add_argument("--save-fields", action="store_true",
-                     help="after training, write validation predictions, references and errors to "
-                          "fields.xdmf (ParaView) and fields.png in each run's directory")
+                     help="after training, write the first four validation samples' predictions, references "
+                          "and errors to fields.xdmf (ParaView; one time step per sample) and, on a 2D mesh on "
+                          "one process, the first's to fields.png, in each run's directory")
     run.add_argument("--parallel", choices=("data", "mesh"),
                      help="under mpirun: spread every batch over the ranks (data) or distribute the mesh (mesh)")
 

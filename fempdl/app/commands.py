@@ -161,10 +161,9 @@ def _command(args, sc, out: Path) -> int:
     except ValueError as err:
         print(f"fempdl: {err}", file=sys.stderr)
         return 2
-    if args.save_fields and (not spec_of(sc.task).writes_fields or args.parallel == "mesh"):
-        print(f"fempdl: --save-fields writes the fields of {' and '.join(runner.field_tasks())} scenes, "
-              f"serial or with --parallel data; {sc.name!r} is of task {sc.task!r}"
-              + (" on a distributed mesh" if args.parallel == "mesh" else ""), file=sys.stderr)
+    if args.save_fields and not spec_of(sc.task).writes_fields:
+        print(f"fempdl: --save-fields writes the fields of {' and '.join(runner.field_tasks())} scenes; "
+              f"{sc.name!r} is of task {sc.task!r}", file=sys.stderr)
         return 2
     runs = {}
     baseline = None

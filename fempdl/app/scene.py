@@ -13,11 +13,11 @@ import tomllib
 from importlib import resources
 from pathlib import Path
 
-from fempdl.app.schema import POSITIVE, PDE_UNUSED, REQUIRED, SECTIONS, Scene, Spec, check_slug, specs
+from fempdl.app.schema import POSITIVE, PDE_UNUSED, REQUIRED, SECTIONS, Scene, SceneError, Spec, check_slug, specs
 from fempdl.app.tasks import SPECS
-from fempdl.core.resources import GEOMETRIES, estimated_dofs, format_bytes, memory_budget
+from fempdl.app.scene_budget import check_mesh, check_size
 
-__all__ = ["Scene", "SceneError", "load", "available", "bundled_text", "parse", "schema_text", "estimated_memory"]
+__all__ = ["Scene", "SceneError", "load", "available", "bundled_text", "parse", "schema_text"]
 
 
 def unused_keys(task: str, pde: str) -> dict[str, frozenset]:
@@ -27,10 +27,6 @@ def unused_keys(task: str, pde: str) -> dict[str, frozenset]:
         for name, keys in by_section.items():
             out[name] = out.get(name, frozenset()) | keys
     return out
-
-
-class SceneError(ValueError):
-    """A scene file is malformed; the message names the section, key and what is allowed."""
 
 
 
@@ -114,10 +110,14 @@ def load(name_or_path, overrides=()) -> Scene:
     except UnicodeDecodeError as err:
         raise SceneError(f"{path}: not a UTF-8 text file (byte {err.start}: {err.reason}); "
                          "TOML scene files are UTF-8: save it as UTF-8") from None
-    return parse(text, source=str(path), overrides=overrides)
+    # A relative mesh path in the file is read from the file's folder; one given by --set from the
+    # current directory.
+    mesh_set = any(str(item).partition("=")[0].strip() == "mesh.name" for item in
+                   ((overrides,) if isinstance(overrides, str) else overrides))
+    return parse(text, source=str(path), overrides=overrides, base=None if mesh_set else path.parent)
 
 
-def parse(text: str, source: str = "<string>", overrides=()) -> Scene:
+def parse(text: str, source: str = "<string>", overrides=(), base: Path | None = None) -> Scene:
     """Validate TOML text, with ``overrides`` applied (see :func:`load`), as a scene.
 
     Unknown sections or keys, keys that do not apply to the task or PDE, wrong
@@ -146,6 +146,7 @@ def parse(text: str, source: str = "<string>", overrides=()) -> Scene:
         raise SceneError(f"{source}: [scene] task must be one of {list(SPECS)}, got {task!r}")
     spec = SPECS[task]
     values = _task_sections(raw, task, source)
+    check_mesh(values["mesh"], source, base)
     pde = values["pde"]
     unused = unused_keys(task, pde["type"])
     _drop_unused(values, raw, task, source)
@@ -159,7 +160,7 @@ def parse(text: str, source: str = "<string>", overrides=()) -> Scene:
         _check_solver(values, source)
     if "inverse" in values:
         _check_inverse(values["inverse"], source)
-    _check_size(values, source)
+    check_size(values, source)
     sections = {name: SECTIONS[name](**values[name]) if name in values else None
                 for name in SECTIONS if name != "scene"}
     return Scene(name=header["name"], task=task, description=header["description"], source=source,
@@ -281,7 +282,10 @@ def _apply_overrides(raw: dict, overrides, source: str) -> None:
             raw[section] = {}
         if not isinstance(raw[section], dict):
             raise SceneError(f"{source}: --set {item!r}: [{section}] is not a table")
-        raw[section][key] = value
+        if value == "none":                 # TOML has no null: "none" unsets the key (its default applies)
+            raw[section].pop(key, None)
+        else:
+            raw[section][key] = value
 
 
 def _section(raw: dict, name: str, source: str) -> dict:
@@ -321,56 +325,6 @@ def _checked(value, spec: Spec, where: str):
     if spec.maximum is not None and value > spec.maximum:
         raise SceneError(f"{where} must be <= {spec.maximum:g}, got {value!r}")
     return value
-
-
-def estimated_memory(values: dict) -> tuple[float, float, dict] | None:
-    """(bytes, DOFs, parts) a scene's data and network take, estimated before anything is built; None
-    for a mesh file (its size is unknown until read). Parts: ``data`` (float64 states and their float32
-    copies), ``network`` (parameters, gradients and two Adam moments), by the bundled mesh's size at h."""
-    name, h = values["mesh"]["name"], values["mesh"]["h"]
-    if name not in GEOMETRIES:
-        return None
-    from_h = h if h is not None else _BUNDLED_H[name]
-    pde = values["pde"]
-    components = GEOMETRIES[name].dim if pde["type"] in ("burgers", "oseen") else 1
-    dofs = estimated_dofs(name, from_h, pde["degree"] or 1, components)
-    data, network = values["data"], values.get("network")
-    parts = {}
-    if data["train"] is not None:          # tasks with a data set (the inverse task has one fixed sample)
-        samples = data["train"] + data["validation"]
-        # A rollout keeps 2 rollout + 1 states per sample (emulator, hybrid), an inversion its (x, y) pair.
-        states = 2 * data["rollout"] + 1 if data["rollout"] is not None else 2
-        parts["data"] = samples * dofs * states * 12.0
-    if network is not None:
-        width, depth = network["hidden"], network["layers"]
-        weights = 2 * dofs * width + depth * width ** 2 if network["type"] == "mlp" else depth * width ** 2
-        parts["network"] = weights * 8.0 * 4
-    return sum(parts.values()), dofs, parts
-
-
-# The committed meshes' sizes (fempdl.core.meshgen.DEFAULT_H), for the estimate of a scene without h.
-_BUNDLED_H = {"lshape": 0.05, "obstacle": 0.035, "box": 0.1}
-
-
-def _check_size(values: dict, source: str) -> None:
-    """Refuse a scene whose data and network would not fit in the memory budget, or whose number of
-    smooth modes exceeds what the mesh resolves, with the estimate."""
-    estimate = estimated_memory(values)
-    if estimate is None:
-        return
-    total, dofs, parts = estimate
-    budget = memory_budget()
-    if total > budget:
-        split = ", ".join(f"{part} {format_bytes(size)}" for part, size in parts.items())
-        raise SceneError(f"{source}: the scene needs about {format_bytes(total)} ({split}; about {dofs:.3g} DOFs), "
-                         f"more than the memory budget of {format_bytes(budget)} (half the available memory); "
-                         "reduce [data] train and validation, [network] hidden and layers, or refine the mesh less")
-    modes = values["data"]["modes"]
-    dim = GEOMETRIES[values["mesh"]["name"]].dim
-    most = max(4 * dofs, 1000)      # generous: the DOF estimate of a coarse mesh is rough
-    if modes is not None and values["data"]["truths"] in (None, "smooth") and modes ** dim > most:
-        raise SceneError(f"{source}: [data] modes = {modes} gives {modes}^{dim} sine modes, far more than the "
-                         f"mesh's about {dofs:.3g} DOFs resolve; use at most {int(most ** (1.0 / dim))}")
 
 
 def _check_inverse(section: dict, source: str) -> None:

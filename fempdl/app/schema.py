@@ -15,7 +15,7 @@ from typing import Any, Mapping
 
 from fempdl.methods.prdp import PRDPSettings
 
-__all__ = ["Scene", "Spec", "TaskSpec", "SECTIONS", "PDE_UNUSED", "REQUIRED", "POSITIVE", "specs", "check_slug",
+__all__ = ["Scene", "SceneError", "Spec", "TaskSpec", "SECTIONS", "PDE_UNUSED", "REQUIRED", "POSITIVE", "specs", "check_slug",
            "SceneSection", "MeshConfig", "PdeConfig", "DataConfig", "NetworkConfig", "InverseConfig", "SipConfig",
            "MarkerConfig", "HigConfig", "BaselineConfig", "HybridConfig", "OptimizerConfig", "SolverConfig",
            "PRDPSettings"]
@@ -23,6 +23,10 @@ __all__ = ["Scene", "Spec", "TaskSpec", "SECTIONS", "PDE_UNUSED", "REQUIRED", "P
 REQUIRED = object()
 POSITIVE = 1e-300      # a minimum of "> 0"
 _SLUG = re.compile(r"[A-Za-z0-9._-]{1,128}")
+
+
+class SceneError(ValueError):
+    """A scene file is malformed; the message names the section, key and what is allowed."""
 
 
 def check_slug(name, what: str = "name") -> str:

@@ -259,6 +259,20 @@ def vertices_per_cell(msh) -> int:
     return count() if callable(count) else count
 
 
+def entity_geometry(msh, dim: int, entities: np.ndarray) -> np.ndarray:
+    """(len(entities), nodes) geometry node indices of local mesh entities of dimension ``dim``
+    (the vertices first), unpermuted."""
+    entities = np.asarray(entities, dtype=np.int32)
+    if hasattr(dolfinx.mesh, "entities_to_geometry"):             # 0.6+
+        return dolfinx.mesh.entities_to_geometry(msh, dim, entities, False)
+    return dolfinx.cpp.mesh.entities_to_geometry(getattr(msh, "_mesh", msh), dim, entities, False)
+
+
+def geometry_dofmap(msh) -> np.ndarray:
+    """(num_cells, nodes_per_cell) geometry node indices of every cell on this process, ghosts included."""
+    return _geometry_dofmap(msh)
+
+
 def _geometry_dofmap(msh) -> np.ndarray:
     """(num_cells, nodes_per_cell) geometry node indices of every local cell."""
     geometry = msh.geometry

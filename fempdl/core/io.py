@@ -14,7 +14,10 @@ only); the default HDF5 encoding writes them beside it (``.h5``).
 """
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import math
+import os
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -59,12 +62,44 @@ def write_xdmf(path, fields, *, times: Sequence[float] | None = None, encoding: 
     path = Path(path).with_suffix(".xdmf")
     path.parent.mkdir(parents=True, exist_ok=True)
     spaces: dict = {}
-    with dolfinx.io.XDMFFile(msh.comm, str(path), "w", encoding=_ENCODINGS[encoding]) as out:
-        out.write_mesh(msh)
-        for step, t in enumerate(times):
-            for name, fns in series.items():
-                out.write_function(nodal_field(fns[step], name, spaces), t)
+    with one_writer(path, msh.comm):
+        with dolfinx.io.XDMFFile(msh.comm, str(path), "w", encoding=_ENCODINGS[encoding]) as out:
+            out.write_mesh(msh)
+            for step, t in enumerate(times):
+                for name, fns in series.items():
+                    out.write_function(nodal_field(fns[step], name, spaces), t)
     return path
+
+
+@contextlib.contextmanager
+def one_writer(path: Path, comm):
+    """Hold ``path`` for one writer: the ranks of ``comm`` (the mesh's: a distributed mesh is written by
+    all of them together) take a kernel lock on a hidden file beside it, and a second writer at the same
+    time, e.g. every rank of a data-parallel run writing one file from its own copy of the mesh, gets a
+    ValueError instead of a corrupted file."""
+    guard = path.with_name(f".{path.name}.writing")
+    fd = None
+    busy = False
+    if comm.rank == 0:
+        fd = os.open(guard, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            # A writer that just finished unlinked the file this one opened: busy all the same.
+            busy = not guard.exists() or os.stat(guard).st_ino != os.fstat(fd).st_ino
+        except BlockingIOError:
+            busy = True
+        if busy:
+            os.close(fd)
+            fd = None
+    if comm.bcast(busy, root=0):
+        raise ValueError(f"another process is writing {str(path)!r} at this moment (every rank of a data-parallel "
+                         "run writing one file?); write from one rank (rank 0), or give each rank its own path")
+    try:
+        yield
+    finally:
+        if fd is not None:
+            guard.unlink(missing_ok=True)
+            os.close(fd)
 
 
 def write_fields(path, problem, values: Mapping, *, times: Sequence[float] | None = None,

@@ -164,14 +164,47 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
     _check_int_choice("rank", rank, range(comm.size))
     h = meshgen.check_h(h)
     if isinstance(name_or_path, str) and name_or_path in available():
-        return _load_bundled(name_or_path, comm, h, rank, gdim, max_cells)
-    path = _as_msh_path(name_or_path)
-    if h is not None:
-        raise ValueError(f"h applies to bundled meshes only, got h={h!r} with the file {str(path)!r}; "
-                         "mesh the file's geometry at that size with gmsh, or load a bundled name")
-    if gdim is not None:
-        _check_int_choice("gdim", gdim, (1, 2, 3))
-    return _read_msh(path, comm, rank, gdim)
+        tagged = _load_bundled(name_or_path, comm, h, rank, gdim, max_cells)
+    else:
+        path = _as_msh_path(name_or_path)
+        if h is not None:
+            raise ValueError(f"h applies to bundled meshes only, got h={h!r} with the file {str(path)!r}; "
+                             "mesh the file's geometry at that size with gmsh, or load a bundled name")
+        if gdim is not None:
+            _check_int_choice("gdim", gdim, (1, 2, 3))
+        tagged = _read_msh(path, comm, rank, gdim)
+    check_unfolded(tagged.mesh, str(name_or_path))
+    return tagged
+
+
+def check_unfolded(msh, name: str = "the mesh") -> None:
+    """Raise ValueError (on every rank) when two cells sharing an interior facet lie on the same side of
+    it: a folded mesh, with inverted or overlapping cells, whose integrals count the overlap twice
+    (it loads and solves without complaint otherwise). A cell with no volume is refused too.
+    Meshes of a lower dimension than their space (surfaces) are not checked."""
+    topology, tdim, gdim = msh.topology, msh.topology.dim, msh.geometry.dim
+    if tdim != gdim or tdim < 2:
+        return
+    topology.create_connectivity(tdim - 1, tdim)
+    f2c = topology.connectivity(tdim - 1, tdim)
+    facets = np.flatnonzero(np.diff(f2c.offsets) == 2).astype(np.int32)
+    cells = f2c.array[f2c.offsets[facets][:, None] + np.arange(2)]                      # (facets, 2)
+    x = msh.geometry.x[:, :gdim]
+    corners = _dolfinx.vertices_per_cell(msh)
+    centroids = x[_dolfinx.geometry_dofmap(msh)[:, :corners]].mean(axis=1)
+    nodes = _dolfinx.entity_geometry(msh, tdim - 1, facets)[:, :tdim]
+    base = x[nodes[:, 0]]
+    edges = [x[nodes[:, k]] - base for k in range(1, tdim)]
+    normal = np.stack([-edges[0][:, 1], edges[0][:, 0]], axis=1) if tdim == 2 else np.cross(edges[0], edges[1])
+    side = np.einsum("fj,fcj->fc", normal, centroids[cells] - base[:, None, :])
+    folded = side[:, 0] * side[:, 1] >= 0.0
+    count = msh.comm.allreduce(int(np.count_nonzero(folded)))
+    if count:
+        where = base[folded][0] if folded.any() else None
+        near = "" if where is None else f", e.g. near {np.round(where, 6).tolist()}"
+        raise ValueError(f"{name}: {count} interior facet(s) have both their cells on the same side{near}: the "
+                         "mesh is folded (inverted, overlapping or flat cells), and integrals over it would count "
+                         "the overlap twice; repair or regenerate it (e.g. gmsh's mesh optimisation)")
 
 
 def source_digest(name_or_path, h: float | None = None) -> str | None:

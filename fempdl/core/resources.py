@@ -20,7 +20,7 @@ import importlib.resources
 import os
 from pathlib import Path
 
-__all__ = ["bundled_meshes", "DEFAULT_MEMORY_FRACTION", "DEFAULT_MAX_CELLS", "GEOMETRIES", "available_memory", "memory_budget",
+__all__ = ["msh_size", "bundled_meshes", "DEFAULT_MEMORY_FRACTION", "DEFAULT_MAX_CELLS", "GEOMETRIES", "available_memory", "memory_budget",
            "format_bytes", "estimated_cells", "estimated_dofs", "Geometry"]
 
 DEFAULT_MEMORY_FRACTION = 0.5
@@ -95,3 +95,23 @@ def estimated_dofs(name: str, h: float, degree: int = 1, components: int = 1) ->
     """Lagrange DOFs of degree ``degree`` with ``components`` per node on that mesh (an estimate)."""
     geometry = GEOMETRIES[name]
     return estimated_cells(name, h) * geometry.vertices_per_cell * degree ** geometry.dim * components
+
+
+def msh_size(path) -> tuple[int, int] | None:
+    """(nodes, dimension) of a gmsh ``.msh`` file from its headers alone, or None when they cannot
+    be read as text (a binary file). The dimension is that of its highest entities (format 4), or 2
+    when the file does not say (format 2)."""
+    dim = 2
+    try:
+        with open(path, "rb") as fh:
+            for line in fh:
+                tag = line.strip()
+                if tag == b"$Entities":
+                    counts = [int(c) for c in next(fh).split()[:4]]
+                    dim = max((d for d, n in enumerate(counts) if n > 0), default=2)
+                elif tag == b"$Nodes":
+                    head = next(fh).split()
+                    return int(head[1] if len(head) >= 4 else head[0]), max(dim, 1)
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+    return None

@@ -134,13 +134,14 @@ def save_fields(task, out_dir: Path, samples: int = 4, title: str | None = None)
     """Write the task's validation predictions against their references
     (``task.validation_fields``) into ``out_dir``: ``fields.xdmf`` with the
     prediction, reference and error of the first ``samples`` validation samples
-    (one XDMF time step per sample), and on a 2D mesh ``fields.png``
-    (prediction, reference and error of the first sample). One process."""
+    (one XDMF time step per sample), and on a 2D mesh on one process
+    ``fields.png`` (prediction, reference and error of the first sample). On a
+    distributed mesh every rank calls it (the XDMF file is written together)."""
     idx = torch.arange(min(samples, task.val_size))
     name, prediction, reference = task.validation_fields(idx)
     fields = {"prediction": (name, prediction), "reference": (name, reference), "error": (name, prediction - reference)}
     paths = [io.write_fields(Path(out_dir) / "fields.xdmf", task.problem, fields, times=range(len(prediction)))]
-    if task.problem.V.mesh.topology.dim == 2:
+    if task.problem.V.mesh.topology.dim == 2 and task.problem.V.mesh.comm.size == 1:
         paths.append(io.plot_fields(Path(out_dir) / "fields.png", task.problem,
                                     {label: (n, v[0]) for label, (n, v) in fields.items()}, title=title,
                                     same_scale=("prediction", "reference")))
@@ -168,16 +169,15 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
     sets the network initialisation and the minibatch order (default: the
     scene's data seed); the data are the scene's either way. ``save`` writes
     the validation fields after training (:func:`save_fields`, into
-    ``out_dir``; rank 0; not with ``parallel="mesh"``). ``tensorboard`` also
+    ``out_dir``; rank 0, or every rank of a distributed mesh). ``tensorboard`` also
     writes the metrics as TensorBoard scalars into ``out_dir``/tensorboard. An
     ``out_dir`` holding an earlier run needs ``resume`` (continue it) or
     ``overwrite`` (replace it)."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
-    if save and (out_dir is None or not spec_of(scene.task).writes_fields or parallel == "mesh"):
-        raise ValueError(f"save=True writes validation fields of {field_tasks()} scenes into out_dir, serial "
-                         f"or with parallel='data'; got task {scene.task!r}, out_dir={out_dir!r}, "
-                         f"parallel={parallel!r}")
+    if save and (out_dir is None or not spec_of(scene.task).writes_fields):
+        raise ValueError(f"save=True writes validation fields of {field_tasks()} scenes into out_dir; got task "
+                         f"{scene.task!r}, out_dir={out_dir!r}")
     if (mode == "fixed") != (k is not None):
         raise ValueError("give k exactly when mode='fixed'")
     task = build_task(scene, solver_options(scene, k or 1), parallel, comm, seed)
@@ -196,7 +196,7 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
                           stop_after=stop_after, stop_at=scene.optimizer.stop_at, parallel=parallel, comm=comm,
                           settings=run_settings(scene, mode=mode, k=k, seed=seed), overwrite=overwrite)
         rows = trainer.run(resume=resume)
-        if save and comm.rank == 0:
+        if save and (parallel == "mesh" or comm.rank == 0):    # a distributed mesh is written by all ranks
             save_fields(task, out_dir, title=f"{scene.name}, {mode}" + (f" K={k}" if k else ""))
     finally:
         task.close()
