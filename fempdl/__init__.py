@@ -38,6 +38,8 @@ _PUBLIC = {
     "SolverWarning": "fempdl.solve.stats",
     "PRDP": "fempdl.methods.prdp",
     "PRDPSettings": "fempdl.methods.prdp",
+    "PointObservation": "fempdl.layer.observation",
+    "MassInner": "fempdl.layer.observation",
 }
 _SUBMODULES = {"forms": "fempdl.forms", "mesh": "fempdl.core.mesh", "io": "fempdl.core.io"}
 

@@ -214,7 +214,7 @@ def test_the_data_parallel_example_trains_as_one_process(tmp_path):
         assert done.returncode == 0, done.stderr[-3000:]
         results[ranks] = json.loads(out.read_text())
     one, two = results[1], results[2]
-    assert one["history"] == two["history"] and one["k"] == two["k"] > 1
+    assert one["ks"] == two["ks"] and one["k"] == two["k"] > 1
     assert one["iterations"] == two["iterations"]
     assert abs(one["metric"] - two["metric"]) <= 1e-9 * one["metric"]
 
@@ -239,3 +239,17 @@ def test_two_processes_writing_one_xdmf_file_get_an_error(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     outcomes = sorted((tmp_path / f"rank{r}.txt").read_text() for r in range(2))
     assert outcomes[1] == "wrote" and outcomes[0].startswith("another process is writing"), outcomes
+
+
+def test_observations_on_a_distributed_mesh_equal_the_serial_ones(tmp_path):
+    """PointObservation and MassInner on two ranks: the same values and gradients (in DOF-coordinate order)."""
+    results = {}
+    for ranks in (1, 2):
+        path = tmp_path / f"ranks{ranks}.npz"
+        done = mpirun(ranks, "observation.py", str(path), timeout=120)
+        assert done.returncode == 0, done.stderr[-3000:]
+        results[ranks] = dict(np.load(path))
+    one, two = results[1], results[2]
+    np.testing.assert_allclose(two["values"], one["values"], rtol=0, atol=1e-13)
+    assert abs(float(two["inner"]) - float(one["inner"])) <= 1e-12 * abs(float(one["inner"]))
+    np.testing.assert_allclose(two["grad"], one["grad"], rtol=0, atol=1e-12)

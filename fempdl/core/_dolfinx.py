@@ -268,6 +268,19 @@ def entity_geometry(msh, dim: int, entities: np.ndarray) -> np.ndarray:
     return dolfinx.cpp.mesh.entities_to_geometry(getattr(msh, "_mesh", msh), dim, entities, False)
 
 
+def cell_name(msh) -> str:
+    """The cell type's name, e.g. ``"triangle"`` (a method in UFL 2022, a property in 2026)."""
+    name = msh.ufl_cell().cellname
+    return name() if callable(name) else name
+
+
+def coordinate_degree(msh) -> int:
+    """The degree of the mesh's coordinate map (1: affine simplices, straight edges)."""
+    geometry = msh.geometry
+    cmap = geometry.cmaps[0] if hasattr(geometry, "cmaps") else geometry.cmap     # 0.10+: one per cell type
+    return cmap.degree
+
+
 def geometry_dofmap(msh) -> np.ndarray:
     """(num_cells, nodes_per_cell) geometry node indices of every cell on this process, ghosts included."""
     return _geometry_dofmap(msh)

@@ -1,0 +1,83 @@
+"""Observation operators: point values exact where the space holds the field, mass inner products equal to
+the integrals, both linear/bilinear with exact gradients, and clear errors for what they do not support."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from fempdl import MassInner, PointObservation, SolveLayer, forms, mesh
+
+F64 = torch.float64
+POINTS = np.array([[0.1, 0.2], [-0.5, 0.3], [-0.7, -0.8], [0.0, 0.0], [0.95, 0.05], [-1.0, 1.0]])
+
+
+@pytest.fixture(scope="module")
+def lshape_coarse():
+    return mesh.load("lshape", h=0.2)
+
+
+@pytest.mark.parametrize("degree, field", [(1, lambda x, y: 2 * x - 3 * y + 0.5),
+                                           (2, lambda x, y: x ** 2 + 3 * y - x * y)], ids=["P1-linear", "P2-quadratic"])
+def test_point_values_are_exact_for_fields_the_space_holds(lshape_coarse, degree, field):
+    prob = forms.poisson.problem(lshape_coarse, controls=("f",), degree=degree)
+    u = torch.as_tensor(prob.interpolate(lambda x: field(x[0], x[1])))
+    observe = PointObservation(prob, POINTS)
+    want = torch.as_tensor(field(POINTS[:, 0], POINTS[:, 1]))
+    torch.testing.assert_close(observe(u), want, rtol=0, atol=1e-13)
+    torch.testing.assert_close(observe(torch.stack([u, 2 * u])), torch.stack([want, 2 * want]), rtol=0, atol=1e-13)
+    assert observe.matrix.shape == (len(POINTS), prob.output_size)
+
+
+def test_observing_a_control_and_a_vector_field(lshape_coarse):
+    prob = forms.poisson.problem(lshape_coarse, controls=("f",))
+    f = torch.as_tensor(prob.interpolate(lambda x: 1 + x[0], "f"))
+    torch.testing.assert_close(PointObservation(prob, POINTS, name="f")(f), torch.as_tensor(1 + POINTS[:, 0]),
+                               rtol=0, atol=1e-13)
+    burgers = forms.burgers.problem(lshape_coarse, controls=("f",))
+    velocity = torch.as_tensor(burgers.interpolate(lambda x: np.stack([x[0], 2 * x[1] - 1]), "f"))
+    got = PointObservation(burgers, POINTS[:3], name="f")(velocity)
+    want = np.stack([POINTS[:3, 0], 2 * POINTS[:3, 1] - 1], axis=1).reshape(-1)      # point-major
+    torch.testing.assert_close(got, torch.as_tensor(want), rtol=0, atol=1e-13)
+
+
+def test_observation_gradients_through_a_layer_match_finite_differences(lshape_coarse):
+    prob = forms.poisson.problem(lshape_coarse, controls=("f",))
+    layer, observe = SolveLayer(prob), PointObservation(prob, POINTS[:4])
+    f = torch.rand(prob.control_size("f"), dtype=F64, generator=torch.Generator().manual_seed(0))
+    assert torch.autograd.gradcheck(lambda g: observe(layer(f=g)), (f.requires_grad_(),))
+
+
+def test_mass_inner_products_are_the_integrals(lshape_coarse):
+    """On the L-shape (area 3): ||1||_L2^2 = 3, and for u = x the H1 square norm is ∫ x^2 + 1 = 1 + 3."""
+    prob = forms.poisson.problem(lshape_coarse, controls=("f",))
+    one = torch.as_tensor(prob.interpolate(lambda x: np.ones_like(x[0])))
+    x = torch.as_tensor(prob.interpolate(lambda x: x[0]))
+    l2, h1 = MassInner(prob), MassInner(prob, kind="H1")
+    assert float(l2(one)) == pytest.approx(3.0, rel=1e-13)
+    assert float(h1(x)) == pytest.approx(4.0, rel=1e-13)          # P1 holds x: exact
+    assert float(l2.norm(one)) == pytest.approx(3.0 ** 0.5, rel=1e-13)
+    torch.testing.assert_close(l2(torch.stack([one, x]), torch.stack([x, one])), torch.stack([l2(one, x)] * 2))
+
+
+def test_mass_inner_products_differentiate_exactly(lshape_coarse):
+    prob = forms.poisson.problem(lshape_coarse, controls=("f",))
+    g = torch.Generator().manual_seed(1)
+    u, v = (torch.rand(2, prob.output_size, dtype=F64, generator=g).requires_grad_() for _ in range(2))
+    for kind in ("L2", "H1"):
+        inner = MassInner(prob, kind=kind)
+        assert torch.autograd.gradcheck(lambda a, b: inner(a, b), (u, v))
+        assert torch.autograd.gradcheck(lambda a: inner(a), (u,))
+
+
+def test_what_is_not_supported_is_named(lshape_coarse):
+    prob = forms.poisson.problem(lshape_coarse, controls=("f",))
+    with pytest.raises(ValueError, match=r"1 point\(s\) lie outside the mesh, e.g. \[0.5, -0.5, 0.0\]"):
+        PointObservation(prob, [[0.5, -0.5]])                 # the L-shape's missing quadrant
+    with pytest.raises(NotImplementedError, match="Lagrange degree 1 and 2"):
+        PointObservation(forms.poisson.problem(lshape_coarse, controls=("f",), degree=3), POINTS)
+    with pytest.raises(ValueError, match=r"u must have shape \(B, \d+\)"):
+        PointObservation(prob, POINTS)(torch.zeros(3, dtype=F64))
+    with pytest.raises(ValueError, match="kind must be 'L2' or 'H1'"):
+        MassInner(prob, kind="H2")
+
