@@ -192,6 +192,9 @@ class CappedSolver:
             nsp = self._A.getTransposeNullSpace() or self._A.getNullSpace()
             if nsp is not None:
                 self._At.setNullSpace(nsp)
+            near = self._A.getNearNullSpace()
+            if near is not None:             # elasticity's rigid-body modes: A^T = A there
+                self._At.setNearNullSpace(near)
             self._At_state = state
         self.stats.adjoint_operator_time += time.perf_counter() - t0
         return self._ksp_adjoint

@@ -42,7 +42,7 @@ from fempdl.core import _dolfinx
 
 _LAND = MPI.LAND
 
-__all__ = ["Problem"]
+__all__ = ["Problem", "rigid_body_modes"]
 
 
 class Problem:
@@ -71,6 +71,8 @@ class Problem:
             A^T (owned DOF values), e.g. the pressure constant of an enclosed
             flow; (0, n) when A is regular. Solves return the solution
             orthogonal to it (see :class:`fempdl.ksp_adjoint.CappedSolver`).
+        near_nullspace: orthonormal (k, n) array of the near null space handed
+            to algebraic multigrid; (0, n) when none was given.
 
     Keyword Args:
         fields: ``{name: subspace index}`` of a mixed solution space.
@@ -79,10 +81,17 @@ class Problem:
         constants: ``{name: dolfinx.fem.Constant}`` of the forms (a time step,
             a viscosity) that the user may change between solves through
             ``problem.constants[name].value``; a change is seen at the next solve.
+        near_nullspace: vectors (owned DOF values, any basis) that A nearly
+            annihilates away from the boundary, e.g. the rigid-body modes of
+            elasticity (:func:`rigid_body_modes`); handed to PETSc as the
+            operator's near null space, which algebraic multigrid (GAMG) uses to
+            build its coarse spaces. It changes no solution, only how fast AMG
+            converges.
     """
 
     def __init__(self, a: ufl.Form, L: ufl.Form, bcs=(), controls: Mapping | None = None, *,
-                 fields: Mapping[str, int] | None = None, nullspace=(), constants: Mapping | None = None):
+                 fields: Mapping[str, int] | None = None, nullspace=(), constants: Mapping | None = None,
+                 near_nullspace=()):
         if not isinstance(a, ufl.Form) or len(a.arguments()) != 2:
             raise TypeError(f"a must be a bilinear UFL form (two arguments), got {_describe_form(a)}")
         if not isinstance(L, ufl.Form) or len(L.arguments()) != 1:
@@ -134,6 +143,7 @@ class Problem:
             self._field_spaces[name] = space
             self.fields[name] = dofs
         self.nullspace = _orthonormal(nullspace, self._n_owned, self.V.mesh.comm)
+        self.near_nullspace = _orthonormal(near_nullspace, self._n_owned, self.V.mesh.comm)
         self.constants = MappingProxyType(_validated_constants(constants or {}))
 
     @property
@@ -379,3 +389,23 @@ def _describe_form(form) -> str:
     if isinstance(form, ufl.Form):
         return f"a form with {len(form.arguments())} argument(s)"
     return type(form).__name__
+
+
+def rigid_body_modes(V) -> np.ndarray:
+    """The rigid-body motions of a vector Lagrange space ``V`` (blocked, one component per
+    dimension) as owned DOF values: (3, n) in 2D (two translations, one rotation), (6, n) in 3D
+    (three translations, three rotations). Linear elasticity's operator annihilates them without
+    boundary conditions: its near null space for algebraic multigrid."""
+    gdim, bs = V.mesh.geometry.dim, V.dofmap.index_map_bs
+    if bs != gdim or gdim not in (2, 3):
+        raise ValueError(f"rigid_body_modes needs a vector space with one component per dimension (2 or 3), "
+                         f"got {bs} components in {gdim}D")
+    nodes = V.tabulate_dof_coordinates()[:V.dofmap.index_map.size_local]
+    x, y, z = nodes[:, 0], nodes[:, 1], nodes[:, 2]
+    zero, one = np.zeros_like(x), np.ones_like(x)
+    if gdim == 2:
+        fields = [(one, zero), (zero, one), (-y, x)]
+    else:
+        fields = [(one, zero, zero), (zero, one, zero), (zero, zero, one),
+                  (-y, x, zero), (z, zero, -x), (zero, -z, y)]
+    return np.stack([np.stack(f, axis=1).reshape(-1) for f in fields])

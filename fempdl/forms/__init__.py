@@ -1,12 +1,13 @@
 """One module per PDE, each building a :class:`fempdl.Problem` from UFL forms.
 
 * :mod:`fempdl.forms.poisson` — -div(kappa grad u) = f, controls f, kappa.
+* :mod:`fempdl.forms.elasticity` — linear elasticity, controls f (body force), E (Young's modulus).
 * :mod:`fempdl.forms.heat` — one theta-step of the heat equation, controls u0, f, kappa.
 * :mod:`fempdl.forms.stokes` — steady Stokes flow (Taylor-Hood), control f.
 * :mod:`fempdl.forms.oseen` — one Oseen (linearised Navier-Stokes) step, controls w, u_prev, f.
 * :mod:`fempdl.forms.burgers` — one linearised vector Burgers step, controls w, u_prev, f.
 * :mod:`fempdl.forms.transport` — one implicit advection-diffusion step of a scalar marker, controls w, m_prev, f.
 """
-from fempdl.forms import burgers, heat, oseen, poisson, stokes, transport
+from fempdl.forms import burgers, elasticity, heat, oseen, poisson, stokes, transport
 
-__all__ = ["burgers", "heat", "oseen", "poisson", "stokes", "transport"]
+__all__ = ["burgers", "elasticity", "heat", "oseen", "poisson", "stokes", "transport"]

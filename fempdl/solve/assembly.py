@@ -145,8 +145,9 @@ class Zeroed:
             fn.x.array[:] = saved
 
 
-def attach_nullspace(A: PETSc.Mat, basis: np.ndarray):
-    """Attach the (orthonormal, owned values) null space of A and A^T to A."""
+def attach_nullspace(A: PETSc.Mat, basis: np.ndarray, *, near: bool = False):
+    """Attach the (orthonormal, owned values) null space of A and A^T to A, or with ``near`` its near
+    null space (for algebraic multigrid: it changes no solution). Returns the NullSpace (or None)."""
     if not len(basis):
         return None
     vectors = []
@@ -155,8 +156,11 @@ def attach_nullspace(A: PETSc.Mat, basis: np.ndarray):
         vec.setArray(values)
         vectors.append(vec)
     nsp = PETSc.NullSpace().create(vectors=vectors, comm=A.getComm())
-    A.setNullSpace(nsp)
-    A.setTransposeNullSpace(nsp)
+    if near:
+        A.setNearNullSpace(nsp)
+    else:
+        A.setNullSpace(nsp)
+        A.setTransposeNullSpace(nsp)
     for vec in vectors:
         vec.destroy()
     return nsp

@@ -69,6 +69,7 @@ class LinearSystem:
         self._b = _dolfinx.create_vector(problem.L_form)       # ghosted: assembly target
         self._x, self._rhs = self._A.createVecs()              # solution / transposed RHS
         self._nullspace = attach_nullspace(self._A, problem.nullspace)
+        self._near_nullspace = attach_nullspace(self._A, problem.near_nullspace, near=True)
         self._solver = CappedSolver(self._A, options, fields=problem.fields or None)
         self._A_inputs = None                                  # fingerprint of the assembled A
         self._A_version = 0                                    # bumped at every assembly of A
@@ -298,7 +299,7 @@ class LinearSystem:
     def destroy(self) -> None:
         """Free the PETSc objects (the system is unusable afterwards)."""
         self._solver.destroy()
-        objs = [self._A, self._b, self._x, self._rhs] + ([self._nullspace] if self._nullspace else [])
+        objs = [self._A, self._b, self._x, self._rhs] + [n for n in (self._nullspace, self._near_nullspace) if n]
         objs += [v for v, _ in self._b_base.values()]
         objs += [o for C, vin, out, _ in self._rhs_mats.values() for o in (C, vin, out)]
         objs += list(self._grad_vecs.values())
