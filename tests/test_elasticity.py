@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from fempdl import KSPOptions, SolveLayer, forms, mesh
-from fempdl.core.problem import rigid_body_modes
+from fempdl.core.nullspaces import rigid_body_modes
 from fempdl.solve.assembly import assemble_scipy
 
 F64 = torch.float64

@@ -39,10 +39,11 @@ from ufl.algorithms import expand_derivatives
 from mpi4py import MPI
 
 from fempdl.core import _dolfinx
+from fempdl.core.nullspaces import orthonormal
 
 _LAND = MPI.LAND
 
-__all__ = ["Problem", "rigid_body_modes"]
+__all__ = ["Problem"]
 
 
 class Problem:
@@ -83,7 +84,7 @@ class Problem:
             ``problem.constants[name].value``; a change is seen at the next solve.
         near_nullspace: vectors (owned DOF values, any basis) that A nearly
             annihilates away from the boundary, e.g. the rigid-body modes of
-            elasticity (:func:`rigid_body_modes`); handed to PETSc as the
+            elasticity (:func:`fempdl.core.nullspaces.rigid_body_modes`); handed to PETSc as the
             operator's near null space, which algebraic multigrid (GAMG) uses to
             build its coarse spaces. It changes no solution, only how fast AMG
             converges.
@@ -142,8 +143,8 @@ class Problem:
             space, dofs = _dolfinx.collapsed_subspace(self.V, index)
             self._field_spaces[name] = space
             self.fields[name] = dofs
-        self.nullspace = _orthonormal(nullspace, self._n_owned, self.V.mesh.comm)
-        self.near_nullspace = _orthonormal(near_nullspace, self._n_owned, self.V.mesh.comm)
+        self.nullspace = orthonormal(nullspace, "nullspace", self._n_owned, self.V.mesh.comm)
+        self.near_nullspace = orthonormal(near_nullspace, "near_nullspace", self._n_owned, self.V.mesh.comm)
         self.constants = MappingProxyType(_validated_constants(constants or {}))
 
     @property
@@ -369,43 +370,8 @@ def _as_array(values, argname: str) -> np.ndarray:
         raise TypeError(f"{argname} must be a tensor or an array of numbers, got {type(values).__name__}") from None
 
 
-def _orthonormal(vectors, n: int, comm) -> np.ndarray:
-    """Orthonormalise (Gram-Schmidt, global dot products) rows of owned DOF values."""
-    basis = []
-    for i, v in enumerate(vectors):
-        v = np.array(v, dtype=np.float64).reshape(-1)
-        if v.shape != (n,):
-            raise ValueError(f"nullspace[{i}] has {v.size} values, expected {n} (owned DOFs of the solution)")
-        for w in basis:
-            v = v - comm.allreduce(float(w @ v)) * w
-        norm = np.sqrt(comm.allreduce(float(v @ v)))
-        if not np.isfinite(norm) or norm == 0:
-            raise ValueError(f"nullspace[{i}] is zero or depends on the vectors before it")
-        basis.append(v / norm)
-    return np.array(basis).reshape(len(basis), n)
-
-
 def _describe_form(form) -> str:
     if isinstance(form, ufl.Form):
         return f"a form with {len(form.arguments())} argument(s)"
     return type(form).__name__
 
-
-def rigid_body_modes(V) -> np.ndarray:
-    """The rigid-body motions of a vector Lagrange space ``V`` (blocked, one component per
-    dimension) as owned DOF values: (3, n) in 2D (two translations, one rotation), (6, n) in 3D
-    (three translations, three rotations). Linear elasticity's operator annihilates them without
-    boundary conditions: its near null space for algebraic multigrid."""
-    gdim, bs = V.mesh.geometry.dim, V.dofmap.index_map_bs
-    if bs != gdim or gdim not in (2, 3):
-        raise ValueError(f"rigid_body_modes needs a vector space with one component per dimension (2 or 3), "
-                         f"got {bs} components in {gdim}D")
-    nodes = V.tabulate_dof_coordinates()[:V.dofmap.index_map.size_local]
-    x, y, z = nodes[:, 0], nodes[:, 1], nodes[:, 2]
-    zero, one = np.zeros_like(x), np.ones_like(x)
-    if gdim == 2:
-        fields = [(one, zero), (zero, one), (-y, x)]
-    else:
-        fields = [(one, zero, zero), (zero, one, zero), (zero, zero, one),
-                  (-y, x, zero), (z, zero, -x), (zero, -z, y)]
-    return np.stack([np.stack(f, axis=1).reshape(-1) for f in fields])

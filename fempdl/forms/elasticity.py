@@ -10,7 +10,7 @@ Weak form: find u in V_g = {u in [P_k]^d : u = g on Gamma_D} such that
 
 Controls: ``"f"`` (the body force, in V) and ``"E"`` (Young's modulus, DG0 or P1: a SIMP-style
 density enters here); ``f`` enters L affinely, ``E`` the matrix (linearly). The problem's
-``near_nullspace`` holds the rigid-body modes (:func:`fempdl.core.problem.rigid_body_modes`), which
+``near_nullspace`` holds the rigid-body modes (:func:`fempdl.core.nullspaces.rigid_body_modes`), which
 algebraic multigrid needs to converge in few iterations on elasticity.
 """
 from __future__ import annotations
@@ -19,7 +19,8 @@ import ufl
 
 from fempdl.core import _dolfinx
 from fempdl.core.mesh import as_tagged
-from fempdl.core.problem import Problem, rigid_body_modes
+from fempdl.core.nullspaces import rigid_body_modes
+from fempdl.core.problem import Problem
 from fempdl.forms._common import (COEFFICIENT_SPACES, check_controls, check_degree, coefficient_space, dirichlet_bcs,
                                   make_function, nonnegative_constant)
 from fempdl.forms._flow import vector_function

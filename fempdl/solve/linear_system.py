@@ -32,6 +32,7 @@ from fempdl.ksp_adjoint import CappedSolver
 from fempdl.solve.assembly import (ControlValues, KeptMatrices, Timer, attach_nullspace, check_operator, fingerprint,
                                     fingerprint_matches, set_owned)
 from fempdl.solve.petsc import petsc_to_scipy
+from fempdl.solve.control_forms import ControlForms
 from fempdl.solve.options import KSPOptions
 from fempdl.solve.stats import CumulativeStats, capped_solve_stats
 from fempdl.core.problem import Problem
@@ -73,11 +74,8 @@ class LinearSystem:
         self._solver = CappedSolver(self._A, options, fields=problem.fields or None)
         self._A_inputs = None                                  # fingerprint of the assembled A
         self._A_version = 0                                    # bumped at every assembly of A
-        self._b_base: dict = {}                                # frozenset(names) -> (Vec, fingerprint)
-        self._rhs_mats: dict = {}                              # name -> (Mat, vec on m, vec on V, fingerprint)
-        self._grad_vecs: dict = {}                             # name -> ghosted Vec on M
+        self._forms = ControlForms(problem, self._b, self._assembling)   # b(0), C_m, gradient vectors
         self._kept_matrices = KeptMatrices(problem.matrix_controls)
-        self._rhs_scipy: dict = {}                             # name -> (fingerprint, scipy C_m)
 
     # ------------------------------------------------------------ properties
     @property
@@ -117,13 +115,13 @@ class LinearSystem:
         kept = self._kept_matrices.start(controls, batch) if keep_matrices and per_sample_matrix else None
         with ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
-            b_base = self._base_rhs(names, ctl) if affine else None
+            b_base = self._forms.base_rhs(names, ctl) if affine else None
             if affine and use_batched:
                 # All right-hand sides at once: b_i = b_base + sum_m C_m m_i (no per-sample PETSc calls).
                 with self._assembling():
                     R = self._affine_rhs_block(b_base, controls, batch)
                 return self._batched_solve(R, "forward", initial_guess)
-            rhs_mats = {name: self._rhs_matrix(name) for name in sorted(names)} if affine else {}
+            rhs_mats = {name: self._forms.rhs_matrix(name) for name in sorted(names)} if affine else {}
             many = self._direct_many(batch, per_sample_matrix)
             for i in range(batch):
                 if affine:
@@ -186,13 +184,13 @@ class LinearSystem:
         kept = self._kept_matrices.find(controls, batch) if per_sample_matrix else None
         with ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
-            rhs_mats = {name: self._rhs_matrix(name) for name in by_matrix}
+            rhs_mats = {name: self._forms.rhs_matrix(name) for name in by_matrix}
             Lam = self._batched_solve(G, "backward") if use_batched else None
             if use_batched and residual:
                 grads[INITIAL_GUESS] = G - self._batched.matmul(Lam, transpose=True)
             if use_batched and not per_sample_matrix and not by_form:
                 for name in rhs_mats:       # C_m^T lam_i for the whole batch in one product
-                    grads[name] = np.asarray((self._rhs_matrix_scipy(name).T @ Lam.T).T)
+                    grads[name] = np.asarray((self._forms.rhs_matrix_scipy(name).T @ Lam.T).T)
                 return grads
             for i in range(batch):
                 if per_sample_matrix or by_form:
@@ -218,7 +216,7 @@ class LinearSystem:
                     set_owned(p.lam, self._x.getArray(readonly=True), n_owned)
                     set_owned(p.u, U[i], n_owned)
                     for name in by_form:
-                        grads[name][i] = self._assemble_gradient(name)
+                        grads[name][i] = self._forms.gradient(name)
             self._lag_preconditioner(False)
         return grads
 
@@ -233,10 +231,10 @@ class LinearSystem:
                 f"controls {not_affine} enter the matrix or the right-hand side non-affinely "
                 f"(affine controls of this problem: {sorted(p.affine_rhs_controls)})")
         with ControlValues(p, dict.fromkeys(names)) as ctl:
-            b_base = self._base_rhs(names, ctl).getArray(readonly=True).copy()
+            b_base = self._forms.base_rhs(names, ctl).getArray(readonly=True).copy()
         keep = np.ones(p.output_size)
         keep[p.bc_dofs] = 0.0  # BC rows of b come from the boundary data alone
-        return b_base, {name: (sp.diags(keep) @ self._rhs_matrix_scipy(name)).tocsr() for name in sorted(names)}
+        return b_base, {name: (sp.diags(keep) @ self._forms.rhs_matrix_scipy(name)).tocsr() for name in sorted(names)}
 
     def constant_matrix(self) -> sp.csr_matrix:
         """A as scipy CSR, for a problem whose matrix depends on no control passed in a call."""
@@ -300,15 +298,10 @@ class LinearSystem:
         """Free the PETSc objects (the system is unusable afterwards)."""
         self._solver.destroy()
         objs = [self._A, self._b, self._x, self._rhs] + [n for n in (self._nullspace, self._near_nullspace) if n]
-        objs += [v for v, _ in self._b_base.values()]
-        objs += [o for C, vin, out, _ in self._rhs_mats.values() for o in (C, vin, out)]
-        objs += list(self._grad_vecs.values())
         for obj in objs:
             obj.destroy()
         self._kept_matrices.clear()
-        self._b_base.clear()
-        self._rhs_mats.clear()
-        self._grad_vecs.clear()
+        self._forms.destroy()
         self._batched = None
 
     # ------------------------------------------------------- assembly caches
@@ -347,19 +340,6 @@ class LinearSystem:
             self._assemble_matrix()
             self._A_inputs = fingerprint(inputs)
 
-    def _base_rhs(self, names: frozenset, ctl: "ControlValues") -> PETSc.Vec:
-        """b with the passed affine controls set to zero (lifting and BC values included)."""
-        p = self.problem
-        with ctl.zeroed(names):
-            cached = self._b_base.get(names)
-            if cached is not None and fingerprint_matches(cached[1], p.rhs_inputs(), self._comm):
-                return cached[0]
-            vec = cached[0] if cached is not None else self._b.duplicate()
-            with self._assembling():
-                _dolfinx.assemble_vector_into(vec, p.L_form, p.a_form, p.bcs)
-            self._b_base[names] = (vec, fingerprint(p.rhs_inputs()))
-        return vec
-
     def _affine_rhs(self, b_base: PETSc.Vec, rhs_mats: dict, controls, i: int) -> None:
         """self._b = b_base + sum_m C_m m_i, with BC rows of the control part zeroed."""
         with self._assembling():
@@ -380,48 +360,8 @@ class LinearSystem:
         n = self.problem.output_size
         R = np.zeros((n, batch))
         for name in sorted(controls):
-            R += self._rhs_matrix_scipy(name) @ np.asarray(controls[name]).T
+            R += self._forms.rhs_matrix_scipy(name) @ np.asarray(controls[name]).T
         if len(self.problem.bc_dofs):
             R[self.problem.bc_dofs] = 0.0
         R += b_base.getArray(readonly=True)[:n, None]
         return np.ascontiguousarray(R.T)
-
-    def _rhs_matrix_scipy(self, name: str):
-        """C_m as scipy CSR, refreshed with the PETSc matrix of :meth:`_rhs_matrix`."""
-        entry = self._rhs_matrix(name)
-        cached = self._rhs_scipy.get(name)
-        if cached is None or cached[0] is not entry[3]:
-            cached = self._rhs_scipy[name] = (entry[3], petsc_to_scipy(entry[0]))
-        return cached[1]
-
-    def _rhs_matrix(self, name: str):
-        """(C_m, input vector, output vector, fingerprint), reassembled when its inputs change."""
-        p = self.problem
-        inputs = p.rhs_matrix_inputs(name)
-        cached = self._rhs_mats.get(name)
-        if cached is not None and fingerprint_matches(cached[3], inputs, self._comm):
-            return cached
-        form = p.rhs_matrix_form(name)
-        if cached is None:
-            C = _dolfinx.create_matrix(form)
-            vin, out = C.createVecs()
-        else:
-            C, vin, out, _ = cached
-        with self._assembling():
-            _dolfinx.assemble_matrix_into(C, form)
-        entry = (C, vin, out, fingerprint(inputs))
-        self._rhs_mats[name] = entry
-        return entry
-
-    def _assemble_gradient(self, name: str) -> np.ndarray:
-        p = self.problem
-        form = p.gradient_form(name)
-        n = p.control_size(name)
-        if form is None:
-            return np.zeros(n)
-        vec = self._grad_vecs.get(name)
-        if vec is None:
-            vec = self._grad_vecs[name] = _dolfinx.create_vector(form)
-        with self._assembling():
-            _dolfinx.assemble_vector_into(vec, form)
-        return vec.getArray(readonly=True)[:n].copy()

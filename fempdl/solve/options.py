@@ -25,6 +25,8 @@ import numpy as np
 from petsc4py import PETSc
 
 from fempdl.core.checks import check_int
+from fempdl.solve.option_checks import (FACTORISING_PC_TYPES, OPTION_TYPES, RESERVED_OPTIONS, check_choice,
+                                        factorises, frozen_petsc_options, inner_pc, parse_option)
 
 __all__ = ["KSPOptions", "PRESETS", "ENGINES", "ADJOINT_OPERATORS", "MAX_PETSC_INT", "DEFAULT_RTOL",
            "DEFAULT_CONVERGED_MAX_IT", "PRIVATE_PREFIX", "NORM_FREE_KSP_TYPES"]
@@ -36,32 +38,11 @@ _RESTARTED_KSP_TYPES = frozenset({"gmres", "fgmres", "lgmres", "dgmres", "pgmres
 # run with NORM_NONE (no reduction per iteration).
 NORM_FREE_KSP_TYPES = frozenset({"richardson", "cg", "chebyshev"})
 _DIRECT_KSP_TYPES = frozenset({"preonly"})
-# Preconditioners that solve the system exactly (a factorisation): only with one of
-# them is a single application (KSPPREONLY) a direct solve.
-_FACTORISING_PC_TYPES = frozenset({"lu", "cholesky", "qr", "svd"})
 # PETSc's largest int in this build (32- or 64-bit indices): larger caps overflow inside PETSc.
 MAX_PETSC_INT = int(np.iinfo(PETSc.IntType).max)
-# Keys that have a first-class field; setting them through petsc_options would
-# silently fight the cap that PRDP moves.
-_RESERVED_OPTIONS = {
-    "ksp_type": "ksp_type",
-    "pc_type": "pc_type",
-    "ksp_max_it": "max_it",
-    "ksp_rtol": "rtol",
-    "ksp_atol": "atol",
-    "ksp_divtol": "divtol",
-    "ksp_gmres_restart": "gmres_restart",
-}
-# Types of the fields a reserved key sets (KSPOptions.from_petsc_options); others are str.
-_OPTION_TYPES = {"max_it": int, "rtol": float, "atol": float, "divtol": float, "gmres_restart": int}
-# Prefixes of solvers without options_prefix (their options are all their own).
 PRIVATE_PREFIX = "fempdl_"
 # A PETSc options prefix a user can address from the command line.
 _PREFIX = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
-# Keys that would break the documented semantics outright.
-_FORBIDDEN_OPTIONS = {
-    "ksp_initial_guess_nonzero": "capped solves always start from a zero initial guess",
-}
 ENGINES = ("auto", "petsc", "batched")
 ADJOINT_OPERATORS = ("auto", "transpose", "assembled")
 # Preconditioners whose transpose is missing or wrong (scripts/bench_pc_transpose.py):
@@ -176,8 +157,8 @@ class KSPOptions:
     options_prefix: str | None = None
 
     def __post_init__(self):
-        _check_choice("ksp_type", self.ksp_type, _KSP_TYPES)
-        _check_choice("pc_type", self.pc_type, _PC_TYPES)
+        check_choice("ksp_type", self.ksp_type, _KSP_TYPES)
+        check_choice("pc_type", self.pc_type, _PC_TYPES)
         if self.max_it is not None:
             check_int("max_it", self.max_it, minimum=1, maximum=MAX_PETSC_INT,
                        hint="use max_it=None to run to rtol instead of capping")
@@ -205,12 +186,12 @@ class KSPOptions:
                 raise ValueError(
                     f"gmres_restart is only meaningful for {sorted(_RESTARTED_KSP_TYPES)}, "
                     f"got ksp_type={self.ksp_type!r}; drop gmres_restart or change ksp_type")
-        object.__setattr__(self, "petsc_options", _frozen_petsc_options(self.petsc_options))
-        if self.ksp_type in _DIRECT_KSP_TYPES and not _factorises(self.pc_type, self.petsc_options):
+        object.__setattr__(self, "petsc_options", frozen_petsc_options(self.petsc_options))
+        if self.ksp_type in _DIRECT_KSP_TYPES and not factorises(self.pc_type, self.petsc_options):
             raise ValueError(
                 f"ksp_type={self.ksp_type!r} applies the preconditioner once, which solves the system only "
-                f"when it is a factorisation ({sorted(_FACTORISING_PC_TYPES)}, or 'redundant' around one); with "
-                f"pc_type={self.pc_type!r}{_inner_pc(self.petsc_options)} the result is not the solution. Use "
+                f"when it is a factorisation ({sorted(FACTORISING_PC_TYPES)}, or 'redundant' around one); with "
+                f"pc_type={self.pc_type!r}{inner_pc(self.petsc_options)} the result is not the solution. Use "
                 "pc_type='lu' (KSPOptions.preset('lu')) for a direct solve, or an iterative ksp_type such as "
                 "'richardson' (max_it=1 applies the preconditioner once)")
         if self.adjoint is not None:
@@ -263,12 +244,12 @@ class KSPOptions:
         rest = {}
         for key, value in options.items():
             name = key[1:] if isinstance(key, str) and key.startswith("-") else key
-            if name in _RESERVED_OPTIONS:
-                field_name = _RESERVED_OPTIONS[name]
+            if name in RESERVED_OPTIONS:
+                field_name = RESERVED_OPTIONS[name]
                 if field_name in fields:
                     raise ValueError(f"options[{key!r}] and the keyword {field_name}= both set {field_name}; "
                                      "give one of them")
-                values[field_name] = _parse_option(key, value, _OPTION_TYPES.get(field_name, str))
+                values[field_name] = parse_option(key, value, OPTION_TYPES.get(field_name, str))
             else:
                 rest[name] = value
         if "petsc_options" in fields:
@@ -346,66 +327,6 @@ class KSPOptions:
                 and self.ksp_type in NORM_FREE_KSP_TYPES and "ksp_norm_type" not in self.petsc_options)
 
 
-
-
-def _frozen_petsc_options(options) -> Mapping[str, Any]:
-    if not isinstance(options, Mapping):
-        raise TypeError(f"petsc_options must be a mapping of option name to value, got {type(options).__name__}")
-    clean = {}
-    for key, value in options.items():
-        if not isinstance(key, str) or not key or key.startswith("-"):
-            raise ValueError(f"petsc_options keys are option names without the leading '-', got {key!r}")
-        if key in _FORBIDDEN_OPTIONS:
-            raise ValueError(f"petsc_options[{key!r}] is not supported: {_FORBIDDEN_OPTIONS[key]}")
-        if key in _RESERVED_OPTIONS:
-            raise ValueError(f"petsc_options[{key!r}] conflicts with a KSPOptions field; "
-                             f"set {_RESERVED_OPTIONS[key]} instead, or build the options from a DOLFINx-style "
-                             "dict with KSPOptions.from_petsc_options")
-        if value is not None and not isinstance(value, (str, bool, int, float, np.integer, np.floating)):
-            raise TypeError(f"petsc_options[{key!r}] must be str, number, bool or None, got {value!r}")
-        clean[key] = value
-    return types.MappingProxyType(clean)
-
-
-def _factorises(pc_type: str, petsc_options: Mapping[str, Any]) -> bool:
-    """Whether one application of ``pc_type`` solves the system: a factorisation, or PCREDUNDANT
-    whose inner solver (``redundant_ksp_type``, ``redundant_pc_type``; PETSc's defaults preonly + LU)
-    is one."""
-    if pc_type == "redundant":
-        return (petsc_options.get("redundant_ksp_type", "preonly") == "preonly"
-                and petsc_options.get("redundant_pc_type", "lu") in _FACTORISING_PC_TYPES)
-    return pc_type in _FACTORISING_PC_TYPES
-
-
-def _inner_pc(petsc_options: Mapping[str, Any]) -> str:
-    inner = {k: v for k, v in petsc_options.items() if k in ("redundant_ksp_type", "redundant_pc_type")}
-    return f" ({', '.join(f'{k}={v!r}' for k, v in inner.items())})" if inner else ""
-
-
-def _parse_option(key: str, value, kind: type):
-    """A reserved option's value as its field's type (strings parsed, as from a command line)."""
-    if kind is str:
-        if not isinstance(value, str):
-            raise TypeError(f"options[{key!r}] must be a type name (str), got {value!r}")
-        return value
-    if isinstance(value, bool) or value is None:
-        raise TypeError(f"options[{key!r}] must be a number, got {value!r}")
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"options[{key!r}] must be a number, got {value!r}") from None
-    if kind is int:
-        if not number.is_integer():
-            raise ValueError(f"options[{key!r}] must be a whole number, got {value!r}")
-        return int(number)
-    return number
-
-
-def _check_choice(name: str, value, allowed: frozenset) -> None:
-    if not isinstance(value, str):
-        raise TypeError(f"{name} must be a str, got {value!r}")
-    if value not in allowed:
-        raise ValueError(f"{name}={value!r} is not a PETSc type; choose one of {sorted(allowed)}")
 
 
 PRESETS: Mapping[str, KSPOptions] = types.MappingProxyType({

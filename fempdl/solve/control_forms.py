@@ -1,0 +1,100 @@
+"""The forms a Problem's controls bring, assembled and kept while their inputs keep their values.
+
+:class:`ControlForms` holds, for one :class:`~fempdl.solve.linear_system.LinearSystem`: the base
+right-hand side b(0) of each set of affine controls (lifting and boundary values included), the
+matrices C_m = dL/dm of affine right-hand-side controls (PETSc, and scipy for batched products),
+and the vectors of the controls' gradient forms. A fingerprint of the coefficients and constants
+each was assembled with detects a user's edit and triggers reassembly.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+from petsc4py import PETSc
+
+from fempdl.core import _dolfinx
+from fempdl.core.problem import Problem
+from fempdl.solve.assembly import ControlValues, fingerprint, fingerprint_matches
+from fempdl.solve.petsc import petsc_to_scipy
+
+__all__ = ["ControlForms"]
+
+
+class ControlForms:
+    """Cached assemblies of ``problem``'s control forms; ``template`` is a vector of the right-hand
+    side's layout, ``assembling()`` a context manager that times assembly."""
+
+    def __init__(self, problem: Problem, template: PETSc.Vec, assembling: Callable):
+        self.problem = problem
+        self._template, self._assembling = template, assembling
+        self._comm = problem.V.mesh.comm
+        self._base: dict = {}                  # frozenset(names) -> (Vec, fingerprint)
+        self._matrices: dict = {}              # name -> (Mat, vec on m, vec on V, fingerprint)
+        self._scipy: dict = {}                 # name -> (fingerprint, scipy C_m)
+        self._gradients: dict = {}             # name -> ghosted Vec on M
+
+    def base_rhs(self, names: frozenset, ctl: "ControlValues") -> PETSc.Vec:
+        """b with the passed affine controls set to zero (lifting and BC values included)."""
+        p = self.problem
+        with ctl.zeroed(names):
+            cached = self._base.get(names)
+            if cached is not None and fingerprint_matches(cached[1], p.rhs_inputs(), self._comm):
+                return cached[0]
+            vec = cached[0] if cached is not None else self._template.duplicate()
+            with self._assembling():
+                _dolfinx.assemble_vector_into(vec, p.L_form, p.a_form, p.bcs)
+            self._base[names] = (vec, fingerprint(p.rhs_inputs()))
+        return vec
+
+    def rhs_matrix(self, name: str):
+        """(C_m, input vector, output vector, fingerprint), reassembled when its inputs change."""
+        p = self.problem
+        inputs = p.rhs_matrix_inputs(name)
+        cached = self._matrices.get(name)
+        if cached is not None and fingerprint_matches(cached[3], inputs, self._comm):
+            return cached
+        form = p.rhs_matrix_form(name)
+        if cached is None:
+            C = _dolfinx.create_matrix(form)
+            vin, out = C.createVecs()
+        else:
+            C, vin, out, _ = cached
+        with self._assembling():
+            _dolfinx.assemble_matrix_into(C, form)
+        entry = (C, vin, out, fingerprint(inputs))
+        self._matrices[name] = entry
+        return entry
+
+    def rhs_matrix_scipy(self, name: str):
+        """C_m as scipy CSR, refreshed with the PETSc matrix of :meth:`rhs_matrix`."""
+        entry = self.rhs_matrix(name)
+        cached = self._scipy.get(name)
+        if cached is None or cached[0] is not entry[3]:
+            cached = self._scipy[name] = (entry[3], petsc_to_scipy(entry[0]))
+        return cached[1]
+
+    def gradient(self, name: str) -> np.ndarray:
+        """The assembled gradient form of control ``name`` (owned values; u and lam set by the caller)."""
+        p = self.problem
+        form = p.gradient_form(name)
+        n = p.control_size(name)
+        if form is None:
+            return np.zeros(n)
+        vec = self._gradients.get(name)
+        if vec is None:
+            vec = self._gradients[name] = _dolfinx.create_vector(form)
+        with self._assembling():
+            _dolfinx.assemble_vector_into(vec, form)
+        return vec.getArray(readonly=True)[:n].copy()
+
+    def destroy(self) -> None:
+        objs = [v for v, _ in self._base.values()]
+        objs += [o for C, vin, out, _ in self._matrices.values() for o in (C, vin, out)]
+        objs += list(self._gradients.values())
+        for obj in objs:
+            obj.destroy()
+        self._base.clear()
+        self._matrices.clear()
+        self._scipy.clear()
+        self._gradients.clear()
