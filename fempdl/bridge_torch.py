@@ -133,6 +133,7 @@ class SolveLayer(torch.nn.Module):
         self._unrolled = UnrolledPath(max_unrolled_values, memory_budget) if diff == "unrolled" else None
         self._system = LinearSystem(problem, options, batched_engine=BatchedEngine())
         # Plain values for forward, so torch.compile traces it without entering the Problem.
+        self._distributed = problem.V.mesh.comm.size > 1
         self._sizes = {**{n: problem.control_size(n) for n in problem.control_names},
                        INITIAL_GUESS: problem.output_size}
         self._handle = register_layer(self)
@@ -182,13 +183,13 @@ class SolveLayer(torch.nn.Module):
         every method in unrolled mode; in implicit mode the adjoint residual is
         the gradient (module docstring)."""
         if positional:
-            names = self.problem.control_names
+            names = [n for n in self._sizes if n != INITIAL_GUESS]
             raise TypeError(f"SolveLayer takes its controls as keywords, got {len(positional)} positional "
                             f"argument(s); call it as layer({', '.join(f'{n}=...' for n in names)})")
         if initial_guess is not None:
             controls = {**controls, INITIAL_GUESS: initial_guess}
         names, tensors, batch, batched = self._validate(controls)
-        if self.problem.V.mesh.comm.size > 1:
+        if self._distributed:
             self._check_ranks_agree(names, batch)
         dtype = tensors[0].dtype if tensors else torch.float64
         if any(t.dtype != dtype for t in tensors):
