@@ -253,16 +253,11 @@ class SolveLayer(torch.nn.Module):
                         "carries each layer's max_it) and rebuild the model, with its layers, from its Problem")
 
     def close(self) -> None:
-        """Free the PETSc objects now (otherwise on garbage collection)."""
+        """Free the PETSc objects now (otherwise when the system is garbage collected: a system still
+        referenced, ``SolveLayer(p).system``, outlives its layer)."""
         if getattr(self, "_system", None) is not None:
             self._system.destroy()
             self._system = None
-
-    def __del__(self):
-        try:
-            self.close()
-        except Exception:  # interpreter shutdown: PETSc may already be finalised
-            pass
 
     def extra_repr(self) -> str:
         if self._system is None:

@@ -5,6 +5,9 @@ tests/mpi/*.py, run as scripts under mpirun, put this directory on sys.path firs
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import gc
 import json
 
 import numpy as np
@@ -183,3 +186,25 @@ def _toml_value(value) -> str:
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
     raise TypeError(f"no TOML form for {value!r} ({type(value).__name__})")
+
+
+# ------------------------------------------------------------------ memory
+_libc_name = ctypes.util.find_library("c")
+_libc = ctypes.CDLL(_libc_name) if _libc_name else None
+
+
+def rss() -> int:
+    """Resident set size of this process in bytes."""
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    raise RuntimeError("no VmRSS line in /proc/self/status")
+
+
+def settled_rss() -> int:
+    """VmRSS after a garbage collection and malloc_trim (free pages returned to the system)."""
+    gc.collect()
+    if _libc is not None and hasattr(_libc, "malloc_trim"):
+        _libc.malloc_trim(0)
+    return rss()

@@ -167,3 +167,17 @@ def test_a_positional_control_names_the_keywords(prob):
     with pytest.raises(TypeError, match=r"SolveLayer takes its controls as keywords, got 1 positional argument\(s\); "
                                         r"call it as layer\(f=\.\.\., kappa=\.\.\.\)"):
         SolveLayer(prob, "lu")(f)
+
+
+def test_a_system_outlives_the_layer_it_came_from(prob):
+    """SolveLayer(p).system.constant_matrix() used to segfault: the temporary layer's finaliser freed the
+    PETSc objects the system still used. Now the system frees them when it is collected itself."""
+    A = SolveLayer(prob, "lu").system.constant_matrix()
+    assert A.shape == (prob.output_size, prob.output_size) and A.nnz > prob.output_size
+    system = SolveLayer(prob, KSPOptions(max_it=3)).system
+    assert system.constant_matrix().shape == A.shape
+    layer = SolveLayer(prob, "lu")
+    layer.close()
+    layer.close()                                       # twice: nothing more to free
+    with pytest.raises(RuntimeError, match="this SolveLayer was closed"):
+        layer(f=inputs(prob)[0])

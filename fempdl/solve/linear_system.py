@@ -67,6 +67,7 @@ class LinearSystem:
         self._batched = None if options.engine == "petsc" or len(problem.nullspace) else batched_engine
         self._batched_version = -1                             # A version the batched copy holds
         self._A = _dolfinx.create_matrix(problem.a_form)
+        self._destroyed = False
         self._b = _dolfinx.create_vector(problem.L_form)       # ghosted: assembly target
         self._x, self._rhs = self._A.createVecs()              # solution / transposed RHS
         self._nullspace = attach_nullspace(self._A, problem.nullspace)
@@ -295,7 +296,12 @@ class LinearSystem:
         return X
 
     def destroy(self) -> None:
-        """Free the PETSc objects (the system is unusable afterwards)."""
+        """Free the PETSc objects (the system is unusable afterwards); a second call does nothing.
+        Without it they are freed when the system itself is garbage collected, not before: a
+        system still referenced (``SolveLayer(p).system``) outlives its layer."""
+        if getattr(self, "_destroyed", True):
+            return
+        self._destroyed = True
         self._solver.destroy()
         objs = [self._A, self._b, self._x, self._rhs] + [n for n in (self._nullspace, self._near_nullspace) if n]
         for obj in objs:
@@ -303,6 +309,12 @@ class LinearSystem:
         self._kept_matrices.clear()
         self._forms.destroy()
         self._batched = None
+
+    def __del__(self):
+        try:
+            self.destroy()
+        except Exception:  # interpreter shutdown: PETSc may already be finalised
+            pass
 
     # ------------------------------------------------------- assembly caches
     def _prepare_matrix(self, names: frozenset, per_sample: bool, ctl: "ControlValues") -> None:
