@@ -21,6 +21,7 @@ incoming gradients and adjoints are (B, n) with n = ``problem.output_size``.
 """
 from __future__ import annotations
 
+import functools
 from typing import Mapping
 
 import numpy as np
@@ -75,7 +76,9 @@ class LinearSystem:
         self._solver = CappedSolver(self._A, options, fields=problem.fields or None)
         self._A_inputs = None                                  # fingerprint of the assembled A
         self._A_version = 0                                    # bumped at every assembly of A
-        self._forms = ControlForms(problem, self._b, self._assembling)   # b(0), C_m, gradient vectors
+        # b(0), C_m and gradient vectors; timed by a Timer on the stats, not a method of self (no reference cycle:
+        # the system is freed as soon as its last owner drops it)
+        self._forms = ControlForms(problem, self._b, functools.partial(Timer, self._solver.stats, "assembly_time"))
         self._kept_matrices = KeptMatrices(problem.matrix_controls)
 
     # ------------------------------------------------------------ properties
