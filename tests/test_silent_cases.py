@@ -181,3 +181,24 @@ def test_a_system_outlives_the_layer_it_came_from(prob):
     layer.close()                                       # twice: nothing more to free
     with pytest.raises(RuntimeError, match="this SolveLayer was closed"):
         layer(f=inputs(prob)[0])
+
+
+def test_a_dropped_layer_frees_its_system_at_once(prob):
+    """Without a reference cycle the system (and the PETSc options it put into the global database) goes
+    with the last reference, not at some later cyclic garbage collection."""
+    import gc
+    import weakref
+
+    from petsc4py import PETSc
+    gc.collect()
+    gc.disable()
+    try:
+        layer = SolveLayer(prob, KSPOptions.preset("gmres", max_it=3))
+        f, kappa = inputs(prob)
+        layer(f=f.requires_grad_(), kappa=kappa).sum().backward()
+        system = weakref.ref(layer.system)
+        del layer
+        assert system() is None
+        assert not [k for k in PETSc.Options().getAll() if k.startswith("fempdl")]
+    finally:
+        gc.enable()
