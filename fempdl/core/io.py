@@ -26,6 +26,7 @@ import dolfinx.io
 import numpy as np
 
 from fempdl.core import _dolfinx
+from fempdl.core.locks import same_file
 
 __all__ = ["write_xdmf", "write_fields", "nodal_field", "plot_fields", "plot_data"]
 
@@ -85,7 +86,7 @@ def one_writer(path: Path, comm):
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             # A writer that just finished unlinked the file this one opened: busy all the same.
-            busy = not guard.exists() or os.stat(guard).st_ino != os.fstat(fd).st_ino
+            busy = not same_file(fd, guard)
         except BlockingIOError:
             busy = True
         if busy:

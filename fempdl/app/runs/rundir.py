@@ -26,6 +26,7 @@ from pathlib import Path
 
 from fempdl.app.runs.checkpoints import CHECKPOINT
 from fempdl.app.schema import check_slug
+from fempdl.core.locks import same_file
 
 __all__ = ["LOCK", "ResumeError", "RunDirectoryError", "RunLock", "check_slug", "child", "fingerprint", "differences",
            "holds_run"]
@@ -104,7 +105,7 @@ class RunLock:
             except BlockingIOError:
                 os.close(fd)
                 raise self._in_use(self._owner()) from None
-            if not _is_at(fd, self.path):     # a holder released (unlinked) it meanwhile: lock the new one
+            if not same_file(fd, self.path):     # a holder released (unlinked) it meanwhile: lock the new one
                 os.close(fd)
                 continue
             owner = _read_owner(fd)
@@ -132,7 +133,7 @@ class RunLock:
         self._mine = False
         # Unlinked while still locked, so no process can lock this file after it left the directory
         # and believe it holds the directory's lock (acquire checks the path still names its file).
-        if _is_at(self._fd, self.path):
+        if same_file(self._fd, self.path):
             self.path.unlink(missing_ok=True)
         os.close(self._fd)
         self._fd = None
@@ -169,16 +170,6 @@ def _parse_owner(text: str) -> tuple[str, int] | None:
         return host, int(pid)
     except ValueError:
         return None
-
-
-def _is_at(fd: int, path: Path) -> bool:
-    """Whether ``path`` still names the open file ``fd``."""
-    try:
-        here = os.stat(path)
-    except FileNotFoundError:
-        return False
-    mine = os.fstat(fd)
-    return (here.st_dev, here.st_ino) == (mine.st_dev, mine.st_ino)
 
 
 def _alive(host: str, pid: int) -> bool:
