@@ -23,7 +23,7 @@ PACKAGE = Path(__file__).resolve().parent.parent / "fempdl"
 # Floors bottom to top, each a list of rooms in order; a room is a list of module prefixes.
 FLOORS = [
     ("core", [["fempdl.core._dolfinx", "fempdl.core.checks", "fempdl.core.resources", "fempdl.core.parallel",
-               "fempdl.core.meshgen", "fempdl.core.nullspaces", "fempdl.core.locks"], ["fempdl.core.mesh"], ["fempdl.core.problem", "fempdl.core.io"],
+               "fempdl.core.meshgen", "fempdl.core.nullspaces", "fempdl.core.locks"], ["fempdl.core.mesh", "fempdl.core.problem_base"], ["fempdl.core.problem", "fempdl.core.nonlinear_problem", "fempdl.core.io"],
               ["fempdl.forms"], ["fempdl.core"]]),
     ("solve", [["fempdl.solve.options", "fempdl.solve.option_checks"], ["fempdl.solve.stats", "fempdl.solve.petsc"], ["fempdl.ksp_adjoint"],
                ["fempdl.solve.assembly", "fempdl.solve.control_forms"], ["fempdl.solve.linear_system"], ["fempdl.solve"]]),

@@ -215,6 +215,31 @@ def assemble_vector_into(b: PETSc.Vec, L_form, a_form=None, bcs=()) -> PETSc.Vec
     return b
 
 
+def function_vector(fn) -> PETSc.Vec:
+    """The ghosted PETSc vector that shares ``fn``'s values (``fn.vector`` up to 0.9, ``fn.x.petsc_vec`` from 0.10)."""
+    x = getattr(fn, "x", None)
+    return x.petsc_vec if hasattr(x, "petsc_vec") else fn.vector
+
+
+def assemble_residual_into(b: PETSc.Vec, F_form, J_form, bcs, x: PETSc.Vec) -> PETSc.Vec:
+    """Zero ``b`` and assemble the Newton residual F(x) into it: lifted by J's BC columns at
+    x - g and with x - g on BC rows, so that x - J^{-1} b takes the boundary values
+    (DOLFINx's NonlinearProblem.F). ``x`` is ghosted with its ghosts up to date."""
+    with b.localForm() as loc:
+        loc.set(0.0)
+    dolfinx.fem.petsc.assemble_vector(b, F_form)
+    # Positional: the scale is ``scale`` up to 0.9 and ``alpha`` from 0.10.
+    dolfinx.fem.petsc.apply_lifting(b, [J_form], [list(bcs)], [x], -1.0)
+    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    dolfinx.fem.petsc.set_bc(b, list(bcs), x, -1.0)
+    return b
+
+
+def set_bc_values(x: PETSc.Vec, bcs) -> None:
+    """Put the Dirichlet values into ``x`` (owned entries)."""
+    dolfinx.fem.petsc.set_bc(x, list(bcs))
+
+
 def bc_dofs_owned(bcs, n_owned: int) -> np.ndarray:
     """Owned local indices of all DOFs constrained by ``bcs`` (sorted, unique)."""
     if not bcs:

@@ -118,7 +118,7 @@ class CumulativeStats:
         return self.forward_time + self.backward_time
 
     def reset(self) -> None:
-        fresh = CumulativeStats()
+        fresh = type(self)()
         for f in dataclasses.fields(self):
             setattr(self, f.name, getattr(fresh, f.name))
 

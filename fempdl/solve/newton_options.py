@@ -1,0 +1,130 @@
+"""NewtonOptions: an immutable, validated description of a (possibly capped) Newton solve of F(u) = 0.
+
+Two caps, as for a linear solve (:class:`~fempdl.solve.options.KSPOptions`):
+
+* the Newton cap ``max_it=N``: exactly N Newton steps from the initial guess
+  (the step's tolerances are off: rtol = atol = 0, no step-length test); it
+  stops earlier only if the residual vanishes exactly. ``max_it=None`` runs to
+  ``rtol``/``atol`` and not reaching them in ``converged_max_it`` steps, or any
+  other stop of PETSc's SNES (a failed line search, a NaN), is a failure that
+  names SNES's reason;
+* the inner cap: ``ksp`` is the :class:`KSPOptions` of each step's linear solve
+  J(u_k) du = F(u_k), capped (``max_it=K``: K Krylov iterations per step) or
+  converged, any preset.
+
+Methods (``snes_type``): ``"newtonls"`` (PETSc's line-search Newton, backtracking
+``"bt"`` by default), ``"newtontr"`` (trust region) and ``"newton"``, plain Newton:
+u_{k+1} = u_k - damping * J(u_k)^{-1} F(u_k) (``newtonls`` with the full-step
+``"basic"`` line search scaled by ``damping``). The unrolled derivative is that
+of plain Newton's map, whose steps do not depend on a line search's choices.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+from fempdl.core.checks import check_int
+from fempdl.solve.options import MAX_PETSC_INT, KSPOptions
+
+__all__ = ["NewtonOptions", "SNES_TYPES", "LINE_SEARCHES", "DEFAULT_NEWTON_RTOL", "DEFAULT_NEWTON_ATOL"]
+
+SNES_TYPES = ("newtonls", "newtontr", "newton")
+LINE_SEARCHES = ("bt", "basic", "l2", "cp")
+DEFAULT_NEWTON_RTOL = 1e-10
+DEFAULT_NEWTON_ATOL = 1e-12
+
+
+@dataclass(frozen=True)
+class NewtonOptions:
+    """Options of a (possibly capped) Newton solve; see the module docstring.
+
+    Args:
+        max_it: the Newton cap N (int >= 1): exactly N steps. ``None``: run to
+            the tolerances, a failure if they are not met.
+        rtol: relative residual tolerance ||F(u_k)|| <= rtol ||F(u_0)|| (uncapped solves).
+        atol: absolute residual tolerance ||F(u_k)|| <= atol (uncapped solves).
+        snes_type: ``"newtonls"``, ``"newtontr"`` or ``"newton"`` (plain, full steps).
+        linesearch: ``"bt"`` (default of ``newtonls``), ``"basic"``, ``"l2"`` or ``"cp"``;
+            only for ``newtonls``.
+        damping: the step length of plain Newton (0 < damping <= 1).
+        ksp: the inner linear solve: :class:`KSPOptions` or a preset name; capped
+            or converged. ``None`` lets the layer choose (LU where it fits).
+        converged_max_it: the most steps an uncapped solve may take.
+        on_failure: ``"raise"`` (:class:`~fempdl.solve.stats.SolverFailedError`)
+            or ``"warn"`` (the iterate, with a warning).
+    """
+
+    max_it: int | None = None
+    rtol: float = DEFAULT_NEWTON_RTOL
+    atol: float = DEFAULT_NEWTON_ATOL
+    snes_type: str = "newtonls"
+    linesearch: str | None = None
+    damping: float = 1.0
+    ksp: KSPOptions | str | None = None
+    converged_max_it: int = 50
+    on_failure: str = "raise"
+
+    def __post_init__(self):
+        if self.max_it is not None:
+            check_int("NewtonOptions.max_it", self.max_it, minimum=1, maximum=MAX_PETSC_INT,
+                      hint="the number of Newton steps, or None to run to rtol/atol")
+        check_int("NewtonOptions.converged_max_it", self.converged_max_it, minimum=1, maximum=MAX_PETSC_INT)
+        for name in ("rtol", "atol"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < 1 \
+                    or not math.isfinite(value):
+                raise ValueError(f"NewtonOptions.{name} must be a number in [0, 1), got {value!r}")
+        if self.max_it is None and self.rtol == 0 and self.atol == 0:
+            raise ValueError("an uncapped Newton solve (max_it=None) needs rtol > 0 or atol > 0")
+        if self.snes_type not in SNES_TYPES:
+            raise ValueError(f"NewtonOptions.snes_type must be one of {list(SNES_TYPES)}, got {self.snes_type!r}")
+        if self.linesearch is not None:
+            if self.linesearch not in LINE_SEARCHES:
+                raise ValueError(f"NewtonOptions.linesearch must be one of {list(LINE_SEARCHES)}, "
+                                 f"got {self.linesearch!r}")
+            if self.snes_type != "newtonls":
+                raise ValueError(f"a line search applies to snes_type='newtonls', not {self.snes_type!r}")
+        if isinstance(self.damping, bool) or not isinstance(self.damping, (int, float)) \
+                or not 0 < self.damping <= 1:
+            raise ValueError(f"NewtonOptions.damping must be in (0, 1], got {self.damping!r}")
+        if self.damping != 1 and self.snes_type != "newton":
+            raise ValueError("damping applies to plain Newton (snes_type='newton')")
+        if isinstance(self.ksp, str):
+            object.__setattr__(self, "ksp", KSPOptions.preset(self.ksp))
+        elif self.ksp is not None and not isinstance(self.ksp, KSPOptions):
+            raise TypeError(f"NewtonOptions.ksp must be KSPOptions, a preset name or None, "
+                            f"got {type(self.ksp).__name__}")
+        if self.on_failure not in ("raise", "warn"):
+            raise ValueError(f"NewtonOptions.on_failure must be 'raise' or 'warn', got {self.on_failure!r}")
+
+    @property
+    def capped(self) -> bool:
+        """Whether the Newton solve runs exactly ``max_it`` steps."""
+        return self.max_it is not None
+
+    @property
+    def step_limit(self) -> int:
+        """The most Newton steps a solve may take."""
+        return self.converged_max_it if self.max_it is None else self.max_it
+
+    @property
+    def plain(self) -> bool:
+        """Whether every step is the full (or fixed-damping) Newton step, with no line search's choice."""
+        return self.snes_type == "newton" or (self.snes_type == "newtonls" and self.linesearch == "basic")
+
+    def snes_tolerances(self) -> dict:
+        """Keyword arguments of ``SNES.setTolerances``: zero tolerances under a cap."""
+        if self.capped:
+            return dict(rtol=0.0, atol=0.0, stol=0.0, max_it=self.max_it)
+        return dict(rtol=self.rtol, atol=self.atol, stol=0.0, max_it=self.converged_max_it)
+
+    def with_max_it(self, max_it: int | None) -> "NewtonOptions":
+        """A copy with the Newton cap moved."""
+        return dataclasses.replace(self, max_it=max_it)
+
+    def with_inner_max_it(self, max_it: int | None) -> "NewtonOptions":
+        """A copy with the inner (linear) cap moved."""
+        if self.ksp is None:
+            raise ValueError("the inner solve's options are not set yet (ksp=None); give NewtonOptions(ksp=...)")
+        return dataclasses.replace(self, ksp=self.ksp.with_max_it(max_it))

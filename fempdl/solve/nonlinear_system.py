@@ -1,0 +1,364 @@
+"""The discrete system of a NonlinearProblem: batched Newton solves and their adjoints on arrays.
+
+:class:`NonlinearSystem` owns the PETSc objects of one
+:class:`~fempdl.core.nonlinear_problem.NonlinearProblem` for one
+:class:`~fempdl.solve.newton_options.NewtonOptions` (Jacobian, residual and
+solution vectors, a PETSc SNES whose KSP is the inner solve, and a
+:class:`~fempdl.ksp_adjoint.CappedSolver` for transposed solves), and works on
+NumPy arrays of owned DOF values, one row per sample:
+
+* :meth:`solve` — per sample: set the controls, put the boundary values into
+  the initial guess (zero or given) and run SNES (``max_it`` steps, or to the
+  tolerances); optionally keep every iterate u_0 ... u_N (a :class:`NewtonPath`);
+* :meth:`adjoint` — the implicit gradient at the returned states:
+  J(u)^T lam = g (BC entries zeroed, the inner solve's adjoint options), then
+  dJ/dm = -d/dm F(u, lam; m) by assembling the problem's gradient forms;
+* :meth:`unrolled_adjoint` — the exact reverse pass of the plain Newton map
+  that was run: per step, backwards, mu = J(u_k)^{-T} u_bar, then
+  u_bar <- u_bar + a dQ/du and m_bar += a dQ/dm
+  (:class:`~fempdl.core.nonlinear_problem.NonlinearProblem`'s step forms).
+
+Shapes: ``controls[name]`` is (B, n_m) (broadcast views are fine); solutions,
+incoming gradients and adjoints are (B, n), n = ``problem.output_size``.
+"""
+from __future__ import annotations
+
+import functools
+import time
+import weakref
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from fempdl.core import _dolfinx
+from fempdl.core.nonlinear_problem import NonlinearProblem
+from fempdl.ksp_adjoint import CappedSolver
+from fempdl.solve.assembly import ControlValues, Timer, attach_nullspace, check_operator, set_owned
+from fempdl.solve.control_forms import ControlForms
+from fempdl.solve.newton_options import NewtonOptions
+from fempdl.solve.newton_stats import (SNES_REASON_NAMES, NewtonCumulativeStats, NewtonSolveStats,
+                                       report_newton_failure)
+from fempdl.solve.options import MAX_PETSC_INT, KSPOptions
+from fempdl.solve.petsc import create_ksp, destroy_ksp, unique_prefix
+from fempdl.solve.stats import DIVERGED_MAX_IT, REASON_NAMES, SolveStats
+
+__all__ = ["NonlinearSystem", "NewtonPath", "INITIAL_GUESS"]
+
+INITIAL_GUESS = "initial_guess"
+_SNES_MAX_IT = PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
+_INSERT, _FORWARD = PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD
+_LAND = MPI.LAND
+
+
+@dataclass
+class NewtonPath:
+    """The iterates of one call's Newton solves, for the unrolled reverse pass:
+    ``iterates[i]`` is (steps_i + 1, n) for sample i (u_0 with its boundary values, ..., u_N)."""
+
+    iterates: list
+    damping: float
+
+
+class NonlinearSystem:
+    """SNES, Jacobian and vectors of ``problem`` (see the module docstring).
+
+    Args:
+        problem: the nonlinear problem.
+        options: the Newton options; ``options.ksp`` (the inner solve) must be set.
+    """
+
+    def __init__(self, problem: NonlinearProblem, options: NewtonOptions):
+        if not isinstance(options, NewtonOptions) or options.ksp is None:
+            raise ValueError("NonlinearSystem needs NewtonOptions with the inner solve's options (ksp=...)")
+        self.problem = problem
+        self._comm = problem.V.mesh.comm
+        self._destroyed = False
+        self._J = _dolfinx.create_matrix(problem.J_form)
+        self._b = _dolfinx.create_vector(problem.F_form)        # residual
+        self._sol = _dolfinx.create_vector(problem.F_form)      # SNES's iterate
+        self._u_vec = _dolfinx.function_vector(problem.u)
+        self._rhs, self._lam = self._J.createVecs()
+        self._nullspace = attach_nullspace(self._J, problem.nullspace)
+        self._near_nullspace = attach_nullspace(self._J, problem.near_nullspace, near=True)
+        self.stats = NewtonCumulativeStats()
+        self._forms = ControlForms(problem, self._b, functools.partial(Timer, self.stats, "assembly_time"))
+        self._step_vectors: dict = {}
+        self._prefix = unique_prefix("snes")
+        self._snes = None
+        self._ksp = None
+        self._adjoint_solver = None
+        self._options = options
+        self._build(options)
+        self._recording: list | None = None
+        self._residual_norms: list = []
+
+    # ------------------------------------------------------------ options
+    @property
+    def options(self) -> NewtonOptions:
+        return self._options
+
+    @options.setter
+    def options(self, options: NewtonOptions) -> None:
+        """Rebuild the solvers for new options (a moved inner cap: its KSPs change)."""
+        if options.ksp is None:
+            raise ValueError("NewtonOptions.ksp must be set")
+        if options == self._options:
+            return
+        self._free_solvers()
+        self._options = options
+        self._build(options)
+
+    @property
+    def max_it(self) -> int | None:
+        return self._options.max_it
+
+    @max_it.setter
+    def max_it(self, value: int | None) -> None:
+        self._options = self._options.with_max_it(value)     # validates
+        self._snes.setTolerances(**self._options.snes_tolerances())
+
+    @property
+    def inner_max_it(self) -> int | None:
+        return self._options.ksp.max_it
+
+    @inner_max_it.setter
+    def inner_max_it(self, value: int | None) -> None:
+        self.options = self._options.with_inner_max_it(value)
+
+    def _build(self, options: NewtonOptions) -> None:
+        p = self.problem
+        ksp_options: KSPOptions = options.ksp
+        self._ksp = create_ksp(self._J, ksp_options, unique_prefix("newton_ksp"), p.fields or None)
+        snes = PETSc.SNES().create(self._comm)
+        snes.setOptionsPrefix(self._prefix)
+        snes.setType("newtonls" if options.snes_type == "newton" else options.snes_type)
+        db = PETSc.Options()
+        if options.snes_type != "newtontr":
+            db[self._prefix + "snes_linesearch_type"] = "basic" if options.plain else (options.linesearch or "bt")
+            db[self._prefix + "snes_linesearch_damping"] = options.damping
+        snes.setKSP(self._ksp)
+        snes.setFunction(_weak(self._residual), self._b)
+        snes.setJacobian(_weak(self._jacobian), self._J)
+        snes.setFromOptions()
+        snes.setTolerances(**options.snes_tolerances())
+        snes.setMaxFunctionEvaluations(MAX_PETSC_INT)
+        # A capped inner solve "fails" by reaching its cap: that is what was asked for.
+        snes.setMaxLinearSolveFailures(MAX_PETSC_INT if ksp_options.capped else 1)
+        snes.setMonitor(_weak(self._monitor))
+        self._snes = snes
+        self._adjoint_solver = CappedSolver(self._J, ksp_options, fields=p.fields or None)
+        self._adjoint_solver.stats = self.stats
+
+    # ----------------------------------------------------------- callbacks
+    def _set_state(self, x: PETSc.Vec) -> None:
+        """u <- x (owned values), ghosts updated."""
+        x.copy(self._u_vec)
+        self._u_vec.ghostUpdate(addv=_INSERT, mode=_FORWARD)
+
+    def _residual(self, snes, x, b) -> None:
+        with Timer(self.stats, "assembly_time"):
+            self._set_state(x)
+            p = self.problem
+            _dolfinx.assemble_residual_into(b, p.F_form, p.J_form, p.bcs, self._u_vec)
+
+    def _jacobian(self, snes, x, J, P) -> None:
+        with Timer(self.stats, "assembly_time"):
+            self._set_state(x)
+            _dolfinx.assemble_matrix_into(J, self.problem.J_form, self.problem.bcs)
+            if P.handle != J.handle:
+                _dolfinx.assemble_matrix_into(P, self.problem.J_form, self.problem.bcs)
+
+    def _monitor(self, snes, its, fnorm) -> None:
+        self._residual_norms.append(float(fnorm))
+        if its > 0:
+            ksp = snes.getKSP()
+            reason = int(ksp.getConvergedReason())
+            iterations = max(int(ksp.getIterationNumber()), 1 if self._options.ksp.direct else 0)
+            ksp_options = self._options.ksp
+            capped = ksp_options.capped and reason == DIVERGED_MAX_IT
+            self.stats.record("forward", SolveStats(
+                iterations=iterations, reason=reason, reason_name=REASON_NAMES.get(reason, str(reason)),
+                residual_norm=None, time=0.0, capped=capped, ok=reason > 0 or capped))
+        if self._recording is not None:
+            self._recording.append(snes.getSolution().getArray(readonly=True).copy())
+
+    # ----------------------------------------------------------------- solve
+    def solve(self, controls: Mapping[str, np.ndarray], batch: int, shared=frozenset(),
+              initial_guess: np.ndarray | None = None, keep_matrices: bool = False,
+              record: bool = False):
+        """Newton solves for ``batch`` samples; returns U (batch, n), and with ``record``
+        also the :class:`NewtonPath` of the iterates. ``initial_guess`` (batch, n) starts
+        the iteration (its Dirichlet entries are replaced by the boundary values)."""
+        p = self.problem
+        n = p.output_size
+        U = np.empty((batch, n))
+        paths = [] if record else None
+        with ControlValues(p, controls) as ctl:
+            for i in range(batch):
+                ctl.set_sample(i)
+                U[i] = self._solve_one(None if initial_guess is None else initial_guess[i], paths)
+        return (U, NewtonPath(paths, self._options.damping)) if record else U
+
+    def _solve_one(self, guess: np.ndarray | None, paths: list | None) -> np.ndarray:
+        p = self.problem
+        sol = self._sol
+        if guess is None:
+            sol.set(0.0)
+        else:
+            sol.setArray(guess)
+        _dolfinx.set_bc_values(sol, p.bcs)
+        self._residual_norms = []
+        self._recording = [] if paths is not None else None
+        inner_before = self.stats.forward_iterations
+        solves_before = self.stats.forward_solves
+        assembly_before = self.stats.assembly_time
+        t0 = time.perf_counter()
+        try:
+            self._snes.solve(None, sol)
+        except PETSc.Error as err:
+            if isinstance(err.__cause__, KeyboardInterrupt):
+                raise err.__cause__ from None
+            raise
+        elapsed = time.perf_counter() - t0
+        # The inner solves' time: the SNES time less its assemblies, shared by its steps.
+        steps_done = self.stats.forward_solves - solves_before
+        if steps_done:
+            self.stats.forward_time += elapsed - (self.stats.assembly_time - assembly_before)
+        reason = int(self._snes.getConvergedReason())
+        steps = int(self._snes.getIterationNumber())
+        x = sol.getArray(readonly=True).copy()
+        finite = bool(np.isfinite(x).all()) and all(np.isfinite(self._residual_norms))
+        finite = self._comm.allreduce(finite, op=_LAND)
+        capped = self._options.capped and reason == _SNES_MAX_IT and steps == self._options.max_it
+        stats = NewtonSolveStats(steps=steps, reason=reason, reason_name=SNES_REASON_NAMES.get(reason, str(reason)),
+                                 residual_norms=tuple(self._residual_norms),
+                                 inner_iterations=self.stats.forward_iterations - inner_before,
+                                 capped=capped, ok=finite and (reason > 0 or capped), time=elapsed)
+        self.stats.record_newton(stats)
+        if paths is not None:
+            paths.append(np.array(self._recording))
+            self._recording = None
+        if not stats.ok:
+            last = self.stats.last
+            inner = f"{last.reason_name} after {last.iterations} iterations" if last is not None else None
+            report_newton_failure(self._options, stats, inner)
+        return x
+
+    # --------------------------------------------------------------- adjoint
+    def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
+                wanted, shared=frozenset(), initial_guess: bool = False) -> dict[str, np.ndarray]:
+        """Implicit control gradients dJ/dm (batch, n_m) at the states U, for incoming
+        G = dJ/du (batch, n). With ``initial_guess`` the result also holds a zero
+        gradient for the starting point: a solution of F(u) = 0 does not depend on it."""
+        p = self.problem
+        batch = G.shape[0]
+        wanted = [n for n in p.control_names if n in set(wanted)]
+        grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
+        if initial_guess:
+            grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
+        G = self._zero_bc(G)
+        with ControlValues(p, controls) as ctl:
+            for i in range(batch):
+                ctl.set_sample(i)
+                self._transpose_solve(U[i], G[i])
+                for name in wanted:
+                    grads[name][i] = self._forms.gradient(name)
+        return grads
+
+    def unrolled_adjoint(self, controls: Mapping[str, np.ndarray], path: NewtonPath, G: np.ndarray,
+                         wanted, initial_guess: bool = False) -> dict[str, np.ndarray]:
+        """The exact vector-Jacobian product of the plain Newton map that produced ``path``:
+        dJ/dm (batch, n_m) for m in ``wanted`` and, with ``initial_guess``, dJ/du_0 (batch, n)."""
+        p = self.problem
+        batch = G.shape[0]
+        wanted = [n for n in p.control_names if n in set(wanted)]
+        grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
+        a = path.damping
+        G = self._zero_bc(G)
+        with ControlValues(p, controls) as ctl:
+            for i in range(batch):
+                ctl.set_sample(i)
+                iterates = path.iterates[i]
+                u_bar = G[i]
+                for k in range(len(iterates) - 2, -1, -1):
+                    self._transpose_solve(iterates[k], u_bar)            # lam = mu_k, u = u_k
+                    set_owned(p.step, (iterates[k] - iterates[k + 1]) / a, p.output_size)
+                    for name in wanted:
+                        grads[name][i] += a * self._assembled(p.step_control_form(name), name)
+                    u_bar = u_bar + a * self._assembled(p.step_state_form(), None)
+                    if len(p.bc_dofs):
+                        u_bar[p.bc_dofs] = 0.0        # u_k takes the boundary values whatever came before
+                    self.stats.backward_newton_steps += 1
+                if initial_guess:
+                    grads.setdefault(INITIAL_GUESS, np.zeros((batch, p.output_size)))[i] = u_bar
+        return grads
+
+    def _transpose_solve(self, u: np.ndarray, g: np.ndarray) -> None:
+        """Assemble J(u) (u set as the problem's state) and solve J^T lam = g into ``problem.lam``."""
+        p = self.problem
+        set_owned(p.u, u, p.output_size)
+        with Timer(self.stats, "assembly_time"):
+            _dolfinx.assemble_matrix_into(self._J, p.J_form, p.bcs)
+            check_operator(self._J, [])
+        self._rhs.setArray(g)
+        self._adjoint_solver.solve_transpose(self._rhs, self._lam)
+        set_owned(p.lam, self._lam.getArray(readonly=True), p.output_size)
+
+    def _assembled(self, form, name: str | None) -> np.ndarray:
+        """Owned values of a compiled linear form on the space of control ``name`` (None: the solution space)."""
+        p = self.problem
+        n = p.output_size if name is None else p.control_size(name)
+        if form is None:
+            return np.zeros(n)
+        vec = self._step_vectors.get(name)
+        if vec is None:
+            vec = self._step_vectors[name] = _dolfinx.create_vector(form)
+        with Timer(self.stats, "assembly_time"):
+            _dolfinx.assemble_vector_into(vec, form)
+        return vec.getArray(readonly=True)[:n].copy()
+
+    def _zero_bc(self, G: np.ndarray) -> np.ndarray:
+        G = np.array(G, dtype=np.float64)
+        if len(self.problem.bc_dofs):
+            G[:, self.problem.bc_dofs] = 0.0     # u = g on the boundary does not depend on the controls
+        return G
+
+    # --------------------------------------------------------------- cleanup
+    def _free_solvers(self) -> None:
+        if self._snes is not None:
+            PETSc.Options().delValue(self._prefix + "snes_linesearch_type")
+            PETSc.Options().delValue(self._prefix + "snes_linesearch_damping")
+            self._snes.destroy()
+            destroy_ksp(self._ksp)
+            self._adjoint_solver.destroy()
+        self._snes = self._ksp = self._adjoint_solver = None
+
+    def destroy(self) -> None:
+        """Free the PETSc objects (the system is unusable afterwards); a second call does nothing."""
+        if getattr(self, "_destroyed", True):
+            return
+        self._destroyed = True
+        self._free_solvers()
+        objs = [self._J, self._b, self._sol, self._rhs, self._lam, *self._step_vectors.values()]
+        for obj in objs + [n for n in (self._nullspace, self._near_nullspace) if n]:
+            obj.destroy()
+        self._forms.destroy()
+
+    def __del__(self):
+        try:
+            self.destroy()
+        except Exception:  # interpreter shutdown: PETSc may already be finalised
+            pass
+
+
+def _weak(method):
+    """A callback that calls ``method`` through a weak reference: the SNES holds its callbacks, and a
+    bound method would make system and SNES a cycle that only a cyclic collection frees."""
+    ref = weakref.WeakMethod(method)
+
+    def call(*args):
+        return ref()(*args)
+    return call
