@@ -3,6 +3,7 @@
 Public names, in one line::
 
     from fempdl import Problem, SolveLayer, KSPOptions, PRDP, SolverFailedError, forms, mesh
+    from fempdl import NonlinearProblem, NonlinearSolveLayer, NewtonOptions
 
 They load on first use, so ``import fempdl`` (and ``fempdl --help``) does not pay
 for DOLFINx and torch until a name needs them. The package's floors, bottom to
@@ -30,6 +31,9 @@ __version__ = "0.1.0"
 _PUBLIC = {
     "Problem": "fempdl.core.problem",
     "SolveLayer": "fempdl.bridge_torch",
+    "NonlinearProblem": "fempdl.core.nonlinear_problem",
+    "NonlinearSolveLayer": "fempdl.layer.newton_layer",
+    "NewtonOptions": "fempdl.solve.newton_options",
     "KSPOptions": "fempdl.solve.options",
     "CappedSolver": "fempdl.ksp_adjoint",
     "SolveStats": "fempdl.solve.stats",

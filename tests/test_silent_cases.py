@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from fempdl import KSPOptions, SolveLayer, forms
-from fempdl.bridge_torch import DIRECT_MAX_DOFS, default_options
+from fempdl.solve.options import DIRECT_MAX_DOFS, default_options
 from fempdl.layer.implicit_diff import SECOND_DERIVATIVE_MESSAGE
 
 F64 = torch.float64
@@ -47,9 +47,9 @@ def test_options_are_capped_only_when_asked(prob):
 
 
 def test_large_problems_default_to_a_converged_iterative_solve(prob, monkeypatch):
-    import fempdl.bridge_torch as bridge
+    import fempdl.solve.options as solve_options
     assert DIRECT_MAX_DOFS >= prob.output_size
-    monkeypatch.setattr(bridge, "DIRECT_MAX_DOFS", prob.output_size - 1)
+    monkeypatch.setattr(solve_options, "DIRECT_MAX_DOFS", prob.output_size - 1)
     options = default_options(prob)
     assert options == KSPOptions.preset("gmres") and not options.capped
 

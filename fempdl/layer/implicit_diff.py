@@ -201,7 +201,8 @@ class ImplicitSolve(torch.autograd.Function):
             # raises instead of silently dropping the layer's second-order term.
             anchors = [t for t in (*tensors, grad_out) if t.requires_grad]
             if anchors:
-                result = [None if g is None else FirstOrderOnly.apply(g, *anchors) for g in result]
+                message = getattr(ctx.layer, "second_derivative_message", SECOND_DERIVATIVE_MESSAGE)
+                result = [None if g is None else FirstOrderOnly.apply(g, message, *anchors) for g in result]
         return (None,) * 5 + tuple(result)
 
 
@@ -213,23 +214,23 @@ SECOND_DERIVATIVE_MESSAGE = (
 
 
 class FirstOrderOnly(torch.autograd.Function):
-    """The identity on a first-order gradient whose backward raises: built into the graph when a
+    """The identity on a first-order gradient whose backward raises ``message``: built into the graph when a
     backward runs with ``create_graph=True`` and tied to the tensors the gradient depends on, so
     that only an actual second derivative (not the first-order gradient itself) fails."""
 
     generate_vmap_rule = True
 
     @staticmethod
-    def forward(grad, *anchors):
+    def forward(grad, message: str, *anchors):
         return grad.clone()
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        pass
+        ctx.message = inputs[1]
 
     @staticmethod
     def backward(ctx, _):
-        raise RuntimeError(SECOND_DERIVATIVE_MESSAGE)
+        raise RuntimeError(ctx.message)
 
 
 # ------------------------------------------------------------------ helpers

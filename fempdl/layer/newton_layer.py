@@ -1,0 +1,151 @@
+"""A Newton solve of F(u; m) = 0 as a differentiable PyTorch layer.
+
+``NonlinearSolveLayer(problem, options, diff="implicit")`` maps control
+tensors to the owned DOF values of u_N, the N-th iterate of PETSc's SNES
+(N = ``max_it``, or the step where the tolerances are met), each step's linear
+solve J(u_k) du = F(u_k) by the inner :class:`KSPOptions` (capped or converged).
+
+Gradients, exactly:
+
+* ``diff="implicit"``: at the returned state u, solve J(u)^T lam = dJ/du (BC
+  entries zeroed; the inner solve's adjoint options, capped or not) and return
+  dJ/dm = -d/dm F(u, lam; m). This is the exact gradient of the discrete
+  solution when Newton converged; for a capped Newton (or a capped inner
+  solve) it is the implicit-function approximation, evaluated at the iterate.
+  A warm start's gradient is 0: a solution does not depend on where Newton
+  started. Composes with torch.func and torch.compile as the linear layer does
+  (one opaque operator per solve and per adjoint).
+* ``diff="unrolled"``: the exact derivative of the N-step plain Newton map
+  that was computed, with respect to the controls and the warm start
+  (:mod:`fempdl.layer.newton_unrolled`); needs ``snes_type="newton"`` and an
+  exact inner step (a direct or converged inner solve).
+
+Second derivatives are refused with a RuntimeError in both modes (the
+backward is a first-order adjoint). Shapes: controls (B, n_m) or shared
+(n_m,); ``initial_guess`` (B, n) or (n,); the output (B, n) if any input is
+batched, else (n,), in float64 unless every input is float32.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import torch
+
+from fempdl.core.nonlinear_problem import NonlinearProblem
+from fempdl.layer.implicit_diff import count_on_all_ranks
+from fempdl.layer.newton_unrolled import UnrolledNewton, check_unrolled_newton, stored_values
+from fempdl.layer.system_layer import SystemLayer
+from fempdl.solve.newton_options import NewtonOptions
+from fempdl.solve.newton_stats import NewtonCumulativeStats
+from fempdl.solve.nonlinear_system import NonlinearSystem
+from fempdl.solve.options import default_options
+
+__all__ = ["NonlinearSolveLayer", "NEWTON_DIFF_MODES"]
+
+NEWTON_DIFF_MODES = ("implicit", "unrolled")
+
+
+class NonlinearSolveLayer(SystemLayer):
+    """Differentiable (capped) Newton solve of a :class:`fempdl.NonlinearProblem`.
+
+    Args:
+        problem: the nonlinear problem; its controls become keyword inputs.
+        options: :class:`NewtonOptions` (default: converged ``newtonls`` with a
+            backtracking line search to rtol 1e-10). Its ``ksp=None`` takes the
+            linear layer's default inner solve (LU where it fits).
+        diff: ``"implicit"`` or ``"unrolled"`` (module docstring).
+        max_unrolled_values: in unrolled mode, the floats the kept iterates may
+            take ((N + 1) * B * n per call); a call that needs more is refused
+            with a MemoryError before it starts. ``None``: no bound.
+
+    Attributes:
+        max_it: the Newton cap N (``None``: converged); assign to move it (PRDP does).
+        inner_max_it: the inner solve's cap K (``None``: converged); assign to move it.
+        stats: :class:`~fempdl.solve.newton_stats.NewtonCumulativeStats`: Newton
+            steps and inner iterations, forward and backward, counted apart.
+    """
+
+    def __init__(self, problem: NonlinearProblem, options: NewtonOptions | None = None, *,
+                 diff: str = "implicit", max_unrolled_values: int | None = None):
+        super().__init__()
+        if not isinstance(problem, NonlinearProblem):
+            raise TypeError(f"problem must be a fempdl.NonlinearProblem, got {type(problem).__name__}; a linear "
+                            "fempdl.Problem goes into a SolveLayer")
+        if options is None:
+            options = NewtonOptions()
+        elif not isinstance(options, NewtonOptions):
+            raise TypeError(f"options must be NewtonOptions, got {type(options).__name__}")
+        if options.ksp is None:
+            options = dataclasses.replace(options, ksp=default_options(problem))
+        if diff not in NEWTON_DIFF_MODES:
+            raise ValueError(f"diff must be one of {list(NEWTON_DIFF_MODES)}, got {diff!r}")
+        if diff == "unrolled":
+            check_unrolled_newton(options)
+        if max_unrolled_values is not None and diff != "unrolled":
+            raise ValueError("max_unrolled_values applies to diff='unrolled' layers")
+        self.diff = diff
+        self.max_unrolled_values = max_unrolled_values
+        self._init_system(problem, NonlinearSystem(problem, options))
+
+    second_derivative_message = (
+        "second derivatives through NonlinearSolveLayer are not implemented: both its implicit and its unrolled "
+        "backward are first-order adjoints, so a Hessian-vector product or a gradient of a gradient would miss "
+        "the layer's second-order terms. Use finite differences of the first-order gradient")
+
+    @property
+    def inner_max_it(self) -> int | None:
+        return self.system.inner_max_it
+
+    @inner_max_it.setter
+    def inner_max_it(self, value: int | None) -> None:
+        options = self.system.options.with_inner_max_it(value)      # validates
+        if self.diff == "unrolled":
+            check_unrolled_newton(options)
+        self.system.inner_max_it = value
+
+    @property
+    def stats(self) -> NewtonCumulativeStats:
+        """Newton steps and inner iterations of every solve of this layer."""
+        return self.system.stats
+
+    def forward(self, *positional, initial_guess: torch.Tensor | None = None, **controls: torch.Tensor) -> torch.Tensor:
+        """Solve for the given controls (keyword per control name) from ``initial_guess``
+        (zero by default; its Dirichlet entries are replaced by the boundary values)."""
+        names, tensors, batch, batched, dtype, device = self._inputs(positional, initial_guess, controls)
+        if self.diff == "unrolled":
+            self._check_memory(batch)
+            t0 = time.perf_counter()
+            out = UnrolledNewton.apply(self, names, batch,
+                                       *[t.to(device="cpu", dtype=torch.float64) for t in tensors])
+            self.stats.layer_time += time.perf_counter() - t0
+            if dtype != torch.float64 and count_on_all_ranks(~torch.isfinite(out.to(dtype)), self.problem):
+                self._report_overflow(dtype)
+        else:
+            out = self._implicit(names, tensors, batch, dtype)
+        out = out.to(device=device, dtype=dtype)
+        return out if batched else out[0]
+
+    def _check_memory(self, batch: int) -> None:
+        needed = stored_values(self.options, batch, self.problem.output_size)
+        if self.max_unrolled_values is not None and needed > self.max_unrolled_values:
+            raise MemoryError(f"an unrolled Newton call would keep {needed} values ((steps + 1) * batch * n), more "
+                              f"than max_unrolled_values={self.max_unrolled_values}; cap Newton lower, split the "
+                              "batch, or use diff='implicit'")
+
+    def get_extra_state(self) -> dict:
+        """Both caps travel with ``state_dict()``."""
+        return {"max_it": self.max_it, "inner_max_it": self.inner_max_it}
+
+    def set_extra_state(self, state: dict) -> None:
+        super().set_extra_state(state)
+        if "inner_max_it" in state:
+            self.inner_max_it = state["inner_max_it"]
+
+    def extra_repr(self) -> str:
+        if self._system is None:
+            return "closed"
+        o = self.options
+        return (f"controls={list(self.problem.control_names)}, n={self.problem.output_size}, "
+                f"snes={o.snes_type}, max_it={o.max_it}, ksp={o.ksp.ksp_type}+{o.ksp.pc_type}, "
+                f"inner_max_it={o.ksp.max_it}, diff={self.diff!r}")

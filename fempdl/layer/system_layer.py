@@ -1,0 +1,171 @@
+"""What fempdl's solve layers share: controls as keyword tensors, checks, collective calls, the cap in
+``state_dict``, and the PETSc objects' lifetime.
+
+:class:`SystemLayer` is the base of :class:`~fempdl.bridge_torch.SolveLayer` (a linear system) and
+:class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (a Newton solve). A subclass calls
+:meth:`SystemLayer._init_system` with its problem and system; the system has ``stats``,
+``options``/``max_it``, ``solve``/``adjoint`` on arrays and ``destroy``.
+
+Shapes: each control tensor is (B, n_m) or (n_m,) with n_m = ``problem.control_size(name)``; a
+(n_m,) tensor is shared by all samples; ``initial_guess`` is (B, n) or (n,).
+"""
+from __future__ import annotations
+
+import torch
+
+from fempdl.layer.implicit_diff import ImplicitSolve, count_on_all_ranks, nonfinite_control_message, register_layer
+from fempdl.solve.linear_system import INITIAL_GUESS
+from fempdl.solve.stats import CumulativeStats, warn_at_caller
+
+__all__ = ["SystemLayer", "INITIAL_GUESS"]
+
+_FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
+class SystemLayer(torch.nn.Module):
+    """The common part of the solve layers (module docstring)."""
+
+    def _init_system(self, problem, system) -> None:
+        self.problem = problem
+        self._system = system
+        # Plain values for forward, so torch.compile traces it without entering the Problem.
+        self._distributed = problem.V.mesh.comm.size > 1
+        self._sizes = {**{n: problem.control_size(n) for n in problem.control_names},
+                       INITIAL_GUESS: problem.output_size}
+        self._handle = register_layer(self)
+
+    @property
+    def options(self):
+        return self.system.options
+
+    @property
+    def max_it(self) -> int | None:
+        return self.system.max_it
+
+    @max_it.setter
+    def max_it(self, value: int | None) -> None:
+        self.system.max_it = value
+
+    @property
+    def system(self):
+        """The assembled system (raises once the layer is closed)."""
+        if self._system is None:
+            kind = type(self).__name__
+            raise RuntimeError(f"this {kind} was closed (close() freed its PETSc objects); "
+                               f"create a new {kind} to solve again")
+        return self._system
+    @property
+    def stats(self) -> CumulativeStats:
+        """Cumulative counters of every solve of this layer."""
+        return self.system.stats
+
+
+
+    def _inputs(self, positional, initial_guess, controls: dict):
+        """Checked call inputs: (names, tensors, batch, batched, dtype, device), the ranks' calls compared."""
+        if positional:
+            names = [n for n in self._sizes if n != INITIAL_GUESS]
+            raise TypeError(f"{type(self).__name__} takes its controls as keywords, got {len(positional)} positional "
+                            f"argument(s); call it as layer({', '.join(f'{n}=...' for n in names)})")
+        if initial_guess is not None:
+            controls = {**controls, INITIAL_GUESS: initial_guess}
+        names, tensors, batch, batched = self._validate(controls)
+        if self._distributed:
+            self._check_ranks_agree(names, batch)
+        dtype = tensors[0].dtype if tensors else torch.float64
+        if any(t.dtype != dtype for t in tensors):
+            dtype = torch.float64
+        device = tensors[0].device if tensors else torch.device("cpu")
+        return names, tensors, batch, batched, dtype, device
+
+    def _implicit(self, names, tensors, batch: int, dtype) -> torch.Tensor:
+        """The solve as one opaque operator whose backward is the system's adjoint."""
+        # The operator checks the controls for NaN/inf and the float32 range of the solution.
+        keep = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+        return ImplicitSolve.apply(self._handle, names, batch, keep, dtype != torch.float64, *tensors)
+
+    def _check_ranks_agree(self, names, batch: int) -> None:
+        """On a distributed mesh every rank must make the same call (the solves are collective): one
+        allgather of (cap, batch, controls), and a ValueError on every rank if they differ, instead of
+        ranks waiting in different collectives (a hang)."""
+        comm = self.problem.V.mesh.comm
+        mine = (self.max_it, batch, tuple(names))
+        every = comm.allgather(mine)
+        if any(call != mine for call in every):
+            raise ValueError(
+                f"the ranks called this distributed-mesh {type(self).__name__} differently (max_it, batch, controls by rank: "
+                f"{every}); every rank must call it with the same cap, batch size and controls. A PRDP step on "
+                "per-rank metrics moves the caps apart: step PRDP with the same (reduced) metric on every rank")
+
+    def _check_finite(self, names, tensors) -> None:
+        for name, t in zip(names, tensors):
+            bad = count_on_all_ranks(~torch.isfinite(t.detach()), self.problem)
+            if bad:
+                raise ValueError(nonfinite_control_message(name, bad))
+
+    def _report_overflow(self, dtype) -> None:
+        message = (f"the solution is finite in float64 but overflows {dtype}; pass float64 controls "
+                   "or rescale the problem")
+        if self.options.on_failure == "warn":
+            warn_at_caller(message, RuntimeWarning)
+        else:
+            raise OverflowError(message)
+
+
+    def get_extra_state(self) -> dict:
+        """The cap travels with ``state_dict()``: a saved model reloads at the K it was trained at."""
+        return {"max_it": self.max_it}
+
+    def set_extra_state(self, state: dict) -> None:
+        if not isinstance(state, dict) or "max_it" not in state:
+            raise ValueError(f"{type(self).__name__} state must be a dict with 'max_it', got {state!r}")
+        self.max_it = state["max_it"]
+
+    def __getstate__(self):
+        raise TypeError(f"a {type(self).__name__} holds DOLFINx and PETSc objects, which cannot be pickled or deep-copied "
+                        "(torch.save(model), copy.deepcopy, AveragedModel); save model.state_dict() instead (it "
+                        "carries each layer's max_it) and rebuild the model, with its layers, from its Problem")
+
+
+    def close(self) -> None:
+        """Free the PETSc objects now (otherwise when the system is garbage collected: a system still
+        referenced, ``SolveLayer(p).system``, outlives its layer)."""
+        if getattr(self, "_system", None) is not None:
+            self._system.destroy()
+            self._system = None
+
+
+    def _validate(self, controls: dict):
+        sizes = self._sizes
+        unknown = [n for n in controls if n not in sizes]
+        if unknown:
+            raise ValueError(f"unknown control(s) {unknown}; this layer's controls are "
+                             f"{[n for n in sizes if n != INITIAL_GUESS]}")
+        names = tuple(n for n in sizes if n in controls)
+        tensors = [controls[n] for n in names]
+        batch_sizes = {}
+        for name, t in zip(names, tensors):
+            if not isinstance(t, torch.Tensor):
+                raise TypeError(f"control {name!r} must be a torch.Tensor, got {type(t).__name__}; "
+                                "wrap arrays with torch.as_tensor(..., dtype=torch.float64)")
+            if t.dtype not in _FLOAT_DTYPES:
+                raise TypeError(f"control {name!r} has dtype {t.dtype}; use float32 or float64 "
+                                "(e.g. tensor.double())")
+            n = sizes[name]
+            if t.dim() not in (1, 2) or t.shape[-1] != n:
+                raise ValueError(
+                    f"control {name!r} has shape {tuple(t.shape)}, expected (B, {n}) or ({n},): one value per "
+                    f"owned DOF of its space; a different size usually means a tensor built for another "
+                    f"mesh, space or degree (see problem.control_size({name!r}))")
+            if t.dim() == 2:
+                if t.shape[0] == 0:
+                    raise ValueError(f"control {name!r} has an empty batch (shape {tuple(t.shape)})")
+                batch_sizes[name] = t.shape[0]
+        if len(set(batch_sizes.values())) > 1:
+            raise ValueError(f"controls have different batch sizes {batch_sizes}; "
+                             "pass (B, n) tensors with one B, or (n,) tensors shared by all samples")
+        devices = {t.device for t in tensors}
+        if len(devices) > 1:
+            raise ValueError(f"controls are on different devices {sorted(map(str, devices))}; move them to one")
+        batch = next(iter(batch_sizes.values()), 1)
+        return names, tensors, batch, bool(batch_sizes)
