@@ -42,6 +42,7 @@ _PUBLIC = {
     "SolverWarning": "fempdl.solve.stats",
     "PRDP": "fempdl.methods.prdp",
     "PRDPSettings": "fempdl.methods.prdp",
+    "NewtonCaps": "fempdl.methods.newton_caps",
     "PointObservation": "fempdl.layer.observation",
     "MassInner": "fempdl.layer.observation",
 }

@@ -60,3 +60,13 @@ def test_write_fields_writes_prediction_reference_and_flow(tmp_path):
                    for g in root.iter("Grid") if g.find("Time") is not None for a in g.findall("Attribute")}
         assert written == {(field, float(t)) for field in fields for t in times}
     assert float(re.search(r"\|u\|_max (\S+)", stdout)[1]) > 1e-3
+
+
+def test_learn_material_through_newton_solves(tmp_path):
+    stdout = run_example("learn_material.py", cwd=tmp_path)
+    m = re.fullmatch(r"loss (\S+) -> (\S+); kappa error (\S+); newton steps (\d+) in (\d+) solves\n", stdout)
+    assert m, stdout
+    first, last, kappa_error, steps, solves = float(m[1]), float(m[2]), float(m[3]), int(m[4]), int(m[5])
+    assert last < first / 4 and kappa_error < 0.25
+    assert solves == 8 + 80 * 8            # the observations, then 80 steps of a batch of 8
+    assert 2 * solves <= steps <= 8 * solves   # converged Newton: a few quadratic steps per solve

@@ -242,8 +242,9 @@ class NonlinearSystem:
             paths.append(np.array(self._recording))
             self._recording = None
         if not stats.ok:
-            last = self.stats.last
-            inner = f"{last.reason_name} after {last.iterations} iterations" if last is not None else None
+            ksp = self._snes.getKSP()      # the step that failed is not in the stats (no monitor call)
+            reason = int(ksp.getConvergedReason())
+            inner = f"{REASON_NAMES.get(reason, str(reason))} after {ksp.getIterationNumber()} iterations"
             report_newton_failure(self._options, stats, inner)
         return x
 
