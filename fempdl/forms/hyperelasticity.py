@@ -32,9 +32,9 @@ which algebraic multigrid needs for the inner solves of large problems.
 
 Newton: from u = 0 the first step is the linear-elastic solution. On slender bodies under
 bending the full step raises ||F|| while it approaches the solution (the axial strain of a
-rotated section), so the default backtracking line search, whose merit is ||F||, takes many
-short steps; plain Newton (``NewtonOptions(snes_type="newton")``) converges in a few while no
-element inverts. A full step that inverts an element makes ln J undefined: SNES stops with a
+rotated section), so a backtracking line search (``snes_type="newtonls"``), whose merit is
+||F||, takes many short steps; plain Newton (the default of
+:class:`~fempdl.solve.newton_options.NewtonOptions`) converges in a few while no element inverts. A full step that inverts an element makes ln J undefined: SNES stops with a
 NaN residual and the layer raises. For large loads, load in increments (``initial_guess=`` the
 previous solution).
 """

@@ -9,10 +9,10 @@ fourth terms): find (u, p) in W = V_g x Q (V: vector P_k, Q: P_(k-1), k = ``degr
 for all (v, q) in V_0 x Q. The Jacobian is ufl.derivative(F, (u, p)) (the convection term
 linearised in both of its u's), so Newton converges quadratically near a solution. From the
 zero initial guess the first step is the Stokes solution with the same data (the convection
-term and its derivative vanish at u = 0); a backtracking line search (``newtonls``, the
-default of :class:`~fempdl.solve.newton_options.NewtonOptions`) carries Newton from there up
-to moderate Reynolds numbers (a lid-driven cavity at Re ~ 100); beyond them start from a
-solution at a lower Re.
+term and its derivative vanish at u = 0); Newton (plain, the default of
+:class:`~fempdl.solve.newton_options.NewtonOptions`, or with a backtracking line search,
+``snes_type="newtonls"``) carries it from there up to moderate Reynolds numbers (a lid-driven
+cavity at Re ~ 100); beyond them start from a solution at a lower Re.
 
 No stabilisation: Taylor-Hood is inf-sup stable, and the Galerkin convection term stays free of
 oscillations while the cell Reynolds number |u| h / (2 nu) is about 1 or below (refine the mesh

@@ -51,8 +51,8 @@ class NonlinearSolveLayer(SystemLayer):
 
     Args:
         problem: the nonlinear problem; its controls become keyword inputs.
-        options: :class:`NewtonOptions` (default: converged ``newtonls`` with a
-            backtracking line search to rtol 1e-10). Its ``ksp=None`` takes the
+        options: :class:`NewtonOptions` (default: converged plain Newton to rtol
+            1e-10, atol 1e-12). Its ``ksp=None`` takes the
             linear layer's default inner solve (LU where it fits).
         diff: ``"implicit"`` or ``"unrolled"`` (module docstring).
         max_unrolled_values: in unrolled mode, the floats the kept iterates may

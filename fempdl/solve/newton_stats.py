@@ -10,13 +10,20 @@ from petsc4py import PETSc
 
 from fempdl.solve.stats import CumulativeStats, SolverFailedError, SolverWarning, warn_at_caller
 
-__all__ = ["NewtonSolveStats", "NewtonCumulativeStats", "SNES_REASON_NAMES", "report_newton_failure"]
+__all__ = ["NewtonSolveStats", "NewtonCumulativeStats", "SNES_REASON_NAMES", "NONFINITE_REASONS", "report_newton_failure"]
 
 SNES_REASON_NAMES = {
     getattr(PETSc.SNES.ConvergedReason, n): n
     for n in dir(PETSc.SNES.ConvergedReason)
     if n.isupper() and n not in ("ITERATING", "CONVERGED_ITERATING")
 }
+
+
+# A residual with NaN or inf entries: DIVERGED_FNORM_NAN in PETSc 3.18, DIVERGED_FUNCTION_NANORINF from 3.2x
+# (the same code), and an assembly outside the function's domain.
+NONFINITE_REASONS = frozenset(getattr(PETSc.SNES.ConvergedReason, name) for name in
+                              ("DIVERGED_FNORM_NAN", "DIVERGED_FUNCTION_NANORINF", "DIVERGED_FUNCTION_DOMAIN")
+                              if hasattr(PETSc.SNES.ConvergedReason, name))
 
 
 @dataclass(frozen=True)
@@ -32,6 +39,8 @@ class NewtonSolveStats:
         capped: True when the solve stopped because it reached ``max_it``.
         ok: False when it failed (not converged uncapped, a failed line search, NaN/inf).
         time: wall time of the solve (assembly included).
+        nonfinite_residual: a residual with NaN or inf entries was assembled during the solve (a line
+            search may have stepped back from it).
     """
 
     steps: int
@@ -42,6 +51,7 @@ class NewtonSolveStats:
     capped: bool
     ok: bool
     time: float
+    nonfinite_residual: bool = False
 
 
 @dataclass
@@ -73,7 +83,7 @@ def report_newton_failure(options, stats: NewtonSolveStats, inner_reason: str | 
     if stats.reason_name == "DIVERGED_LINEAR_SOLVE":
         cause = f"its linear solve failed ({inner_reason or 'see the KSP options'})"
         fix = "use a stronger inner solve (ksp='lu'), or cap the inner solve on purpose with KSPOptions(max_it=K)"
-    elif stats.reason_name in ("DIVERGED_FNORM_NAN", "DIVERGED_FUNCTION_DOMAIN") or not math.isfinite(
+    elif stats.reason in NONFINITE_REASONS or stats.nonfinite_residual or not math.isfinite(
             norms[-1] if norms else 0.0):
         cause = "the residual became NaN or inf"
         fix = ("the load or the controls may be beyond what the material model allows (e.g. an inverted element); "

@@ -24,6 +24,7 @@ incoming gradients and adjoints are (B, n), n = ``problem.output_size``.
 from __future__ import annotations
 
 import functools
+import math
 import time
 import weakref
 from dataclasses import dataclass
@@ -94,6 +95,7 @@ class NonlinearSystem:
         self._build(options)
         self._recording: list | None = None
         self._residual_norms: list = []
+        self._nonfinite_residual = False
 
     # ------------------------------------------------------------ options
     @property
@@ -163,6 +165,8 @@ class NonlinearSystem:
             self._set_state(x)
             p = self.problem
             _dolfinx.assemble_residual_into(b, p.F_form, p.J_form, p.bcs, self._u_vec)
+        if not math.isfinite(b.norm(PETSc.NormType.NORM_INFINITY)):
+            self._nonfinite_residual = True      # named in the failure message (PETSc's reason differs by version)
 
     def _jacobian(self, snes, x, J, P) -> None:
         with Timer(self.stats, "assembly_time"):
@@ -211,6 +215,7 @@ class NonlinearSystem:
             sol.setArray(guess)
         _dolfinx.set_bc_values(sol, p.bcs)
         self._residual_norms = []
+        self._nonfinite_residual = False
         self._recording = [] if paths is not None else None
         inner_before = self.stats.forward_iterations
         solves_before = self.stats.forward_solves
@@ -236,7 +241,8 @@ class NonlinearSystem:
         stats = NewtonSolveStats(steps=steps, reason=reason, reason_name=SNES_REASON_NAMES.get(reason, str(reason)),
                                  residual_norms=tuple(self._residual_norms),
                                  inner_iterations=self.stats.forward_iterations - inner_before,
-                                 capped=capped, ok=finite and (reason > 0 or capped), time=elapsed)
+                                 capped=capped, ok=finite and (reason > 0 or capped), time=elapsed,
+                                 nonfinite_residual=self._nonfinite_residual)
         self.stats.record_newton(stats)
         if paths is not None:
             paths.append(np.array(self._recording))
