@@ -94,19 +94,20 @@ def dirichlet_bcs(tagged: TaggedMesh, V, g, dirichlet) -> tuple:
     return (_dolfinx.dirichlet_bc(V, make_function(V, g, "g"), facets),)
 
 
-def tagged_facets(tagged: TaggedMesh, parts: tuple) -> np.ndarray:
+def tagged_facets(tagged: TaggedMesh, parts: tuple, argname: str = "dirichlet") -> np.ndarray:
+    """The facets (sorted, unique) of the tag names or integers ``parts``; errors name ``argname``."""
     if tagged.facet_tags is None:
-        raise ValueError(f"dirichlet={list(parts)} needs facet tags, but this mesh has none; "
-                         "pass dirichlet=None for the whole boundary or load a tagged .msh file")
+        raise ValueError(f"{argname}={list(parts)} needs facet tags, but this mesh has none; "
+                         f"pass {argname}=None or load a tagged .msh file")
     try:
         values = [tagged.facet_tag(p) if isinstance(p, str) else int(p) for p in parts]
     except ValueError as err:
-        raise ValueError(f"dirichlet={list(parts)}: {err}") from None
+        raise ValueError(f"{argname}={list(parts)}: {err}") from None
     ft = tagged.facet_tags
     # Under MPI a rank may own no facet of a tag: a tag is unknown only if no rank has it.
     present = set().union(*tagged.mesh.comm.allgather(set(np.unique(ft.values).tolist())))
     missing = [v for v in values if v not in present]
     if missing:
-        raise ValueError(f"dirichlet facet tag(s) {missing} do not occur in the mesh; "
+        raise ValueError(f"{argname} facet tag(s) {missing} do not occur in the mesh; "
                          f"tags present: {sorted(present)}")
     return np.unique(np.concatenate([ft.find(v) for v in values])).astype(np.int32)

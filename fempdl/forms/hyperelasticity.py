@@ -51,7 +51,7 @@ from fempdl.core.mesh import TaggedMesh, as_tagged
 from fempdl.core.nonlinear_problem import NonlinearProblem
 from fempdl.core.nullspaces import rigid_body_modes
 from fempdl.forms._common import (COEFFICIENT_SPACES, check_controls, check_degree, coefficient_space,
-                                  make_function, nonnegative_constant)
+                                  make_function, nonnegative_constant, tagged_facets)
 from fempdl.forms._flow import vector_function
 
 CONTROLS = ("T", "B", "E")
@@ -153,15 +153,7 @@ def _facets(tagged: TaggedMesh, part, argname: str, end: int) -> np.ndarray:
         if not parts or not all(isinstance(p, tag_types) and not isinstance(p, bool) for p in parts):
             raise ValueError(f"{argname} must be None, facet tags (names or ints), or a marker x -> bool; "
                              f"got {part!r}")
-        if tagged.facet_tags is None:
-            raise ValueError(f"{argname}={list(parts)} names facet tags, but this mesh has none; pass None "
-                             "(an end face) or a marker x -> bool, or load a tagged .msh file")
-        try:
-            values = [tagged.facet_tag(p) if isinstance(p, str) else int(p) for p in parts]
-        except ValueError as err:
-            raise ValueError(f"{argname}: {err}") from None
-        ft = tagged.facet_tags
-        facets = np.concatenate([ft.indices[ft.values == value] for value in values])
+        facets = tagged_facets(tagged, parts, argname)
         what = f"{argname}={list(parts)}"
     facets = np.unique(np.asarray(facets, dtype=np.int32))
     if msh.comm.allreduce(len(facets), op=MPI.SUM) == 0:
