@@ -12,9 +12,6 @@ What is checked, against numbers the mathematics fixes:
 * failures name SNES's reason (or warn and return the iterate); bad inputs are refused clearly;
 * batching, shared controls, state_dict, torch.func, and a 2-rank mesh (tests/mpi/newton_layer.py).
 
-Three strict xfails mark bugs found while writing these (each turns into a failure once fixed, so its
-marker can go): the implicit gradient with a user Jacobian J != dF/du, a capped line-search Newton run past
-convergence, and ranks whose inner caps differ (a hang, ended by a 20 s timeout).
 """
 from __future__ import annotations
 
@@ -387,12 +384,7 @@ def test_implicit_gradient_of_the_warm_start_is_zero(prob8):
     layer.close()
 
 
-@pytest.mark.parametrize("diff", [
-    "unrolled",
-    pytest.param("implicit", marks=pytest.mark.xfail(
-        strict=True, reason="bug: NonlinearSystem.adjoint solves J(u)^T lam = g with the problem's J (here the "
-                            "Picard J), not dF/du; at convergence the gradient is 5-15% off")),
-])
+@pytest.mark.parametrize("diff", ["unrolled", "implicit"])
 def test_gradient_with_a_picard_jacobian_is_the_exact_one_at_convergence(prob8, diff):
     """A user J that is not dF/du changes the iteration, not the solution, so not the gradient at
     convergence either: the implicit function theorem needs dF/du, whatever J the iteration used.
@@ -428,9 +420,6 @@ def test_capped_newton_runs_exactly_n_steps(prob8, snes_type):
     layer.close()
 
 
-@pytest.mark.xfail(strict=True, raises=SolverFailedError,
-                   reason="bug: a capped newtonls solve whose cap exceeds the steps to round-off stops with "
-                          "DIVERGED_LINE_SEARCH at ||F|| ~ 1e-15 and NonlinearSystem._solve_one reports it as a failure")
 def test_a_capped_line_search_newton_past_convergence_returns_the_solution(prob8):
     """PRDP raises the Newton cap; once it exceeds what Newton needs (5-6 steps here), the capped solve must
     return the converged solution, not raise (plain Newton does: its extra steps are round-off)."""
@@ -482,7 +471,7 @@ def test_diverging_newton_raises_with_the_snes_reason(square8):
     assert not info.value.stats.ok and info.value.stats.reason < 0
     assert layer.stats.newton_failures == 1
     # With its line search, Newton stalls instead: another reason, named as well.
-    ls = NonlinearSolveLayer(prob, NewtonOptions(ksp="lu"))
+    ls = NonlinearSolveLayer(prob, NewtonOptions(snes_type="newtonls", ksp="lu"))
     with pytest.raises(SolverFailedError, match=r"SNES reason DIVERGED_(LINE_SEARCH|MAX_IT)"):
         ls(f=torch.full((prob.control_size("f"),), 10.0, dtype=F64))
     layer.close()
@@ -558,7 +547,8 @@ def test_problem_input_errors(parts):
     ({"linesearch": "quadratic"}, ValueError, r"linesearch must be one of"),
     ({"snes_type": "newtontr", "linesearch": "bt"}, ValueError, r"a line search applies to snes_type='newtonls'"),
     ({"snes_type": "newton", "damping": 0.0}, ValueError, r"damping must be in \(0, 1\]"),
-    ({"damping": 0.5}, ValueError, r"damping applies to plain Newton"),
+    ({"damping": 0.5, "snes_type": "newtonls"}, ValueError, r"damping applies to plain Newton"),
+    ({"linesearch": "bt"}, ValueError, r"a line search applies to snes_type='newtonls', not 'newton'"),
     ({"ksp": 3}, TypeError, r"NewtonOptions.ksp must be KSPOptions, a preset name or None"),
     ({"ksp": "no-such-preset"}, ValueError, r"unknown preset 'no-such-preset'"),
     ({"on_failure": "ignore"}, ValueError, r"on_failure must be 'raise' or 'warn'"),
@@ -572,14 +562,16 @@ def test_newton_options_accept_a_capped_solve_without_tolerances():
     o = NewtonOptions(max_it=3, rtol=0, atol=0, snes_type="newton", damping=0.5)
     assert o.capped and o.plain and o.step_limit == 3
     assert o.snes_tolerances() == dict(rtol=0.0, atol=0.0, stol=0.0, max_it=3)
-    assert NewtonOptions(converged_max_it=7).step_limit == 7 and not NewtonOptions().plain
+    assert NewtonOptions(converged_max_it=7).step_limit == 7
+    assert NewtonOptions().plain and not NewtonOptions(snes_type="newtonls").plain     # plain Newton is the default
 
 
 def test_unrolled_refuses_what_it_cannot_differentiate(prob4):
     with pytest.raises(ValueError, match=r"diff='unrolled' differentiates plain Newton steps .* not 'newtonls'"):
-        NonlinearSolveLayer(prob4, NewtonOptions(max_it=2, ksp="lu"), diff="unrolled")
+        NonlinearSolveLayer(prob4, NewtonOptions(max_it=2, snes_type="newtonls", ksp="lu"), diff="unrolled")
     with pytest.raises(ValueError, match=r"not 'newtonls'"):
-        NonlinearSolveLayer(prob4, NewtonOptions(max_it=2, linesearch="bt", ksp="lu"), diff="unrolled")
+        NonlinearSolveLayer(prob4, NewtonOptions(max_it=2, snes_type="newtonls", linesearch="bt", ksp="lu"),
+                            diff="unrolled")
     with pytest.raises(ValueError, match=r"not 'newtontr'"):
         NonlinearSolveLayer(prob4, NewtonOptions(max_it=2, snes_type="newtontr", ksp="lu"), diff="unrolled")
     with pytest.raises(ValueError, match=r"needs the exact Newton step: .* not one capped at 5 iterations"):
@@ -590,7 +582,8 @@ def test_unrolled_refuses_what_it_cannot_differentiate(prob4):
         layer.inner_max_it = 5
     assert layer.inner_max_it is None
     # newtonls with the full-step line search is plain Newton: accepted, and the same map.
-    basic = NonlinearSolveLayer(prob4, NewtonOptions(max_it=2, linesearch="basic", ksp="lu"), diff="unrolled")
+    basic = NonlinearSolveLayer(prob4, NewtonOptions(max_it=2, snes_type="newtonls", linesearch="basic", ksp="lu"),
+                                diff="unrolled")
     f, alpha = values(prob4, "f"), values(prob4, "alpha")
     assert rel(basic(f=f, alpha=alpha), NonlinearSolveLayer(prob4, capped(2))(f=f, alpha=alpha)) <= 1e-14
     basic.close()
@@ -750,9 +743,6 @@ def test_distributed_newton_layer_equals_serial(mpi_results):
         assert np.abs(a - b).max() <= 1e-10 * np.abs(a).max(), key
 
 
-@pytest.mark.xfail(strict=True, raises=subprocess.TimeoutExpired,
-                   reason="bug: SystemLayer._check_ranks_agree compares only the Newton cap (max_it), not "
-                          "inner_max_it; ranks with different inner Krylov caps hang in the inner solve")
 def test_ranks_with_different_inner_caps_are_refused_not_hung():
     # A correct refusal takes a few seconds (start-up); a hang is ended by the timeout.
     done = mpirun(2, "newton_layer.py", "--inner-caps-differ", timeout=20)

@@ -11,8 +11,9 @@ The Jacobian J(u; m) = dF/du is ``ufl.derivative(F, u, du)`` unless given.
 
 Forms for the derivatives (all linear forms, assembled with the work Functions set):
 
-* implicit gradient, at a solution u with the adjoint lam of J(u)^T lam = dJ/du
-  (BC entries zeroed): dJ/dm = -d/dm [F(u, lam; m)] (:meth:`gradient_form`);
+* implicit gradient, at a solution u with the adjoint lam of (dF/du)(u)^T lam = dJ/du
+  (BC entries zeroed; the exact dF/du even when a different J drives Newton):
+  dJ/dm = -d/dm [F(u, lam; m)] (:meth:`gradient_form`);
 * one Newton step u' = u - a * delta, J(u) delta = F(u), run backwards with
   mu = J(u)^{-T} u'_bar and Q(u, m) = mu^T J(u; m) delta - F(u, mu; m)
   (delta and mu held fixed): u_bar = u'_bar + a * dQ/du and m_bar += a * dQ/dm
@@ -56,7 +57,8 @@ class NonlinearProblem(ProblemBase):
     Attributes:
         V, u, lam: the solution space, the unknown and the adjoint work Function.
         step: the work Function of a Newton step delta (unrolled derivatives).
-        F_form, J_form: the compiled residual and Jacobian.
+        F_form, J_form: the compiled residual and Jacobian (the iteration's).
+        exact_J_form: the compiled dF/du (the implicit gradient's; ``J_form`` unless J was given).
         jacobian_controls: names of controls J depends on.
     """
 
@@ -75,8 +77,10 @@ class NonlinearProblem(ProblemBase):
         if u not in F.coefficients():
             raise ValueError("F is not a residual in u: u does not appear in F (a linear problem a(w, v) = L(v) "
                              "in a TrialFunction w is a fempdl.Problem)")
+        exact_J = ufl.derivative(F, u, ufl.TrialFunction(V))
+        given_J = J is not None
         if J is None:
-            J = ufl.derivative(F, u, ufl.TrialFunction(V))
+            J = exact_J
         elif not isinstance(J, ufl.Form) or len(J.arguments()) != 2:
             raise TypeError(f"J must be a bilinear UFL form (test and trial function), got {describe_form(J)}")
         elif any(arg.ufl_function_space() != V for arg in J.arguments()):
@@ -92,6 +96,9 @@ class NonlinearProblem(ProblemBase):
         self.step = dolfinx.fem.Function(V, name="newton_step")
         self.F_form = _dolfinx.compile_form(F)
         self.J_form = _dolfinx.compile_form(J)
+        # The implicit gradient needs dF/du whatever J the iteration uses (a Picard J changes the
+        # iteration, not the solution): compiled apart only when J was given.
+        self.exact_J_form = _dolfinx.compile_form(exact_J) if given_J else self.J_form
         J_coefficients = set(J.coefficients())
         self.jacobian_controls = frozenset(n for n, fn in checked.items() if fn in J_coefficients)
         self._test = F.arguments()[0]

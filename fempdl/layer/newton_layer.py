@@ -104,6 +104,9 @@ class NonlinearSolveLayer(SystemLayer):
             check_unrolled_newton(options)
         self.system.inner_max_it = value
 
+    def _caps(self) -> tuple:
+        return self.max_it, self.inner_max_it
+
     @property
     def stats(self) -> NewtonCumulativeStats:
         """Newton steps and inner iterations of every solve of this layer."""

@@ -89,13 +89,17 @@ class SystemLayer(torch.nn.Module):
         allgather of (cap, batch, controls), and a ValueError on every rank if they differ, instead of
         ranks waiting in different collectives (a hang)."""
         comm = self.problem.V.mesh.comm
-        mine = (self.max_it, batch, tuple(names))
+        mine = (self._caps(), batch, tuple(names))
         every = comm.allgather(mine)
         if any(call != mine for call in every):
             raise ValueError(
-                f"the ranks called this distributed-mesh {type(self).__name__} differently (max_it, batch, controls by rank: "
-                f"{every}); every rank must call it with the same cap, batch size and controls. A PRDP step on "
-                "per-rank metrics moves the caps apart: step PRDP with the same (reduced) metric on every rank")
+                f"the ranks called this distributed-mesh {type(self).__name__} differently (caps, batch, controls by "
+                f"rank: {every}); every rank must call it with the same caps, batch size and controls. A PRDP step "
+                "on per-rank metrics moves the caps apart: step PRDP with the same (reduced) metric on every rank")
+
+    def _caps(self):
+        """The caps every rank's call must share (a Newton layer adds its inner cap)."""
+        return self.max_it
 
     def _check_finite(self, names, tensors) -> None:
         for name, t in zip(names, tensors):

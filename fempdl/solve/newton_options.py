@@ -4,7 +4,10 @@ Two caps, as for a linear solve (:class:`~fempdl.solve.options.KSPOptions`):
 
 * the Newton cap ``max_it=N``: exactly N Newton steps from the initial guess
   (the step's tolerances are off: rtol = atol = 0, no step-length test); it
-  stops earlier only if the residual vanishes exactly. ``max_it=None`` runs to
+  stops earlier only if the residual vanishes exactly, or if a line search or
+  trust region cannot decrease a residual that already meets ``rtol``/``atol``
+  (the solution, reported as converged: a cap that PRDP raised past
+  convergence returns the solution). ``max_it=None`` runs to
   ``rtol``/``atol`` and not reaching them in ``converged_max_it`` steps, or any
   other stop of PETSc's SNES (a failed line search, a NaN), is a failure that
   names SNES's reason;

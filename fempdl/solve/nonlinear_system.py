@@ -52,6 +52,9 @@ INITIAL_GUESS = "initial_guess"
 _SNES_MAX_IT = PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
 _INSERT, _FORWARD = PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD
 _LAND = MPI.LAND
+# SNES's stops of a line search or trust region that cannot decrease ||F|| any further.
+_STALLED = frozenset(getattr(PETSc.SNES.ConvergedReason, name) for name in ("DIVERGED_LINE_SEARCH", "DIVERGED_TR_DELTA"))
+_CONVERGED_EARLY = PETSc.SNES.ConvergedReason.CONVERGED_FNORM_RELATIVE
 
 
 @dataclass
@@ -81,9 +84,12 @@ class NonlinearSystem:
         self._b = _dolfinx.create_vector(problem.F_form)        # residual
         self._sol = _dolfinx.create_vector(problem.F_form)      # SNES's iterate
         self._u_vec = _dolfinx.function_vector(problem.u)
+        # dF/du for the implicit adjoint: the iteration's J unless the problem's J is another one.
+        self._dFdu = self._J if problem.exact_J_form is problem.J_form else _dolfinx.create_matrix(problem.exact_J_form)
         self._rhs, self._lam = self._J.createVecs()
-        self._nullspace = attach_nullspace(self._J, problem.nullspace)
-        self._near_nullspace = attach_nullspace(self._J, problem.near_nullspace, near=True)
+        self._nullspaces = [nsp for A in {id(M): M for M in (self._J, self._dFdu)}.values()
+                            for nsp in (attach_nullspace(A, problem.nullspace),
+                                        attach_nullspace(A, problem.near_nullspace, near=True)) if nsp]
         self.stats = NewtonCumulativeStats()
         self._forms = ControlForms(problem, self._b, functools.partial(Timer, self.stats, "assembly_time"))
         self._step_vectors: dict = {}
@@ -153,6 +159,10 @@ class NonlinearSystem:
         self._snes = snes
         self._adjoint_solver = CappedSolver(self._J, ksp_options, fields=p.fields or None)
         self._adjoint_solver.stats = self.stats
+        self._exact_adjoint_solver = self._adjoint_solver
+        if self._dFdu is not self._J:
+            self._exact_adjoint_solver = CappedSolver(self._dFdu, ksp_options, fields=p.fields or None)
+            self._exact_adjoint_solver.stats = self.stats
 
     # ----------------------------------------------------------- callbacks
     def _set_state(self, x: PETSc.Vec) -> None:
@@ -238,6 +248,10 @@ class NonlinearSystem:
         finite = bool(np.isfinite(x).all()) and all(np.isfinite(self._residual_norms))
         finite = self._comm.allreduce(finite, op=_LAND)
         capped = self._options.capped and reason == _SNES_MAX_IT and steps == self._options.max_it
+        if self._options.capped and reason in _STALLED and self._at_round_off():
+            # A capped line search or trust region cannot improve a residual at round-off and stops
+            # before the cap: the iterate is the solution (plain Newton's extra steps stay there too).
+            reason = _CONVERGED_EARLY
         stats = NewtonSolveStats(steps=steps, reason=reason, reason_name=SNES_REASON_NAMES.get(reason, str(reason)),
                                  residual_norms=tuple(self._residual_norms),
                                  inner_iterations=self.stats.forward_iterations - inner_before,
@@ -253,6 +267,12 @@ class NonlinearSystem:
             inner = f"{REASON_NAMES.get(reason, str(reason))} after {ksp.getIterationNumber()} iterations"
             report_newton_failure(self._options, stats, inner)
         return x
+
+    def _at_round_off(self) -> bool:
+        """Whether the last residual norm meets the uncapped tolerances (``rtol`` relative to the first, or ``atol``)."""
+        norms = self._residual_norms
+        return bool(norms) and math.isfinite(norms[-1]) and (
+            norms[-1] <= self._options.rtol * norms[0] or norms[-1] <= self._options.atol)
 
     # --------------------------------------------------------------- adjoint
     def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
@@ -270,7 +290,7 @@ class NonlinearSystem:
         with ControlValues(p, controls) as ctl:
             for i in range(batch):
                 ctl.set_sample(i)
-                self._transpose_solve(U[i], G[i])
+                self._transpose_solve(U[i], G[i], exact=True)
                 for name in wanted:
                     grads[name][i] = self._forms.gradient(name)
         return grads
@@ -303,15 +323,18 @@ class NonlinearSystem:
                     grads.setdefault(INITIAL_GUESS, np.zeros((batch, p.output_size)))[i] = u_bar
         return grads
 
-    def _transpose_solve(self, u: np.ndarray, g: np.ndarray) -> None:
-        """Assemble J(u) (u set as the problem's state) and solve J^T lam = g into ``problem.lam``."""
+    def _transpose_solve(self, u: np.ndarray, g: np.ndarray, exact: bool = False) -> None:
+        """Assemble J(u) (u set as the problem's state; with ``exact`` dF/du, else the iteration's J)
+        and solve J^T lam = g into ``problem.lam``."""
         p = self.problem
         set_owned(p.u, u, p.output_size)
+        A, form, solver = ((self._dFdu, p.exact_J_form, self._exact_adjoint_solver) if exact
+                           else (self._J, p.J_form, self._adjoint_solver))
         with Timer(self.stats, "assembly_time"):
-            _dolfinx.assemble_matrix_into(self._J, p.J_form, p.bcs)
-            check_operator(self._J, [])
+            _dolfinx.assemble_matrix_into(A, form, p.bcs)
+            check_operator(A, [])
         self._rhs.setArray(g)
-        self._adjoint_solver.solve_transpose(self._rhs, self._lam)
+        solver.solve_transpose(self._rhs, self._lam)
         set_owned(p.lam, self._lam.getArray(readonly=True), p.output_size)
 
     def _assembled(self, form, name: str | None) -> np.ndarray:
@@ -340,8 +363,9 @@ class NonlinearSystem:
             PETSc.Options().delValue(self._prefix + "snes_linesearch_damping")
             self._snes.destroy()
             destroy_ksp(self._ksp)
-            self._adjoint_solver.destroy()
-        self._snes = self._ksp = self._adjoint_solver = None
+            for solver in {id(s): s for s in (self._adjoint_solver, self._exact_adjoint_solver)}.values():
+                solver.destroy()
+        self._snes = self._ksp = self._adjoint_solver = self._exact_adjoint_solver = None
 
     def destroy(self) -> None:
         """Free the PETSc objects (the system is unusable afterwards); a second call does nothing."""
@@ -349,8 +373,10 @@ class NonlinearSystem:
             return
         self._destroyed = True
         self._free_solvers()
-        objs = [self._J, self._b, self._sol, self._rhs, self._lam, *self._step_vectors.values()]
-        for obj in objs + [n for n in (self._nullspace, self._near_nullspace) if n]:
+        objs = [self._J, self._b, self._sol, self._rhs, self._lam, *self._step_vectors.values(), *self._nullspaces]
+        if self._dFdu is not self._J:
+            objs.append(self._dFdu)
+        for obj in objs:
             obj.destroy()
         self._forms.destroy()
 
