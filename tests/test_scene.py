@@ -246,10 +246,12 @@ BAD = {
                         ["[prdp] tau_step must be of type float, got {'value': 0.9} (dict)"]),
     # choices
     "pde-choice": (toml(drop=("pde",)) + '[pde]\ntype = "wave"\n',
-                   ["[pde] type must be one of ['heat', 'poisson', 'burgers', 'oseen', 'marker'], got 'wave'"]),
+                   ["[pde] type must be one of ['heat', 'poisson', 'burgers', 'oseen', 'marker', 'nonlinear-heat', "
+                    "'nonlinear-poisson'], got 'wave'"]),
     # PDE and task, solver and network combinations
     "poisson-emulator": (toml(drop=("pde",)) + '[pde]\ntype = "poisson"\n',
-                         ["[pde] type 'poisson' does not apply to task 'emulator'; it takes ['heat', 'burgers']"]),
+                         ["[pde] type 'poisson' does not apply to task 'emulator'; "
+                          "it takes ['heat', 'burgers', 'nonlinear-heat']"]),
     "heat-inverse": (toml(base={**INVERSE, "pde": 'type = "heat"'}),
                      ["[pde] type 'heat' does not apply to task 'inverse'; it takes ['poisson']"]),
     "burgers-hybrid": (toml(base={**HYBRID, "pde": 'type = "burgers"', "solver": 'preset = "gmres"'}),
@@ -341,7 +343,7 @@ BAD = {
     "sip-negative-damping": (toml(base={**SIP, "sip": 'inverse = "gauss-newton"\ndamping = -1.0'}),
                              ["[sip] damping must be >= 0, got -1.0"]),
     "sip-oseen": (toml(base={**SIP, "pde": 'type = "oseen"'}),
-                  ["[pde] type 'oseen' does not apply to task 'sip'", "['poisson', 'heat', 'marker']"]),
+                  ["[pde] type 'oseen' does not apply to task 'sip'", "['poisson', 'heat', 'nonlinear-poisson', 'marker']"]),
     "sip-graph": (toml({"network": 'type = "graph"'}, base=SIP), ["[network] type must be 'mlp' for the sip task"]),
     "sip-solver": (toml({"solver": 'preset = "cg"'}, base=SIP), ["section(s) ['solver'] do not apply to task 'sip'"]),
     "sip-prdp": (toml({"prdp": "k0 = 2"}, base=SIP), ["section(s) ['prdp'] do not apply to task 'sip'"]),
