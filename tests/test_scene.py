@@ -14,7 +14,7 @@ from fempdl.app.scene import SceneError
 
 EXPECTED_BUNDLED = {"heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
                     "burgers-emulator", "ns-hybrid", "sip-poisson", "sip-heat", "hig-poisson", "sip-flow",
-                    "sip-flow-full"}
+                    "sip-flow-full", "nonlinear-heat-emulator", "sip-nonlinear", "hig-nonlinear"}
 
 EMULATOR = {"scene": 'name = "t"\ntask = "emulator"', "mesh": 'name = "lshape"', "pde": 'type = "heat"'}
 INVERSE = {"scene": 'name = "t"\ntask = "inverse"', "mesh": 'name = "lshape"', "pde": 'type = "poisson"',
@@ -81,7 +81,7 @@ def test_bundled_scene_loads_with_its_tasks_sections(name):
         assert sc.inverse is None
         assert set(sc.as_dict()["network"]) == set(schema.specs("network"))
         assert sc.network.type in ("mlp", "graph")
-        assert sc.pde.type in {"emulator": ("heat", "burgers"), "hybrid": ("oseen",)}[sc.task]
+        assert sc.pde.type in {"emulator": ("heat", "burgers", "nonlinear-heat"), "hybrid": ("oseen",)}[sc.task]
         assert (sc.hybrid is not None) == (sc.task == "hybrid")
         # Every training sample passes the layer once per epoch in batches that fit.
         assert sc.optimizer.batch <= sc.data.train
