@@ -217,7 +217,26 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
     if (mode == "fixed") != (k is not None):
         raise ValueError("give k exactly when mode='fixed'")
     task = build_task(scene, layer_options(scene, k or 1), parallel, comm, seed)
-    shard_over = comm if parallel == "data" else MPI.COMM_SELF
+    try:
+        keps, prdp = _set_caps(task, scene, mode, k, k_eps_value, comm if parallel == "data" else MPI.COMM_SELF)
+        trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=_batch(scene),
+                          out_dir=out_dir, prdp=prdp, seed=scene.data.seed if seed is None else seed,
+                          progress=progress, tensorboard=_board_dir(out_dir, tensorboard),
+                          stop_after=stop_after, stop_at=scene.optimizer.stop_at, parallel=parallel, comm=comm,
+                          settings=run_settings(scene, mode=mode, k=k, seed=seed), overwrite=overwrite)
+        rows = trainer.run(resume=resume)
+        if save and (parallel == "mesh" or comm.rank == 0):    # a distributed mesh is written by all ranks
+            save_fields(task, out_dir, title=f"{scene.name}, {mode}" + (f" K={k}" if k else ""))
+    finally:
+        task.close()
+    return RunResult(scene=scene.name, mode=mode, k_eps=keps, rows=rows,
+                     out_dir=None if out_dir is None else str(out_dir))
+
+
+def _set_caps(task, scene: Scene, mode: str, k: int | None, k_eps_value: int | None,
+              shard_over: MPI.Comm) -> tuple[int, PRDP | None]:
+    """K_eps (measured unless given) and the caps of ``mode``: K (fixed), K_eps (converged) or the
+    PRDP controller that moves them, all through the task's :func:`cap_target`."""
     newton = isinstance(getattr(task, "caps", None), NewtonCaps)
     if k_eps_value is not None:
         keps = k_eps_value
@@ -231,26 +250,10 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
         for layer in task.layers:
             layer.max_it = steps
     target = cap_target(task)
-    prdp = None
-    if mode == "fixed":
-        set_cap(target, k)
-    elif mode == "converged":
-        set_cap(target, keps)
-    else:
-        prdp = PRDP(target, dataclasses.replace(scene.prdp, k_cap=scene.prdp.k_cap or keps))
-    try:
-        trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=_batch(scene),
-                          out_dir=out_dir, prdp=prdp, seed=scene.data.seed if seed is None else seed,
-                          progress=progress, tensorboard=_board_dir(out_dir, tensorboard),
-                          stop_after=stop_after, stop_at=scene.optimizer.stop_at, parallel=parallel, comm=comm,
-                          settings=run_settings(scene, mode=mode, k=k, seed=seed), overwrite=overwrite)
-        rows = trainer.run(resume=resume)
-        if save and (parallel == "mesh" or comm.rank == 0):    # a distributed mesh is written by all ranks
-            save_fields(task, out_dir, title=f"{scene.name}, {mode}" + (f" K={k}" if k else ""))
-    finally:
-        task.close()
-    return RunResult(scene=scene.name, mode=mode, k_eps=keps, rows=rows,
-                     out_dir=None if out_dir is None else str(out_dir))
+    if mode == "prdp":
+        return keps, PRDP(target, dataclasses.replace(scene.prdp, k_cap=scene.prdp.k_cap or keps))
+    set_cap(target, k if mode == "fixed" else keps)
+    return keps, None
 
 
 def _board_dir(out_dir: Path | None, tensorboard: bool) -> Path | None:
