@@ -96,10 +96,12 @@ class PdeConfig:
                               "nonlinear-poisson for hig, poisson | heat | nonlinear-poisson | marker for sip, "
                               "oseen for hybrid",
                      choices=("heat", "poisson", "burgers", "oseen", "marker") + NONLINEAR_PDES)
-    dt: float | None = _key(float, 0.01, doc="time step (heat, burgers, oseen, marker)", minimum=POSITIVE)
+    dt: float | None = _key(float, 0.01, doc="time step (heat, burgers, oseen, marker, nonlinear-heat)",
+                            minimum=POSITIVE)
     theta: float | None = _key(float, 1.0, doc="theta time stepping: 1 implicit Euler (heat)",
                                minimum=0.0, maximum=1.0)
-    kappa: float | None = _key(float, 1.0, doc="diffusivity (heat, poisson; marker: the marker's)",
+    kappa: float | None = _key(float, 1.0, doc="diffusivity (heat, poisson, nonlinear-heat, nonlinear-poisson; "
+                                               "marker: the marker's)",
                                minimum=POSITIVE)
     degree: int | None = _key(int, None, doc="element degree (none: 1; 2 for oseen and marker, "
                                              "the Taylor-Hood velocity)", minimum=1)
