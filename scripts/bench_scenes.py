@@ -10,10 +10,15 @@ other), and the K schedule. Per scene: PRDP / baseline ratios of the seeds'
 means (metric, iterations, wall time) and each seed's ratios (the spread);
 with ``--sweep`` also the fixed-K sweep of :mod:`fempdl.app.reports.tradeoff` (seed 0)
 and PRDP's saving split into incomplete-convergence and progressive-refinement
-parts. The summary averages the savings over the scenes.
+parts. The summary averages the savings over the scenes. On a Newton scene
+(a nonlinear PDE) each run also records its Newton steps (forward and
+unrolled backward; its iterations are the inner Krylov ones) and their ratio.
 
 Writes ``bench-results/bench_scenes.json`` (``--out``) after every scene.
-Run on an idle machine: ``python scripts/bench_scenes.py --threads 1``.
+Run on an idle machine: ``python scripts/bench_scenes.py --threads 1``. The
+nonlinear emulator is kept apart from the six PRDP scenes the README averages:
+``python scripts/bench_scenes.py --threads 1 --scenes nonlinear-heat-emulator
+--sweep nonlinear-heat-emulator --out bench-results/bench_nonlinear_scenes.json``.
 """
 from __future__ import annotations
 
@@ -37,9 +42,12 @@ PRDP_SCENES = ["heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poiss
 
 
 def summary(run) -> dict:
-    return {"final_metric": run.final_metric, "total_iterations": run.total_iterations,
-            "wall_time": run.wall_time, "train_time": run.rows[-1]["train_time"],
-            "time_split": tradeoff.time_split(run), "k_schedule": run.k_schedule, "epochs": len(run.rows)}
+    out = {"final_metric": run.final_metric, "total_iterations": run.total_iterations,
+           "wall_time": run.wall_time, "train_time": run.rows[-1]["train_time"],
+           "time_split": tradeoff.time_split(run), "k_schedule": run.k_schedule, "epochs": len(run.rows)}
+    if run.newton_steps is not None:
+        out["newton_steps"] = run.newton_steps
+    return out
 
 
 def _ratio(prdp: list, base: list, key: str) -> float:
@@ -55,11 +63,10 @@ def bench_scene(name: str, seeds: list[int], sweep: bool) -> dict:
         p = runner.run(sc, "prdp", seed=seed, k_eps_value=k_eps)
         base.append(summary(b))
         prdp.append(summary(p))
+    keys = ("final_metric", "total_iterations", "wall_time") + (("newton_steps",) if "newton_steps" in base[0] else ())
     out = {"k_eps": k_eps, "seeds": seeds, "converged": base, "prdp": prdp,
-           "ratios": {key: _ratio(prdp, base, key) for key in ("final_metric", "total_iterations", "wall_time",
-                                                               "train_time")},
-           "ratios_per_seed": [{key: p[key] / b[key] for key in ("final_metric", "total_iterations", "wall_time")}
-                               for p, b in zip(prdp, base)]}
+           "ratios": {key: _ratio(prdp, base, key) for key in keys + ("train_time",)},
+           "ratios_per_seed": [{key: p[key] / b[key] for key in keys} for p, b in zip(prdp, base)]}
     out["iteration_savings"] = 1.0 - out["ratios"]["total_iterations"]
     out["wall_time_savings"] = 1.0 - out["ratios"]["wall_time"]
     if sweep:
@@ -108,9 +115,10 @@ def main(argv=None) -> int:
         results["scenes"][name] = r = bench_scene(name, args.seeds, name in args.sweep)
         ratio = r["ratios"]
         metric_spread = [x["final_metric"] for x in r["ratios_per_seed"]]
+        steps = f", Newton steps {ratio['newton_steps']:.2f}x" if "newton_steps" in ratio else ""
         print(f"{name}: K_eps {r['k_eps']}; PRDP / converged over seeds {args.seeds}: metric "
               f"{ratio['final_metric']:.2f}x ({min(metric_spread):.2f}-{max(metric_spread):.2f}), iterations "
-              f"{ratio['total_iterations']:.2f}x, wall time {ratio['wall_time']:.2f}x", flush=True)
+              f"{ratio['total_iterations']:.2f}x{steps}, wall time {ratio['wall_time']:.2f}x", flush=True)
         done = results["scenes"].values()
         results["summary"] = {
             "scenes": list(results["scenes"]),

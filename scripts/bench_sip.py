@@ -16,13 +16,20 @@ further, to 100-170 ms, in periods when this shared machine was busy. Each
 scene's report (JSON, CSV, the plot against iterations and
 time) goes to ``bench-results/sip/<scene>/``; the summary to
 ``bench-results/bench_sip.json`` (``--out``).
-Run: ``python scripts/bench_sip.py`` (a few minutes on 2 cores).
+Run: ``python scripts/bench_sip.py`` (a few minutes on 2 cores). With
+``--seeds 0,1,2`` every scene is compared once per seed (``[data] seed``: the
+truths and the network's initialisation), the reports going to
+``bench-results/sip/<scene>/seed<k>/``, and the JSON holds each seed's summary
+and the seeds' mean ratios; the nonlinear scenes are recorded that way:
+``python scripts/bench_sip.py --scenes sip-nonlinear,hig-nonlinear --seeds 0,1,2
+--out bench-results/bench_sip_nonlinear.json``.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import os
+import statistics
 import sys
 from pathlib import Path
 
@@ -46,6 +53,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=Path("bench-results/bench_sip.json"))
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads for both methods (default 1: faster at these sizes, see above)")
+    parser.add_argument("--seeds", type=comma_list(int),
+                        help="compare once per [data] seed (truths and network initialisation); default: the scene's")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     results = {"machine": machine_info(), "settings": {k: str(v) for k, v in vars(args).items()}}
@@ -53,13 +62,44 @@ def main(argv=None) -> int:
         sc = scene.load(name)
         if args.epochs:
             sc = dataclasses.replace(sc, optimizer=dataclasses.replace(sc.optimizer, epochs=args.epochs))
-        report_dir = args.out.parent / "sip" / name
-        runs, split, _ = compare.compare_and_report(sc, report_dir)
-        results[name] = {"scene": sc.as_dict(), **split}
-        print(f"{name}:\n" + compare.table(sc, runs) + "\n" + "\n".join(compare.summary_lines(split)), flush=True)
+        if args.seeds is None:
+            results[name] = {"scene": sc.as_dict(), **compare_one(sc, args.out.parent / "sip" / name)}
+        else:
+            results[name] = seeded(sc, args.seeds, args.out.parent / "sip" / name)
+        results["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
         write_json_atomically(results, args.out)
     print(f"wrote {args.out}")
     return 0
+
+
+def compare_one(sc, report_dir: Path) -> dict:
+    runs, split, _ = compare.compare_and_report(sc, report_dir, overwrite=True)
+    print(f"{sc.name} (seed {sc.data.seed}):\n" + compare.table(sc, runs) + "\n"
+          + "\n".join(compare.summary_lines(split)), flush=True)
+    return split
+
+
+def seeded(sc, seeds: list, report_dir: Path) -> dict:
+    """One comparison per seed, and the seeds' means of the ratios (equal-time ones where every seed has one)."""
+    per_seed = {}
+    for seed in seeds:
+        run_scene = dataclasses.replace(sc, data=dataclasses.replace(sc.data, seed=seed))
+        per_seed[seed] = compare_one(run_scene, report_dir / f"seed{seed}")
+    splits = list(per_seed.values())
+    out = {"scene": sc.as_dict(), "seeds": seeds, "per_seed": {str(k): v for k, v in per_seed.items()}}
+    for key in ("ratio_equal_iterations", "ratio_equal_time", "method_metric", "baseline_metric",
+                "baseline_metric_at_equal_time", "baseline_iterations_in_that_time", "equal_time_seconds"):
+        values = [s[key] for s in splits]
+        if all(v is not None for v in values):
+            out[f"mean_{key}"] = statistics.mean(values)
+            out[f"range_{key}"] = [min(values), max(values)]
+    out["seconds_per_iteration"] = {name: statistics.mean(s["seconds_per_iteration"][name] for s in splits)
+                                    for name in splits[0]["seconds_per_iteration"]}
+    print(f"{sc.name} over seeds {seeds}: method / Adam at equal iterations {out['mean_ratio_equal_iterations']:.3f} "
+          f"({out['range_ratio_equal_iterations'][0]:.3f}-{out['range_ratio_equal_iterations'][1]:.3f})"
+          + (f", at equal time {out['mean_ratio_equal_time']:.3f}" if "mean_ratio_equal_time" in out else ""),
+          flush=True)
+    return out
 
 
 if __name__ == "__main__":

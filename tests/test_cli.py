@@ -423,7 +423,7 @@ def test_run_with_set_trains_the_overridden_scene(tiny, tmp_path):
 @pytest.mark.parametrize("argv, fragment", [
     (["run", "{tiny}", "--set", "optimizer.epochs=five"], "[optimizer] epochs must be of type int, got 'five' (str)"),
     (["run", "{tiny}", "--set", "optimizer.epoch=5"], "unknown key(s) ['epoch'] in [optimizer]"),
-    (["tradeoff", "{tiny}", "--set", "solver.preset=lu"], "[solver] preset must be one of"),
+    (["tradeoff", "{tiny}", "--set", "solver.preset=direct"], "[solver] preset must be one of"),
     (["compare", "{sip}", "--set", "optimizer=5"], "--set 'optimizer=5' must have the form section.key=value"),
     (["run", "{tiny}", "--set", "nosuch.x=1"], "unknown section(s) ['nosuch']"),
 ])

@@ -14,7 +14,7 @@ from fempdl.app.scene import SceneError
 
 EXPECTED_BUNDLED = {"heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
                     "burgers-emulator", "ns-hybrid", "sip-poisson", "sip-heat", "hig-poisson", "sip-flow",
-                    "sip-flow-full"}
+                    "sip-flow-full", "nonlinear-heat-emulator", "sip-nonlinear", "hig-nonlinear"}
 
 EMULATOR = {"scene": 'name = "t"\ntask = "emulator"', "mesh": 'name = "lshape"', "pde": 'type = "heat"'}
 INVERSE = {"scene": 'name = "t"\ntask = "inverse"', "mesh": 'name = "lshape"', "pde": 'type = "poisson"',
@@ -81,7 +81,7 @@ def test_bundled_scene_loads_with_its_tasks_sections(name):
         assert sc.inverse is None
         assert set(sc.as_dict()["network"]) == set(schema.specs("network"))
         assert sc.network.type in ("mlp", "graph")
-        assert sc.pde.type in {"emulator": ("heat", "burgers"), "hybrid": ("oseen",)}[sc.task]
+        assert sc.pde.type in {"emulator": ("heat", "burgers", "nonlinear-heat"), "hybrid": ("oseen",)}[sc.task]
         assert (sc.hybrid is not None) == (sc.task == "hybrid")
         # Every training sample passes the layer once per epoch in batches that fit.
         assert sc.optimizer.batch <= sc.data.train
@@ -246,10 +246,12 @@ BAD = {
                         ["[prdp] tau_step must be of type float, got {'value': 0.9} (dict)"]),
     # choices
     "pde-choice": (toml(drop=("pde",)) + '[pde]\ntype = "wave"\n',
-                   ["[pde] type must be one of ['heat', 'poisson', 'burgers', 'oseen', 'marker'], got 'wave'"]),
+                   ["[pde] type must be one of ['heat', 'poisson', 'burgers', 'oseen', 'marker', 'nonlinear-heat', "
+                    "'nonlinear-poisson'], got 'wave'"]),
     # PDE and task, solver and network combinations
     "poisson-emulator": (toml(drop=("pde",)) + '[pde]\ntype = "poisson"\n',
-                         ["[pde] type 'poisson' does not apply to task 'emulator'; it takes ['heat', 'burgers']"]),
+                         ["[pde] type 'poisson' does not apply to task 'emulator'; "
+                          "it takes ['heat', 'burgers', 'nonlinear-heat']"]),
     "heat-inverse": (toml(base={**INVERSE, "pde": 'type = "heat"'}),
                      ["[pde] type 'heat' does not apply to task 'inverse'; it takes ['poisson']"]),
     "burgers-hybrid": (toml(base={**HYBRID, "pde": 'type = "burgers"', "solver": 'preset = "gmres"'}),
@@ -341,7 +343,7 @@ BAD = {
     "sip-negative-damping": (toml(base={**SIP, "sip": 'inverse = "gauss-newton"\ndamping = -1.0'}),
                              ["[sip] damping must be >= 0, got -1.0"]),
     "sip-oseen": (toml(base={**SIP, "pde": 'type = "oseen"'}),
-                  ["[pde] type 'oseen' does not apply to task 'sip'", "['poisson', 'heat', 'marker']"]),
+                  ["[pde] type 'oseen' does not apply to task 'sip'", "['poisson', 'heat', 'nonlinear-poisson', 'marker']"]),
     "sip-graph": (toml({"network": 'type = "graph"'}, base=SIP), ["[network] type must be 'mlp' for the sip task"]),
     "sip-solver": (toml({"solver": 'preset = "cg"'}, base=SIP), ["section(s) ['solver'] do not apply to task 'sip'"]),
     "sip-prdp": (toml({"prdp": "k0 = 2"}, base=SIP), ["section(s) ['prdp'] do not apply to task 'sip'"]),

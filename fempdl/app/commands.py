@@ -77,8 +77,10 @@ def _scenes(args) -> int:
             print(f"fempdl: {err}", file=sys.stderr)
             return 2
         return 0
-    for name in scene.available():
-        print(f"{name:<22} {scene.load(name).description}")
+    names = scene.available()
+    width = max(map(len, names), default=0)
+    for name in names:
+        print(f"{name:<{width}} {scene.load(name).description}")
     return 0
 
 

@@ -13,7 +13,8 @@ import tomllib
 from importlib import resources
 from pathlib import Path
 
-from fempdl.app.schema import POSITIVE, PDE_UNUSED, REQUIRED, SECTIONS, Scene, SceneError, Spec, check_slug, specs
+from fempdl.app.schema import (NONLINEAR_PDES, POSITIVE, PDE_UNUSED, REQUIRED, SECTIONS, Scene, SceneError, Spec,
+                               check_slug, specs)
 from fempdl.app.tasks import SPECS
 from fempdl.app.scene_budget import check_mesh, check_size
 
@@ -157,7 +158,7 @@ def parse(text: str, source: str = "<string>", overrides=(), base: Path | None =
         _check_method(values, raw, source)
     else:
         _check_flow(values, source)
-        _check_solver(values, source)
+        _check_solver(values, raw, source)
     if "inverse" in values:
         _check_inverse(values["inverse"], source)
     check_size(values, source)
@@ -194,15 +195,39 @@ def _drop_unused(values: dict, raw: dict, task: str, source: str) -> None:
                     values[name][key] = None
 
 
-def _check_solver(values: dict, source: str) -> None:
+def _check_solver(values: dict, raw: dict, source: str) -> None:
     """The choices across [solver] and [prdp] of the tasks with a capped solver."""
     solver = values["solver"]
-    if solver["diff"] == "unrolled" and solver["preset"] not in ("jacobi", "cg"):
+    if values["pde"]["type"] in NONLINEAR_PDES:
+        _check_newton(solver, raw.get("solver", {}), source)
+    elif solver["preset"] == "lu":
+        raise SceneError(f"{source}: [solver] preset 'lu' has no iteration cap: it is the converged inner solve of "
+                         f"a Newton layer (pde {list(NONLINEAR_PDES)}); choose jacobi, cg, gmres or gmres-ilu")
+    elif solver["diff"] == "unrolled" and solver["preset"] not in ("jacobi", "cg"):
         raise SceneError(f"{source}: [solver] diff = 'unrolled' needs preset 'jacobi' or 'cg', "
                          f"got {solver['preset']!r}")
     prdp = values["prdp"]
     if prdp["k_cap"] is not None and prdp["k_cap"] < prdp["k0"]:
         raise SceneError(f"{source}: [prdp] k_cap must be >= k0 ({prdp['k0']}), got {prdp['k_cap']}")
+
+
+def _check_newton(solver: dict, given: dict, source: str) -> None:
+    """[solver] of a Newton layer: ``refine`` says what K caps, and the inner solve must fit it."""
+    refine = solver["refine"]
+    if solver["preset"] in ("cg", "schur"):
+        raise SceneError(f"{source}: [solver] preset {solver['preset']!r} does not fit a Newton step: the Jacobian of "
+                         "kappa (1 + alpha u^2) grad u is not symmetric (its 2 alpha u grad u term); choose lu, "
+                         "jacobi, gmres or gmres-ilu")
+    if refine != "newton" and solver["preset"] == "lu":
+        raise SceneError(f"{source}: [solver] refine = {refine!r} caps the inner Krylov iterations, but preset 'lu' "
+                         "solves each Newton step directly; choose an iterative preset (jacobi, cg, gmres, "
+                         "gmres-ilu) or refine = 'newton'")
+    if "inner_per_k" in given and refine != "both":
+        raise SceneError(f"{source}: [solver] inner_per_k applies to refine = 'both' (K Newton steps of "
+                         f"inner_per_k K inner iterations), not {refine!r}; remove it")
+    if solver["diff"] == "unrolled" and refine != "newton":
+        raise SceneError(f"{source}: [solver] diff = 'unrolled' differentiates exact Newton steps: it needs "
+                         f"refine = 'newton' (a converged inner solve), got {refine!r}")
 
 
 def _check_flow(values: dict, source: str) -> None:
@@ -235,6 +260,9 @@ def _check_method(values: dict, raw: dict, source: str) -> None:
         raise SceneError(f"{source}: [network] type must be 'mlp' for the {values['scene']['task']} task "
                          f"(a dense network from the observation to the source), got {network['type']!r}")
     sip = values.get("sip")
+    if sip is not None and pde["type"] in NONLINEAR_PDES and sip["inverse"] != "exact":
+        raise SceneError(f"{source}: [sip] inverse must be 'exact' for {pde['type']} (f = M^-1 N(u): the source "
+                         f"from the residual of the nonlinear operator, no PDE solve), got {sip['inverse']!r}")
     if sip is not None:
         unused = {"exact": {"damping", "cg_iterations"}, "tikhonov": {"cg_iterations"}}.get(sip["inverse"], set())
         given = sorted(unused & set(raw["sip"]))

@@ -13,12 +13,17 @@ import dataclasses
 import re
 from typing import Any, Mapping
 
+from fempdl.methods.newton_caps import REFINE
 from fempdl.methods.prdp import PRDPSettings
 
-__all__ = ["Scene", "SceneError", "Spec", "TaskSpec", "SECTIONS", "PDE_UNUSED", "REQUIRED", "POSITIVE", "specs", "check_slug",
+__all__ = ["Scene", "SceneError", "Spec", "TaskSpec", "SECTIONS", "PDE_UNUSED", "NONLINEAR_PDES", "REQUIRED",
+           "POSITIVE", "specs", "check_slug",
            "SceneSection", "MeshConfig", "PdeConfig", "DataConfig", "NetworkConfig", "InverseConfig", "SipConfig",
            "MarkerConfig", "HigConfig", "BaselineConfig", "HybridConfig", "OptimizerConfig", "SolverConfig",
            "PRDPSettings"]
+
+#: The PDE types solved by Newton (a NonlinearSolveLayer): [pde] alpha and [solver] refine apply to them.
+NONLINEAR_PDES = ("nonlinear-heat", "nonlinear-poisson")
 
 REQUIRED = object()
 POSITIVE = 1e-300      # a minimum of "> 0"
@@ -87,17 +92,23 @@ class PdeConfig:
 
     Keys the PDE type does not use are refused in a file and None here."""
 
-    type: str = _key(str, doc="heat | burgers for emulator, poisson for inverse and hig, poisson | heat | marker "
-                              "for sip, oseen for hybrid", choices=("heat", "poisson", "burgers", "oseen", "marker"))
-    dt: float | None = _key(float, 0.01, doc="time step (heat, burgers, oseen, marker)", minimum=POSITIVE)
+    type: str = _key(str, doc="heat | burgers | nonlinear-heat for emulator, poisson for inverse, poisson | "
+                              "nonlinear-poisson for hig, poisson | heat | nonlinear-poisson | marker for sip, "
+                              "oseen for hybrid",
+                     choices=("heat", "poisson", "burgers", "oseen", "marker") + NONLINEAR_PDES)
+    dt: float | None = _key(float, 0.01, doc="time step (heat, burgers, oseen, marker, nonlinear-heat)",
+                            minimum=POSITIVE)
     theta: float | None = _key(float, 1.0, doc="theta time stepping: 1 implicit Euler (heat)",
                                minimum=0.0, maximum=1.0)
-    kappa: float | None = _key(float, 1.0, doc="diffusivity (heat, poisson; marker: the marker's)",
+    kappa: float | None = _key(float, 1.0, doc="diffusivity (heat, poisson, nonlinear-heat, nonlinear-poisson; "
+                                               "marker: the marker's)",
                                minimum=POSITIVE)
     degree: int | None = _key(int, None, doc="element degree (none: 1; 2 for oseen and marker, "
                                              "the Taylor-Hood velocity)", minimum=1)
     nu: float | None = _key(float, 0.01, doc="viscosity (burgers, oseen, marker)", minimum=POSITIVE)
     inflow: float | None = _key(float, 1.0, doc="peak of the parabolic inlet profile (oseen)", minimum=POSITIVE)
+    alpha: float | None = _key(float, 1.0, doc="the conductivity's nonlinearity kappa (1 + alpha u^2) "
+                                               "(nonlinear-heat, nonlinear-poisson)", minimum=0.0)
 
 
 @_section
@@ -212,17 +223,27 @@ class OptimizerConfig:
 
 @_section
 class SolverConfig:
-    """[solver]: the capped linear solver (sip and hig solve with LU: they compare methods, not caps)."""
+    """[solver]: the capped linear solver (sip and hig solve with LU: they compare methods, not caps).
 
-    preset: str = _key(str, "jacobi", doc="the capped solver; schur is for oseen and only it",
-                       choices=("jacobi", "cg", "gmres", "gmres-ilu", "schur"))
+    On a nonlinear PDE the layer is a Newton solve whose inner linear solve is ``preset``; ``refine``
+    says what the cap K counts (:class:`fempdl.methods.newton_caps.NewtonCaps`)."""
+
+    preset: str = _key(str, "jacobi", doc="the capped solver; schur is for oseen and only it; lu is a Newton "
+                                          "layer's converged inner solve (nonlinear PDEs, refine = newton)",
+                       choices=("jacobi", "cg", "gmres", "gmres-ilu", "schur", "lu"))
     diff: str = _key(str, "implicit", doc="how gradients pass the solve (unrolled: jacobi or cg)",
                      choices=("implicit", "unrolled"))
     warm_start: bool | None = _key(bool, False, doc="start the capped solve from the state being advanced "
                                                     "(emulator, hybrid) or from the last step's solution "
                                                     "(inverse)")
-    lag_preconditioner: bool = _key(bool, False, doc="per-sample matrices share the first sample's "
-                                                     "preconditioner within a call")
+    lag_preconditioner: bool | None = _key(bool, False, doc="per-sample matrices share the first sample's "
+                                                            "preconditioner within a call (linear PDEs)")
+    refine: str | None = _key(str, "newton", doc="what K caps in a Newton layer (nonlinear PDEs): newton steps "
+                                                 "(the inner solve converged), inner Krylov iterations per step "
+                                                 "(Newton steps: as many as converged solves need), or both "
+                                                 "(K steps of inner_per_k K iterations)", choices=REFINE)
+    inner_per_k: int | None = _key(int, 1, doc="inner iterations per Newton step per unit of K (refine = both)",
+                                   minimum=1)
 
 
 # Every section, in file order: the schema.
@@ -246,12 +267,17 @@ def specs(section: str) -> dict[str, Spec]:
 
 
 # Keys a PDE type does not use: setting them is an error, not a silent no-op; they are None in the scene.
+_LINEAR_SOLVER = frozenset({"refine", "inner_per_k"})       # what K caps in a Newton layer
 PDE_UNUSED: dict[str, dict[str, frozenset]] = {
-    "poisson": {"pde": frozenset({"dt", "theta", "nu", "inflow"})},
-    "heat": {"pde": frozenset({"nu", "inflow"})},
-    "burgers": {"pde": frozenset({"theta", "kappa", "inflow"})},
-    "oseen": {"pde": frozenset({"theta", "kappa"})},
-    "marker": {"pde": frozenset({"theta", "inflow"})},
+    "poisson": {"pde": frozenset({"dt", "theta", "nu", "inflow", "alpha"}), "solver": _LINEAR_SOLVER},
+    "heat": {"pde": frozenset({"nu", "inflow", "alpha"}), "solver": _LINEAR_SOLVER},
+    "burgers": {"pde": frozenset({"theta", "kappa", "inflow", "alpha"}), "solver": _LINEAR_SOLVER},
+    "oseen": {"pde": frozenset({"theta", "kappa", "alpha"}), "solver": _LINEAR_SOLVER},
+    "marker": {"pde": frozenset({"theta", "inflow", "alpha"}), "solver": _LINEAR_SOLVER},
+    # One backward-Euler step (no theta) of -div(kappa (1 + alpha u^2) grad u) by Newton.
+    "nonlinear-heat": {"pde": frozenset({"theta", "nu", "inflow"}), "solver": frozenset({"lag_preconditioner"})},
+    "nonlinear-poisson": {"pde": frozenset({"dt", "theta", "nu", "inflow"}),
+                          "solver": frozenset({"lag_preconditioner"})},
 }
 
 

@@ -11,7 +11,13 @@ default) the half-inverse of "Half-Inverse Gradients for Physical Deep
 Learning" (Schnell, Holl, Thuerey); beta = -1 - kappa rescales the largest
 singular value to one. J_i = J_physics(x_i) J_net(x_i): the network part by
 ``torch.func``, the physics part by m backward passes (m adjoint solves of a
-SolveLayer, batched). :class:`HIG` refuses a J above ``max_jacobian_bytes``.
+SolveLayer, batched), or with ``physics_jacobian="jacrev"`` by
+``vmap(jacrev(physics))``: one batched forward call and one batched adjoint of
+B m right-hand sides. That suits a Newton layer (implicit mode, one custom op
+like the linear layer's): its Jacobian J(u)^{-1} dF/dm depends on the state u,
+so unlike a linear layer's it is recomputed at every step, and the "rows" way
+would repeat the Newton solve m times per sample. :class:`HIG` refuses a J
+above ``max_jacobian_bytes``.
 """
 from __future__ import annotations
 
@@ -125,12 +131,18 @@ class HIG:
         return [named[name] for name in self.names]
 
     def jacobian(self, inputs: torch.Tensor, physics: Callable | None = None,
-                 linear_physics: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+                 linear_physics: bool = False, physics_jacobian: str = "rows") -> tuple[torch.Tensor, torch.Tensor]:
         """(y, J): outcomes (B, m) and the stacked Jacobian (B m, P) in float64.
 
         ``linear_physics``: the physics is linear in x (a source or initial state of a
         fixed-matrix layer), so its Jacobian is the same for every sample and step: it
-        is computed on the first call and reused (per physics callable)."""
+        is computed on the first call and reused (per physics callable).
+        ``physics_jacobian``: ``"rows"`` (m backward passes per sample through a batch of
+        m copies; any differentiable physics) or ``"jacrev"`` (``vmap(jacrev(physics))``:
+        the physics maps one sample (n_x,) to (m,) and composes with torch.func, as
+        fempdl's implicit layers do; a nonlinear physics' Jacobian is recomputed every step)."""
+        if physics_jacobian not in ("rows", "jacrev"):
+            raise ValueError(f"physics_jacobian must be 'rows' or 'jacrev', got {physics_jacobian!r}")
         params = {name: p.detach() for name, p in zip(self.names, self.parameters)}
         n_params = sum(p.numel() for p in params.values())
         with torch.no_grad():
@@ -152,12 +164,13 @@ class HIG:
         j_net = j_net.double()
         if physics is None:
             return y.double(), j_net.reshape(batch * m, n_params)
+        physics_jacobian_of = self._physics_jacobian if physics_jacobian == "rows" else self._physics_jacrev
         if linear_physics:
             if physics not in self._constant_jacobians:
-                self._constant_jacobians[physics] = self._physics_jacobian(physics, x[:1], m)[0]
+                self._constant_jacobians[physics] = physics_jacobian_of(physics, x[:1], m)[0]
             j_phys = self._constant_jacobians[physics].expand(batch, -1, -1)            # (B, m, n_x)
         else:
-            j_phys = self._physics_jacobian(physics, x, m)
+            j_phys = physics_jacobian_of(physics, x, m)
         return y.double(), torch.bmm(j_phys, j_net).reshape(batch * m, n_params)
 
     @staticmethod
@@ -172,11 +185,22 @@ class HIG:
             rows.append(grad.double())
         return torch.stack(rows)
 
+    @staticmethod
+    def _physics_jacrev(physics: Callable, x: torch.Tensor, m: int) -> torch.Tensor:
+        """(B, m, n_x) by ``vmap(jacrev(physics))`` at the current x (recomputed at every call)."""
+        with torch.enable_grad():
+            jac = vmap(jacrev(physics))(x.detach())
+        if jac.shape != (x.shape[0], m, x.shape[1]):
+            raise ValueError(f"physics_jacobian='jacrev' needs a physics mapping one sample (n_x,) to (m,); its "
+                             f"Jacobian has shape {tuple(jac.shape[1:])}, expected {(m, x.shape[1])}")
+        return jac.double()
+
     def step(self, inputs: torch.Tensor, loss_fn: Callable[[torch.Tensor], torch.Tensor],
-             physics: Callable | None = None, linear_physics: bool = False) -> float:
+             physics: Callable | None = None, linear_physics: bool = False, physics_jacobian: str = "rows") -> float:
         """One HIG update for the batch ``inputs``; ``loss_fn(y)`` is the scalar loss of the outcomes
-        ``y = physics(model(inputs))`` (B, m). Returns the loss before the update."""
-        y, jac = self.jacobian(inputs, physics, linear_physics)
+        ``y = physics(model(inputs))`` (B, m). Returns the loss before the update. ``physics_jacobian``:
+        how the physics' Jacobian is computed (:meth:`jacobian`)."""
+        y, jac = self.jacobian(inputs, physics, linear_physics, physics_jacobian)
         y = y.detach().requires_grad_(True)
         with torch.enable_grad():
             loss = loss_fn(y)

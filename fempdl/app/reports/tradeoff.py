@@ -13,7 +13,9 @@ paper does:
   what PRDP saves on top by starting low;
 
 so that IC + PR is PRDP's total saving 1 - cost(PRDP) / cost(K_eps). Cost is
-cumulative forward + backward inner iterations (and, separately, wall time).
+cumulative forward + backward inner iterations (and, separately, wall time);
+on a Newton scene (a nonlinear PDE) the Newton steps are counted apart too
+(``newton_savings``), whichever cap K moves (``[solver] refine``).
 For tasks trained to a target (``stop_at``), K_max is the smallest fixed K
 that reaches it.
 
@@ -89,13 +91,18 @@ def savings(runs: dict[str, RunResult], tolerance: float = 0.1, stop_at: float |
         "wall_time_savings": 1.0 - prdp.wall_time / baseline.wall_time,
         "tolerance": tolerance,
     }
+    if baseline.newton_steps:
+        out["newton_savings"] = 1.0 - prdp.newton_steps / baseline.newton_steps
     return out
 
 
 def comparison_table(runs: dict[str, RunResult]) -> str:
     """Text table: K schedule, final metric, iterations and time against the converged baseline."""
     baseline = next((r for r in runs.values() if r.mode == "converged"), None)
-    header = f"{'run':<14} {'K schedule':<26} {'final metric':>12} {'inner its':>11} {'wall s':>7} {'its vs base':>11} {'time vs base':>12}"
+    newton = any(r.newton_steps is not None for r in runs.values())
+    steps = f" {'newton steps':>12}" if newton else ""
+    header = (f"{'run':<14} {'K schedule':<26} {'final metric':>12} {'inner its':>11}{steps} {'wall s':>7} "
+              f"{'its vs base':>11} {'time vs base':>12}")
     lines = [header, "-" * len(header)]
     for label, r in runs.items():
         schedule = _schedule_text(r.k_schedule)
@@ -103,7 +110,8 @@ def comparison_table(runs: dict[str, RunResult]) -> str:
         if baseline is not None:
             rel_its = f"{r.total_iterations / baseline.total_iterations:.2f}x"
             rel_time = f"{r.wall_time / baseline.wall_time:.2f}x"
-        lines.append(f"{label:<14} {schedule:<26} {r.final_metric:>12.3e} {r.total_iterations:>11,d} "
+        steps = f" {r.newton_steps or 0:>12,d}" if newton else ""
+        lines.append(f"{label:<14} {schedule:<26} {r.final_metric:>12.3e} {r.total_iterations:>11,d}{steps} "
                      f"{r.wall_time:>7.1f} {rel_its:>11} {rel_time:>12}")
     return "\n".join(lines)
 
@@ -116,21 +124,25 @@ def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir:
         "scene": scene.as_dict(),
         "savings": split,
         "runs": {label: {"mode": r.mode, "k_schedule": r.k_schedule, "final_metric": r.final_metric,
-                         "total_iterations": r.total_iterations, "wall_time": r.wall_time, "rows": r.rows}
+                         "total_iterations": r.total_iterations, "newton_steps": r.newton_steps,
+                         "wall_time": r.wall_time, "rows": r.rows}
                  for label, r in runs.items()},
     }
     paths = [out_dir / "tradeoff.json", out_dir / "tradeoff.csv", out_dir / "metric_per_epoch.png",
              out_dir / "metric_vs_cost.png", out_dir / "time_split.png"]
     write_atomically(paths[0], lambda p: p.write_text(json.dumps(summary, indent=1)))
 
+    newton = any(r.newton_steps is not None for r in runs.values())
+
     def write_csv(p: Path) -> None:
         with p.open("w", newline="") as fh:
             writer = csv.writer(fh)
             writer.writerow(["run", "mode", "k_schedule", "final_metric", "total_iterations", "wall_time",
-                             *(f"time_{part}" for part in TIME_PARTS)])
+                             *(f"time_{part}" for part in TIME_PARTS), *(["newton_steps"] if newton else [])])
             for label, r in runs.items():
                 writer.writerow([label, r.mode, _schedule_text(r.k_schedule), r.final_metric,
-                                 r.total_iterations, r.wall_time, *time_split(r).values()])
+                                 r.total_iterations, r.wall_time, *time_split(r).values(),
+                                 *([r.newton_steps] if newton else [])])
     write_atomically(paths[1], write_csv)
     _plot_per_epoch(runs, paths[2], scene.name)
     _plot_against_cost(runs, paths[3], scene.name)
@@ -227,7 +239,8 @@ def summary_lines(split: dict) -> list[str]:
         f"inner-iteration savings against the baseline: total {100 * split['total_savings']:.0f}% = "
         f"IC {100 * split['ic_savings']:.0f}% + PR {100 * split['pr_savings']:.0f}%; "
         f"wall time {100 * split['wall_time_savings']:.0f}%",
-    ]
+    ] + ([f"Newton steps: {100 * split['newton_savings']:.0f}% fewer than the baseline's"]
+         if "newton_savings" in split else [])
 
 
 def write_figure(fig, path: Path) -> None:

@@ -5,6 +5,14 @@ A run mode is ``("fixed", K)``, ``("converged", None)`` (fixed K = K_eps) or
 K_eps, the "converged" cap, is the most iterations the scene's solver
 (``[solver] preset``) needs to reach the scene's ``k_eps_rtol`` on the task's
 reference inputs. sip and hig scenes run with :func:`run_method`.
+
+On a nonlinear PDE the task's layer is a Newton solve and K means what
+``[solver] refine`` says (:class:`~fempdl.methods.newton_caps.NewtonCaps`, the
+task's ``caps``): Newton steps, inner iterations per step, or both. K_eps is
+then :func:`~fempdl.methods.newton_caps.newton_k_eps` under that rule, and
+fixed K, K_eps and PRDP all set K through the same ``caps``. With
+``refine = "inner"`` the Newton cap is the number of steps converged solves
+need on the reference inputs (measured like K_eps, the inner solve converged).
 """
 from __future__ import annotations
 
@@ -16,16 +24,18 @@ import torch
 from mpi4py import MPI
 
 from fempdl.core import io, mesh
-from fempdl.app.schema import Scene
+from fempdl.app.schema import NONLINEAR_PDES, Scene
 from fempdl.app.tasks import SPECS, spec_of, task_class
-from fempdl.app.runs.training import Trainer
+from fempdl.app.tasks.nonlinear_emulator import newton_options
+from fempdl.app.runs.training import Trainer, cap_target, set_cap
 from fempdl.bridge_torch import SolveLayer
 from fempdl.solve.options import KSPOptions
 from fempdl.core.parallel import shard
+from fempdl.methods.newton_caps import NewtonCaps, newton_k_eps
 from fempdl.methods.prdp import PRDP
 
-__all__ = ["build_task", "check_parallel", "k_eps", "run", "run_method", "run_settings", "save_fields", "RunResult",
-           "MODES"]
+__all__ = ["build_task", "check_parallel", "k_eps", "layer_options", "newton_caps_eps", "run", "run_method",
+           "run_settings", "save_fields", "RunResult", "MODES"]
 _log = logging.getLogger(__name__)
 
 MODES = ("fixed", "converged", "prdp")
@@ -55,6 +65,11 @@ class RunResult:
     @property
     def wall_time(self) -> float:
         return self.rows[-1]["wall_time"]
+
+    @property
+    def newton_steps(self) -> int | None:
+        """Newton steps, forward and unrolled backward (None for a run without Newton layers)."""
+        return self.rows[-1].get("newton_steps")
 
     @property
     def k_schedule(self) -> list[tuple[int, int]]:
@@ -109,6 +124,27 @@ def solver_options(scene: Scene, k: int | None, rtol: float | None = None) -> KS
     """The scene's capped solver: ``k`` iterations, or run to ``rtol`` when ``k`` is None."""
     return KSPOptions.preset(scene.solver.preset, max_it=k, rtol=rtol,
                              lag_preconditioner=scene.solver.lag_preconditioner)
+
+
+def layer_options(scene: Scene, k: int | None):
+    """The options the task's capped layer is built with: the scene's capped solver at ``k``
+    (:func:`solver_options`), or for a nonlinear PDE the Newton options of ``[solver]``, whose caps
+    the runner sets through the task's ``caps``."""
+    if scene.pde.type in NONLINEAR_PDES:
+        return newton_options(scene, scene.data.k_eps_rtol)
+    return solver_options(scene, k)
+
+
+def newton_caps_eps(task, rtol: float, shard_over: MPI.Comm = MPI.COMM_SELF, refine: str | None = None) -> int:
+    """K_eps of a Newton task under its caps' rule (or ``refine``'s): :func:`newton_k_eps` on the task's
+    reference inputs (spread over ``shard_over``'s ranks, the maximum theirs)."""
+    caps = task.caps if refine is None else NewtonCaps(task.layers, refine)
+    inputs = {name: torch.atleast_2d(value) for name, value in task.k_eps_rhs().items()}
+    idx = shard(torch.arange(next(iter(inputs.values())).shape[0]), shard_over)
+    local = newton_k_eps(caps, rtol=rtol, **{name: value[idx] for name, value in inputs.items()}) if len(idx) else 1
+    most = shard_over.allreduce(local, op=MPI.MAX)
+    _log.info("K_eps = %d (Newton, refine=%s, to rtol %s)", most, caps.refine, rtol)
+    return most
 
 
 def k_eps(task, options: KSPOptions, shard_over: MPI.Comm = MPI.COMM_SELF, batch: int = 1) -> int:
@@ -180,16 +216,9 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
                          f"{scene.task!r}, out_dir={out_dir!r}")
     if (mode == "fixed") != (k is not None):
         raise ValueError("give k exactly when mode='fixed'")
-    task = build_task(scene, solver_options(scene, k or 1), parallel, comm, seed)
-    keps = k_eps_value if k_eps_value is not None else k_eps(
-        task, solver_options(scene, None, scene.data.k_eps_rtol),
-        shard_over=comm if parallel == "data" else MPI.COMM_SELF, batch=_batch(scene))
-    prdp = None
-    if mode == "converged":
-        task.layer.max_it = keps
-    elif mode == "prdp":
-        prdp = PRDP(task.layers, dataclasses.replace(scene.prdp, k_cap=scene.prdp.k_cap or keps))
+    task = build_task(scene, layer_options(scene, k or 1), parallel, comm, seed)
     try:
+        keps, prdp = _set_caps(task, scene, mode, k, k_eps_value, comm if parallel == "data" else MPI.COMM_SELF)
         trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=_batch(scene),
                           out_dir=out_dir, prdp=prdp, seed=scene.data.seed if seed is None else seed,
                           progress=progress, tensorboard=_board_dir(out_dir, tensorboard),
@@ -202,6 +231,29 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
         task.close()
     return RunResult(scene=scene.name, mode=mode, k_eps=keps, rows=rows,
                      out_dir=None if out_dir is None else str(out_dir))
+
+
+def _set_caps(task, scene: Scene, mode: str, k: int | None, k_eps_value: int | None,
+              shard_over: MPI.Comm) -> tuple[int, PRDP | None]:
+    """K_eps (measured unless given) and the caps of ``mode``: K (fixed), K_eps (converged) or the
+    PRDP controller that moves them, all through the task's :func:`cap_target`."""
+    newton = isinstance(getattr(task, "caps", None), NewtonCaps)
+    if k_eps_value is not None:
+        keps = k_eps_value
+    elif newton:
+        keps = newton_caps_eps(task, scene.data.k_eps_rtol, shard_over)
+    else:
+        keps = k_eps(task, solver_options(scene, None, scene.data.k_eps_rtol), shard_over=shard_over,
+                     batch=_batch(scene))
+    if newton and task.caps.refine == "inner":     # K caps the inner solve; Newton takes the converged steps
+        steps = newton_caps_eps(task, scene.data.k_eps_rtol, shard_over, refine="newton")
+        for layer in task.layers:
+            layer.max_it = steps
+    target = cap_target(task)
+    if mode == "prdp":
+        return keps, PRDP(target, dataclasses.replace(scene.prdp, k_cap=scene.prdp.k_cap or keps))
+    set_cap(target, k if mode == "fixed" else keps)
+    return keps, None
 
 
 def _board_dir(out_dir: Path | None, tensorboard: bool) -> Path | None:

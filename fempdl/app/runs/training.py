@@ -5,7 +5,8 @@ of a task (:class:`fempdl.app.tasks.base.Task` says what a task provides),
 validates, steps the PRDP controller, and after every epoch writes
 ``metrics.csv``/``metrics.json`` (one row per epoch: losses, K, cumulative
 iterations and times, and ``time_<part>`` for each of :data:`TIME_PARTS`,
-adding up to ``wall_time``) and ``checkpoint.pt`` (model, optimizer, scheduler,
+adding up to ``wall_time``; a task with Newton layers adds ``newton_steps``, its
+iterations being the inner Krylov ones) and ``checkpoint.pt`` (model, optimizer, scheduler,
 PRDP, layer counters, each rank's task state, RNG states, rows). Every file is written atomically
 (:mod:`fempdl.app.runs.checkpoints`), so an interrupted run keeps its last epoch;
 ``run(resume=True)`` continues it with the same metrics as an uninterrupted
@@ -40,7 +41,7 @@ from fempdl.app.runs.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, w
 from fempdl.methods.prdp import PRDP
 
 __all__ = ["Trainer", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES",
-           "CHECKPOINT"]
+           "CHECKPOINT", "cap_target", "set_cap"]
 # Fingerprint keys a resumed run may change: the run's length, which --epochs and an
 # equal-training-time extension (fempdl.app.reports.compare) move.
 RESUMABLE_CHANGES = ("run.scene.optimizer.epochs", "run.epochs")
@@ -56,9 +57,25 @@ TIME_PARTS = ("iterations", "setup", "assembly", "adjoint_operator", "network", 
 TIME_FIELDS = tuple(f"time_{part}" for part in TIME_PARTS)
 METRIC_FIELDS = ("epoch", "train_loss", "val_metric", "k", "forward_iterations", "backward_iterations",
                  "total_iterations", "solve_time", "train_time", "wall_time") + TIME_FIELDS
+# Newton layers add their steps (forward and unrolled backward) to the rows.
+NEWTON_FIELDS = ("newton_steps",)
 # The layers' own counters behind the solver parts of the split.
 _LAYER_PARTS = {"iterations": "solve_time", "setup": "setup_time", "assembly": "assembly_time",
                 "adjoint_operator": "adjoint_operator_time"}
+
+
+def cap_target(task):
+    """What the cap K of ``task`` is set on: its ``caps`` (e.g. a
+    :class:`~fempdl.methods.newton_caps.NewtonCaps`, one number for a Newton layer's two
+    caps) when it has them, else its capped layers (each layer's ``max_it``)."""
+    caps = getattr(task, "caps", None)
+    return task.layers if caps is None else caps
+
+
+def set_cap(target, k: int) -> None:
+    """Set the cap K of a :func:`cap_target`."""
+    for t in (target if isinstance(target, (list, tuple)) else [target]):
+        t.max_it = k
 
 
 @dataclasses.dataclass
@@ -127,7 +144,11 @@ class Trainer:
 
     @property
     def k(self) -> int | None:
-        return self.task.layers[0].max_it if self.task.layers else None
+        """The cap K in force (:func:`cap_target`)."""
+        target = cap_target(self.task)
+        if isinstance(target, (list, tuple)):
+            return target[0].max_it if target else None
+        return target.max_it
 
     def run(self, resume: bool = False) -> list[dict]:
         """Train; returns the metric rows (one per epoch, including resumed ones).
@@ -281,11 +302,16 @@ class Trainer:
         if self.parallel == "data":   # every rank solved its own samples: the run's cost is the sum
             counts = [self.comm.allreduce(c) for c in counts]
         fwd, bwd, solve_time = counts
-        return {"epoch": epoch, "train_loss": loss, "val_metric": metric, "k": k,
-                "forward_iterations": fwd, "backward_iterations": bwd, "total_iterations": fwd + bwd,
-                "solve_time": solve_time, "train_time": self.comm.allreduce(self._train_time, op=MPI.MAX),
-                "wall_time": self.comm.allreduce(self._elapsed, op=MPI.MAX),
-                **{f"time_{part}": seconds for part, seconds in self._times.items()}}
+        row = {"epoch": epoch, "train_loss": loss, "val_metric": metric, "k": k,
+               "forward_iterations": fwd, "backward_iterations": bwd, "total_iterations": fwd + bwd,
+               "solve_time": solve_time, "train_time": self.comm.allreduce(self._train_time, op=MPI.MAX),
+               "wall_time": self.comm.allreduce(self._elapsed, op=MPI.MAX),
+               **{f"time_{part}": seconds for part, seconds in self._times.items()}}
+        newton = [layer.stats for layer in self.task.layers if hasattr(layer.stats, "newton_steps")]
+        if newton:      # Newton layers: their iterations above are the inner ones; the steps come apart
+            steps = sum(s.newton_steps + s.backward_newton_steps for s in newton)
+            row["newton_steps"] = self.comm.allreduce(steps) if self.parallel == "data" else steps
+        return row
 
     # -------------------------------------------------------------- files
     def _save(self, epoch: int) -> None:
@@ -299,7 +325,8 @@ class Trainer:
 
         def write_csv(p: Path) -> None:
             with p.open("w", newline="") as fh:
-                writer = csv.DictWriter(fh, fieldnames=METRIC_FIELDS)
+                extra = tuple(key for key in NEWTON_FIELDS if self.rows and key in self.rows[0])
+                writer = csv.DictWriter(fh, fieldnames=METRIC_FIELDS + extra)
                 writer.writeheader()
                 writer.writerows(self.rows)
         write_atomically(self.out_dir / "metrics.csv", write_csv)
@@ -355,15 +382,14 @@ class Trainer:
                 raise ValueError(f"{path} was written by a run without PRDP; resume it without --prdp")
             self.prdp.load_state_dict(state["prdp"])
         elif state["k"] is not None:
-            for layer in self.task.layers:
-                layer.max_it = state["k"]
+            set_cap(cap_target(self.task), state["k"])
         by_rank = state["layer_stats_by_rank"]
         if len(by_rank) != self.comm.size:
             raise ValueError(f"{path} was written by a run on {len(by_rank)} rank(s); "
                              f"resume it on {len(by_rank)}, not {self.comm.size}")
         for layer, saved in zip(self.task.layers, by_rank[self.comm.rank]):
             for key, value in saved.items():
-                if key != "last":
+                if not key.startswith("last"):     # the last solve's stats (last, last_newton) are not counters
                     setattr(layer.stats, key, value)
         # Checkpoints written before tasks kept state hold none: the task starts from its initial state.
         task_states = state.get("task_state_by_rank", [{}] * self.comm.size)

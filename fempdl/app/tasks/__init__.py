@@ -18,10 +18,11 @@ from fempdl.app.tasks.hybrid import HybridTask
 from fempdl.app.tasks.inverse import InverseTask
 from fempdl.app.tasks.inversion import InversionTask, method_of
 from fempdl.app.tasks.marker import MarkerInversionTask
+from fempdl.app.tasks.nonlinear_emulator import NonlinearEmulatorTask
 
 __all__ = ["Task", "SPECS", "task_class", "spec_of", "method_of"]
 
-_CLASSES = (EmulatorTask, InverseTask, HybridTask, InversionTask, MarkerInversionTask)
+_CLASSES = (EmulatorTask, NonlinearEmulatorTask, InverseTask, HybridTask, InversionTask, MarkerInversionTask)
 
 
 def _registry() -> tuple[dict[str, TaskSpec], dict[tuple[str, str], type]]:

@@ -20,7 +20,9 @@ class Task:
     """What :class:`~fempdl.app.runs.training.Trainer` trains; subclasses define the physics.
 
     A task has ``model``, ``optimizer``, ``scheduler`` (or None), ``layers``
-    (the capped layers whose iterations are counted), ``train_size``,
+    (the capped layers whose iterations are counted), optionally ``caps``
+    (what the cap K is set on when it is not each layer's ``max_it``: a
+    :class:`~fempdl.methods.newton_caps.NewtonCaps` for Newton layers), ``train_size``,
     ``val_size``, and two functions of sample indices (a LongTensor):
 
     * ``loss(idx)``: the training loss of those samples, a mean over them (so a

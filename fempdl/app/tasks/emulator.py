@@ -15,7 +15,15 @@ from fempdl.app.tasks.metrics import nmse, sample_nmse
 from fempdl.bridge_torch import SolveLayer
 from fempdl.solve.options import KSPOptions
 
-__all__ = ["EmulatorTask"]
+__all__ = ["EmulatorTask", "emulator_spec"]
+
+
+def emulator_spec(pdes: tuple) -> TaskSpec:
+    """The emulator task's declaration for the PDE types ``pdes`` (every class serving it declares it alike)."""
+    return TaskSpec(name="emulator", pdes=pdes, required=frozenset({"scene", "mesh", "pde"}),
+                    optional=frozenset({"data", "network", "optimizer", "solver", "prdp"}),
+                    unused={"data": frozenset({"truths", "noise", "resample"})}, parallel=("data",),
+                    writes_fields=True)
 
 
 class EmulatorTask(Task):
@@ -28,9 +36,7 @@ class EmulatorTask(Task):
     nMSE against the converged trajectory at every pair.
     """
 
-    specs = (TaskSpec(name="emulator", pdes=("heat", "burgers"), required=frozenset({"scene", "mesh", "pde"}),
-                      optional=frozenset({"data", "network", "optimizer", "solver", "prdp"}),
-                      unused={"data": frozenset({"truths", "noise", "resample"})}, parallel=("data",), writes_fields=True),)
+    specs = (emulator_spec(("heat", "burgers")),)
 
     def __init__(self, scene: Scene, options: KSPOptions, *, comm: MPI.Comm = MPI.COMM_SELF,
                  seed: int | None = None):
@@ -39,17 +45,12 @@ class EmulatorTask(Task):
         pde = scene.pde
         self.pde = pde.type
         self.warm_start = scene.solver.warm_start
-        if self.pde == "heat":
-            self.problem = forms.heat.problem(msh, controls=("u0",), dt=pde.dt, theta=pde.theta,
-                                              kappa=pde.kappa, degree=pde.degree)
-        else:
-            self.problem = forms.burgers.problem(msh, controls=("w", "u_prev"), nu=pde.nu, dt=pde.dt,
-                                                 degree=pde.degree)
+        self.problem = self._build_problem(msh, pde)
         n_train, n_val = scene.data.train, scene.data.validation
         self.rollout = scene.data.rollout
         u0 = torch.as_tensor(self._initial_states(n_train + n_val, scene.data.modes, rng))
         # Converged physics: reference data and validation (not counted in layers' iterations).
-        self.reference = SolveLayer(self.problem, KSPOptions.preset("lu"))
+        self.reference = self._reference_layer()
         with torch.no_grad():
             trajectory = [u0]
             for _ in range(2 * self.rollout):
@@ -59,12 +60,26 @@ class EmulatorTask(Task):
         self.val_u0 = u0[n_train:].float()
         self.val_targets = [state[n_train:].float() for state in trajectory[2::2]]
         self.train_size, self.val_size = n_train, n_val
-        self.layer = SolveLayer(self.problem, options, diff=scene.solver.diff)
+        self.layer = self._capped_layer(options, scene)
         self.layers = [self.layer]
         torch.manual_seed(scene.data.seed if seed is None else seed)
         self.model = self._network(scene.network)
         self.optimizer, self.scheduler = make_optimizer(self.model.parameters(), scene.optimizer.type,
                                                         scene.optimizer.lr, scene.optimizer.decay)
+
+    def _build_problem(self, msh, pde):
+        if self.pde == "heat":
+            return forms.heat.problem(msh, controls=("u0",), dt=pde.dt, theta=pde.theta, kappa=pde.kappa,
+                                      degree=pde.degree)
+        return forms.burgers.problem(msh, controls=("w", "u_prev"), nu=pde.nu, dt=pde.dt, degree=pde.degree)
+
+    def _reference_layer(self):
+        """The converged physics of the reference data and of validation."""
+        return SolveLayer(self.problem, KSPOptions.preset("lu"))
+
+    def _capped_layer(self, options, scene: Scene):
+        """The layer the network trains through (its iterations are the run's cost)."""
+        return SolveLayer(self.problem, options, diff=scene.solver.diff)
 
     def physics(self, layer: SolveLayer, u: torch.Tensor) -> torch.Tensor:
         """One step of the scene's PDE from state ``u`` through ``layer`` (the capped

@@ -2,8 +2,10 @@
 
 A dense network maps an observation y (the layer's output DOFs, n_y) to the
 physical input x that produced it (n_x): a Poisson source f from its solution
-(y = P(f): -div(kappa grad u) = f, u = 0 on the boundary), or the initial
-state u0 of one heat step from the state after it. The truths x are drawn
+(y = P(f): -div(kappa grad u) = f, u = 0 on the boundary), the initial
+state u0 of one heat step from the state after it, or the source f of
+nonlinear diffusion (pde "nonlinear-poisson": -div(kappa (1 + alpha u^2)
+grad u) = f, u = 0 on the boundary, solved by Newton to rtol 1e-10 with LU). The truths x are drawn
 from the scene's seed: sums of ``modes`` smooth sine modes or of ``modes``
 random boxes ("rectangles"), zero at the Dirichlet DOFs; the observations are
 the converged (LU) solutions, plus Gaussian noise when ``[data] noise`` > 0.
@@ -18,10 +20,13 @@ Three ways to train the same network (``method``):
 * ``"sip"``: the proxy loss 1/2 ||x0 - stopgrad(x*)||^2 (mean over samples)
   with x* from the scene's inverse (:mod:`fempdl.methods.sip`: the exact inverse of
   an affine right-hand side, its Tikhonov-damped version, or damped
-  Gauss-Newton CG), stepped by the scene's optimizer;
+  Gauss-Newton CG; for nonlinear-poisson the exact inverse f = M^{-1} N(y),
+  N the nonlinear operator's residual at y, which needs no PDE solve),
+  stepped by the scene's optimizer;
 * ``"hig"``: half-inverse gradient steps (:class:`fempdl.methods.hig.HIG`) on
-  L = 1/2 ||P(x0) - y||^2 (mean over samples); the physics is linear, so its
-  Jacobian is computed once;
+  L = 1/2 ||P(x0) - y||^2 (mean over samples); a linear physics' Jacobian is
+  computed once, a Newton layer's (which depends on the state) at every step
+  by ``vmap(jacrev(layer))``: one Newton solve and n_y adjoint solves per sample;
 * ``"backprop"``: the baseline, Adam with ``[baseline] lr`` and ``decay`` on
   the same L, its gradient backpropagated through the layer's adjoint.
 
@@ -41,19 +46,22 @@ from mpi4py import MPI
 from fempdl import forms
 from fempdl.core import mesh
 from fempdl.app.tasks.networks import mlp
-from fempdl.app.schema import Scene, SipConfig, TaskSpec
+from fempdl.app.schema import NONLINEAR_PDES, Scene, SipConfig, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import rectangle_fields, smooth_fields
 from fempdl.app.tasks.metrics import sample_nmse
 from fempdl.bridge_torch import SolveLayer
+from fempdl.layer.newton_layer import NonlinearSolveLayer
 from fempdl.methods.hig import HIG
+from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.options import KSPOptions
-from fempdl.methods.sip import ExactLinearInverse, GaussNewtonInverse, TikhonovInverse, proxy_loss
+from fempdl.methods.sip import (ExactLinearInverse, ExactNonlinearInverse, GaussNewtonInverse, TikhonovInverse,
+                                proxy_loss)
 
 __all__ = ["InversionTask", "method_of"]
 
 #: The sip task on a one-layer physics (poisson, heat); the marker task serves it on the marker rollout.
-SIP_SPEC = TaskSpec(name="sip", pdes=("poisson", "heat"), required=frozenset({"scene", "mesh", "pde", "sip"}),
+SIP_SPEC = TaskSpec(name="sip", pdes=("poisson", "heat", "nonlinear-poisson"), required=frozenset({"scene", "mesh", "pde", "sip"}),
                     optional=frozenset({"data", "network", "optimizer", "baseline", "marker"}),
                     unused={"data": frozenset({"k_eps_rtol", "rollout"})}, trains="method")
 
@@ -72,7 +80,7 @@ class InversionTask(Task):
     network is ``[network] layers`` tanh layers of width ``hidden``.
     """
 
-    specs = (SIP_SPEC, TaskSpec(name="hig", pdes=("poisson",), required=frozenset({"scene", "mesh", "pde", "hig"}),
+    specs = (SIP_SPEC, TaskSpec(name="hig", pdes=("poisson", "nonlinear-poisson"), required=frozenset({"scene", "mesh", "pde", "hig"}),
                                 optional=frozenset({"data", "network", "optimizer", "baseline"}),
                                 unused={"data": frozenset({"k_eps_rtol", "rollout"}),
                                         "optimizer": frozenset({"type", "lr", "decay"})},
@@ -87,14 +95,21 @@ class InversionTask(Task):
         self.scene, self.method = scene, method
         pde, data = scene.pde, scene.data
         msh = mesh.load(scene.mesh.name, MPI.COMM_SELF, h=scene.mesh.h)
+        self.nonlinear = pde.type in NONLINEAR_PDES
         if pde.type == "poisson":
             self.problem, self.control = forms.poisson.problem(msh, controls=("f",), kappa=pde.kappa,
                                                                degree=pde.degree), "f"
+        elif pde.type == "nonlinear-poisson":
+            self.problem, self.control = forms.nonlinear_diffusion.problem(
+                msh, controls=("f",), kappa=pde.kappa, alpha=pde.alpha, degree=pde.degree), "f"
         else:
             self.problem, self.control = forms.heat.problem(msh, controls=("u0",), dt=pde.dt, theta=pde.theta,
                                                             kappa=pde.kappa, degree=pde.degree), "u0"
         self.free = np.setdiff1d(np.arange(self.problem.output_size), self.problem.bc_dofs)
-        self.layer = SolveLayer(self.problem, KSPOptions.preset("lu"))
+        if self.nonlinear:      # converged Newton (line search, LU, rtol 1e-10) from zero
+            self.layer = NonlinearSolveLayer(self.problem, NewtonOptions(ksp="lu"))
+        else:
+            self.layer = SolveLayer(self.problem, KSPOptions.preset("lu"))
         self.layers = [self.layer]
         self.train_size, self.val_size = data.train, data.validation
         self.x_val, self.y_val = self._samples(data.validation, np.random.default_rng([data.seed, 1]))
@@ -138,6 +153,8 @@ class InversionTask(Task):
 
     # ------------------------------------------------------------ methods
     def _inverse(self, spec: SipConfig):
+        if self.nonlinear:          # the scene allows the exact inverse only
+            return ExactNonlinearInverse(self.layer, self.control, eta=spec.eta)
         if spec.inverse == "exact":
             return ExactLinearInverse(self.layer, self.control, eta=spec.eta)
         if spec.inverse == "tikhonov":
@@ -164,6 +181,9 @@ class InversionTask(Task):
         if self.method != "hig":
             return super().train_step(idx)
         y = self.y_train[idx]
+        if self.nonlinear:          # the Jacobian of a Newton solve changes with the state: every step
+            return self.optimizer.step(y, lambda u: self._physics_loss(u, y), physics=self.physics,
+                                       physics_jacobian="jacrev")
         return self.optimizer.step(y, lambda u: self._physics_loss(u, y), physics=self.physics,
                                    linear_physics=True)
 
