@@ -10,10 +10,11 @@ control, one sample per call, either as one (n_cells,) tensor (shared) or as a
 Each step factorises A for the forward solve; the adjoint A^T lam = f must not
 factorise it again (the same matrix: one factorisation, MatSolveTranspose on it).
 The script times ``--steps`` Adam steps (after ``--warmup``) in a worker process for
-each source tree: this checkout and ``--baseline`` (a git revision, checked out
-into a temporary worktree), alternating ``--rounds`` times so that machine load
-hits both alike; the figure is the ratio of the medians of the per-round median
-step times. Writes ``bench-results/bench_direct.json`` with the machine record.
+variant: ``--baseline`` (a git revision, checked out into a temporary worktree)
+with the ``"lu"`` preset, and this checkout with ``"lu"`` and with ``"cholesky"``
+(the problem declared symmetric), alternating ``--rounds`` times so that machine
+load hits them alike; the figure is the ratio of the medians of the per-round
+median step times. Writes ``bench-results/bench_direct.json`` with the machine record.
 
 Run (from the repository root, on an idle machine)::
 
@@ -67,7 +68,9 @@ def workload(steps: int, warmup: int, batched: bool) -> dict:
     L = ufl.inner(load, v) * ds(1)
     clamp = dolfinx.mesh.locate_entities_boundary(msh, fdim, lambda x: np.isclose(x[0], 0.0))
     bc = _dolfinx.dirichlet_bc(V, dolfinx.fem.Function(V), clamp)
-    problem = Problem(a, L, [bc], controls={"E": E}, symmetric=True)
+    # symmetric=True where this revision knows it (the Cholesky preset needs it); an older one runs "lu" only.
+    symmetric = {"symmetric": True} if "symmetric" in Problem.__init__.__code__.co_varnames else {}
+    problem = Problem(a, L, [bc], controls={"E": E}, **symmetric)
     layer = SolveLayer(problem, os.environ.get("BENCH_DIRECT_PRESET", "lu"))
     b = _dolfinx.create_vector(problem.L_form)
     _dolfinx.assemble_vector_into(b, problem.L_form, problem.a_form, problem.bcs)
@@ -94,8 +97,9 @@ def workload(steps: int, warmup: int, batched: bool) -> dict:
             "backward_solves": stats.backward_solves}
 
 
-def run_worker(tree: Path, args, batched: bool) -> dict:
-    env = {**os.environ, "PYTHONPATH": str(tree), "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1"}
+def run_worker(tree: Path, args, batched: bool, preset: str) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(tree), "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1",
+           "BENCH_DIRECT_PRESET": preset}
     command = [sys.executable, str(Path(__file__).resolve()), "--worker", "--steps", str(args.steps),
                "--warmup", str(args.warmup)] + (["--batched"] if batched else [])
     done = subprocess.run(command, env=env, cwd=tree, capture_output=True, text=True)
@@ -121,13 +125,13 @@ def main() -> int:
     from bench_common import machine_info, write_json_atomically
     import numpy as np
 
-    trees = {"current": ROOT}
+    variants = {"current lu": (ROOT, "lu"), "current cholesky": (ROOT, "cholesky")}
     scratch = None
     if args.baseline:
         scratch = Path(tempfile.mkdtemp(prefix="fempdl-baseline-"))
         subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-q", str(scratch), args.baseline],
                        check=True)
-        trees = {"baseline": scratch, "current": ROOT}
+        variants = {"baseline lu": (scratch, "lu"), **variants}
     report = {"machine": machine_info(), "load_average_start": os.getloadavg(),
               "settings": {"steps": args.steps, "warmup": args.warmup, "rounds": args.rounds,
                            "baseline": args.baseline, "statistic": "median of per-round medians",
@@ -135,10 +139,10 @@ def main() -> int:
               "target_speedup_min": TARGET_SPEEDUP, "results": {}}
     try:
         for layout in ("shared", "batched"):
-            rounds = {name: [] for name in trees}
+            rounds = {name: [] for name in variants}
             for _ in range(args.rounds):
-                for name, tree in trees.items():
-                    rounds[name].append(run_worker(tree, args, layout == "batched"))
+                for name, (tree, preset) in variants.items():
+                    rounds[name].append(run_worker(tree, args, layout == "batched", preset))
             row = {}
             for name, runs in rounds.items():
                 medians = [float(np.median(r["step_s"])) for r in runs]
@@ -146,11 +150,12 @@ def main() -> int:
                              "compliance": runs[-1]["compliance"], "dofs": runs[-1]["dofs"],
                              "setup_s_last_round": runs[-1]["setup_s"], "solve_s_last_round": runs[-1]["solve_s"],
                              "assembly_s_last_round": runs[-1]["assembly_s"]}
-            if "baseline" in row:
-                row["speedup"] = row["baseline"]["median_step_s"] / row["current"]["median_step_s"]
+            if "baseline lu" in row:
+                for name in ("current lu", "current cholesky"):
+                    row[f"speedup {name}"] = row["baseline lu"]["median_step_s"] / row[name]["median_step_s"]
             report["results"][layout] = row
-            print(layout, json.dumps({k: (v["median_step_s"] if isinstance(v, dict) else v) for k, v in row.items()}),
-                  flush=True)
+            print(layout, json.dumps({k: round(v["median_step_s"] * 1e3, 2) if isinstance(v, dict) else round(v, 2)
+                                      for k, v in row.items()}), flush=True)
     finally:
         if scratch is not None:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(scratch)], check=False)
