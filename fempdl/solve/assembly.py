@@ -22,7 +22,7 @@ from fempdl.core import _dolfinx
 from fempdl.core.problem import Problem
 from fempdl.solve.petsc import petsc_to_scipy
 
-__all__ = ["check_operator", "ControlValues", "KeptMatrices", "Timer", "attach_nullspace", "set_owned", "fingerprint",
+__all__ = ["check_operator", "check_symmetric_factor", "check_symmetric", "SYMMETRIC_PC_TYPES", "ControlValues", "KeptMatrices", "Timer", "attach_nullspace", "set_owned", "fingerprint",
            "fingerprint_matches", "assemble_scipy"]
 
 
@@ -224,3 +224,26 @@ def check_operator(A: PETSc.Mat, controls: list[str]) -> None:
     what = "NaN or inf entries" if not finite else f"{empty} empty row{'s' if empty > 1 else ''} (it is singular)"
     raise ValueError(f"the assembled matrix has {what} with {source}; check for a zero or non-finite "
                      "coefficient (e.g. kappa = 0 somewhere) or a missing Dirichlet condition")
+
+
+#: Preconditioners that read only one triangle of A: right only for a symmetric A.
+SYMMETRIC_PC_TYPES = frozenset({"cholesky", "icc"})
+
+
+def check_symmetric_factor(options, problem) -> None:
+    """Refuse a Cholesky (or ICC) solve, forward or adjoint, of a problem not declared symmetric: it reads
+    one triangle of A and would silently solve another system."""
+    used = {o.pc_type for o in (options, options.adjoint_options)} & SYMMETRIC_PC_TYPES
+    if used and not getattr(problem, "symmetric", False):
+        raise ValueError(f"pc_type={sorted(used)[0]!r} factorises A as symmetric, but this problem is not declared "
+                         "symmetric; use the 'lu' preset, or build the Problem with symmetric=True if a(u, v) = "
+                         "a(v, u) for every control value")
+
+
+def check_symmetric(A: PETSc.Mat) -> None:
+    """Raise ValueError on every rank unless the assembled ``A`` is symmetric to round-off (one pass over A)."""
+    scale = A.norm(PETSc.NormType.INFINITY)
+    if not A.isSymmetric(tol=1e-12 * scale):
+        raise ValueError("the problem is declared symmetric (Problem(..., symmetric=True)) but its assembled matrix "
+                         "is not: a Cholesky factorisation would solve another system; use the 'lu' preset or drop "
+                         "symmetric=True")

@@ -30,7 +30,8 @@ from petsc4py import PETSc
 
 from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import CappedSolver
-from fempdl.solve.assembly import (ControlValues, KeptMatrices, Timer, attach_nullspace, check_operator, fingerprint,
+from fempdl.solve.assembly import (SYMMETRIC_PC_TYPES, ControlValues, KeptMatrices, Timer, attach_nullspace,
+                                    check_operator, check_symmetric, check_symmetric_factor, fingerprint,
                                     fingerprint_matches, set_owned)
 from fempdl.solve.petsc import petsc_to_scipy
 from fempdl.solve.control_forms import ControlForms
@@ -64,8 +65,11 @@ class LinearSystem:
             if reason is not None:
                 raise ValueError(f"engine='batched' cannot run these options: {reason}; "
                                  "use engine='auto' or engine='petsc'")
+        check_symmetric_factor(options, problem)
         self.problem = problem
         self._batched = None if options.engine == "petsc" or len(problem.nullspace) else batched_engine
+        # A symmetric factorisation's first matrix is checked for symmetry (the flag is the user's word).
+        self._symmetry_unchecked = options.pc_type in SYMMETRIC_PC_TYPES
         self._batched_version = -1                             # A version the batched copy holds
         self._A = _dolfinx.create_matrix(problem.a_form)
         self._destroyed = False
@@ -133,7 +137,7 @@ class LinearSystem:
                 else:
                     ctl.set_sample(i)
                     if per_sample_matrix:
-                        self._assemble_matrix(names)
+                        self._assemble_matrix_if_changed(names)
                         if kept is not None:
                             kept.append(self._A)
                     with self._assembling():
@@ -202,9 +206,12 @@ class LinearSystem:
                 if use_batched:
                     self._x.setArray(Lam[i])
                 else:
-                    if kept is not None:
+                    if per_sample_matrix and self._matrix_is_current():
+                        pass                               # e.g. one sample: A still holds its matrix and factor
+                    elif kept is not None:
                         kept.restore(i, self._A)
                         self._A_version += 1
+                        self._A_inputs = fingerprint(p.matrix_inputs())
                     elif per_sample_matrix:
                         self._assemble_matrix(names)
                     self._lag_preconditioner(per_sample_matrix and i > 0)
@@ -326,11 +333,9 @@ class LinearSystem:
         if not names & self.problem.matrix_controls:
             self._ensure_constant_matrix()
             return
-        # A is about to hold control-dependent values: the constant-matrix cache is stale.
-        self._A_inputs = None
         if not per_sample:
             ctl.set_sample(0)
-            self._assemble_matrix(names)
+            self._assemble_matrix_if_changed(names)
 
     def _lag_preconditioner(self, later_sample: bool) -> None:
         """Keep the first sample's preconditioner for the later samples of a call
@@ -344,16 +349,30 @@ class LinearSystem:
     def _assemble_matrix(self, controls: frozenset = frozenset()) -> None:
         """Assemble A with the controls' current values; refuse a singular or non-finite one
         (:func:`~fempdl.solve.assembly.check_operator`), naming the matrix ``controls`` set for it."""
+        self._A_inputs = None
         with self._assembling():
             _dolfinx.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
             check_operator(self._A, sorted(frozenset(controls) & self.problem.matrix_controls))
+            if self._symmetry_unchecked:
+                check_symmetric(self._A)
+                self._symmetry_unchecked = False
         self._A_version += 1
+        self._A_inputs = fingerprint(self.problem.matrix_inputs())
+
+    def _matrix_is_current(self) -> bool:
+        """Whether A holds the matrix of the coefficients' and constants' current values (on every rank)."""
+        return self._A_inputs is not None and fingerprint_matches(self._A_inputs, self.problem.matrix_inputs(),
+                                                                  self._comm)
+
+    def _assemble_matrix_if_changed(self, controls: frozenset = frozenset()) -> None:
+        """Assemble A unless it already holds these values. An unchanged A keeps its PETSc state, so its
+        factorisation (or preconditioner) is reused: the adjoint of a direct solve transposes the forward's
+        factor (MatSolveTranspose) instead of factorising A again."""
+        if not self._matrix_is_current():
+            self._assemble_matrix(controls)
 
     def _ensure_constant_matrix(self) -> None:
-        inputs = self.problem.matrix_inputs()
-        if self._A_inputs is None or not fingerprint_matches(self._A_inputs, inputs, self._comm):
-            self._assemble_matrix()
-            self._A_inputs = fingerprint(inputs)
+        self._assemble_matrix_if_changed()
 
     def _affine_rhs(self, b_base: PETSc.Vec, rhs_mats: dict, controls, i: int) -> None:
         """self._b = b_base + sum_m C_m m_i, with BC rows of the control part zeroed."""

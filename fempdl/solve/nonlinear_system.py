@@ -37,7 +37,7 @@ from petsc4py import PETSc
 from fempdl.core import _dolfinx
 from fempdl.core.nonlinear_problem import NonlinearProblem
 from fempdl.ksp_adjoint import CappedSolver
-from fempdl.solve.assembly import ControlValues, Timer, attach_nullspace, check_operator, set_owned
+from fempdl.solve.assembly import ControlValues, Timer, attach_nullspace, check_operator, check_symmetric_factor, set_owned
 from fempdl.solve.control_forms import ControlForms
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.newton_stats import (SNES_REASON_NAMES, NewtonCumulativeStats, NewtonSolveStats,
@@ -139,6 +139,7 @@ class NonlinearSystem:
     def _build(self, options: NewtonOptions) -> None:
         p = self.problem
         ksp_options: KSPOptions = options.ksp
+        check_symmetric_factor(ksp_options, p)
         self._ksp = create_ksp(self._J, ksp_options, unique_prefix("newton_ksp"), p.fields or None)
         snes = PETSc.SNES().create(self._comm)
         snes.setOptionsPrefix(self._prefix)
