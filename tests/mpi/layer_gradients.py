@@ -12,21 +12,12 @@ from mpi4py import MPI
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
+from gathering import gathered     # tests/mpi, the script's folder
 
 SOLVERS = {"lu": KSPOptions.preset("lu"), "jacobi": KSPOptions.preset("jacobi", max_it=30),
            "cg": KSPOptions.preset("cg", rtol=1e-12), "gmres": KSPOptions.preset("gmres", max_it=12)}
 PROBLEMS = {"poisson": (forms.poisson.problem, ("f", "kappa"), {}),
             "heat": (forms.heat.problem, ("u0", "f", "kappa"), {"dt": 0.01, "theta": 0.5})}
-
-
-def gathered(comm, coords: np.ndarray, values: np.ndarray) -> np.ndarray | None:
-    """Values of every rank's owned DOFs on rank 0, sorted by coordinate."""
-    parts = comm.gather((np.round(coords[:, :2], 10), values), root=0)
-    if comm.rank != 0:
-        return None
-    xy = np.concatenate([c for c, _ in parts])
-    vals = np.concatenate([v for _, v in parts], axis=-1)
-    return vals[..., np.lexsort((xy[:, 1], xy[:, 0]))]
 
 
 def main(path: str) -> None:

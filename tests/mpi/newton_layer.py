@@ -16,6 +16,7 @@ from mpi4py import MPI
 import dolfinx.mesh
 
 from fempdl import KSPOptions, NewtonOptions, NonlinearSolveLayer, forms
+from gathering import gathered     # tests/mpi, the script's folder
 
 CASES = {
     # converged Newton with a line search, implicit gradient
@@ -25,16 +26,6 @@ CASES = {
     # the exact derivative of 2 plain Newton steps, warm start included
     "unrolled": (NewtonOptions(snes_type="newton", max_it=2, ksp="lu"), "unrolled"),
 }
-
-
-def gathered(comm, coords: np.ndarray, values: np.ndarray) -> np.ndarray | None:
-    """Values of every rank's owned DOFs on rank 0, sorted by coordinate."""
-    parts = comm.gather((np.round(coords[:, :2], 10), values), root=0)
-    if comm.rank != 0:
-        return None
-    xy = np.concatenate([c for c, _ in parts])
-    vals = np.concatenate([v for _, v in parts], axis=-1)
-    return vals[..., np.lexsort((xy[:, 1], xy[:, 0]))]
 
 
 def run(comm) -> dict:
