@@ -17,7 +17,7 @@ from fempdl.app.tasks.inversion import InversionTask
 from fempdl.app.tasks.nonlinear_emulator import NonlinearEmulatorTask
 from fempdl.methods.hig import HIG
 from fempdl.methods.newton_caps import NewtonCaps, newton_k_eps
-from fempdl.methods.sip import ExactNonlinearInverse
+from fempdl.methods.sip_nonlinear import ExactNonlinearInverse
 
 from helpers import tiny_scene
 

@@ -249,7 +249,7 @@ class LinearSystem:
 
     def constant_matrix(self) -> sp.csr_matrix:
         """A as scipy CSR, for a problem whose matrix depends on no control passed in a call."""
-        self._ensure_constant_matrix()
+        self._assemble_matrix_if_changed()
         return petsc_to_scipy(self._A)
 
     def matrix_with(self, name: str, values: np.ndarray, bc_diagonal: float = 1.0) -> sp.csr_matrix:
@@ -331,7 +331,7 @@ class LinearSystem:
         """Make A right for a call: the cached constant matrix, one assembly with
         shared controls, or nothing (assembled per sample by the caller)."""
         if not names & self.problem.matrix_controls:
-            self._ensure_constant_matrix()
+            self._assemble_matrix_if_changed()
             return
         if not per_sample:
             ctl.set_sample(0)
@@ -370,9 +370,6 @@ class LinearSystem:
         factor (MatSolveTranspose) instead of factorising A again."""
         if not self._matrix_is_current():
             self._assemble_matrix(controls)
-
-    def _ensure_constant_matrix(self) -> None:
-        self._assemble_matrix_if_changed()
 
     def _affine_rhs(self, b_base: PETSc.Vec, rhs_mats: dict, controls, i: int) -> None:
         """self._b = b_base + sum_m C_m m_i, with BC rows of the control part zeroed."""

@@ -27,7 +27,8 @@ from fempdl.core import io, mesh
 from fempdl.app.schema import NONLINEAR_PDES, Scene
 from fempdl.app.tasks import SPECS, spec_of, task_class
 from fempdl.app.tasks.nonlinear_emulator import newton_options
-from fempdl.app.runs.training import Trainer, cap_target, set_cap
+from fempdl.app.runs.training import Trainer
+from fempdl.app.tasks.base import cap_target, set_cap
 from fempdl.bridge_torch import SolveLayer
 from fempdl.solve.options import KSPOptions
 from fempdl.core.parallel import shard

@@ -37,11 +37,12 @@ from fempdl import __version__
 from fempdl.core import parallel
 from fempdl.app.runs import checkpoints
 from fempdl.app.runs import rundir
+from fempdl.app.runs.board import tensorboard_writer
 from fempdl.app.runs.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
+from fempdl.app.tasks.base import cap_target, set_cap
 from fempdl.methods.prdp import PRDP
 
-__all__ = ["Trainer", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES",
-           "CHECKPOINT", "cap_target", "set_cap"]
+__all__ = ["Trainer", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES", "CHECKPOINT"]
 # Fingerprint keys a resumed run may change: the run's length, which --epochs and an
 # equal-training-time extension (fempdl.app.reports.compare) move.
 RESUMABLE_CHANGES = ("run.scene.optimizer.epochs", "run.epochs")
@@ -62,20 +63,6 @@ NEWTON_FIELDS = ("newton_steps",)
 # The layers' own counters behind the solver parts of the split.
 _LAYER_PARTS = {"iterations": "solve_time", "setup": "setup_time", "assembly": "assembly_time",
                 "adjoint_operator": "adjoint_operator_time"}
-
-
-def cap_target(task):
-    """What the cap K of ``task`` is set on: its ``caps`` (e.g. a
-    :class:`~fempdl.methods.newton_caps.NewtonCaps`, one number for a Newton layer's two
-    caps) when it has them, else its capped layers (each layer's ``max_it``)."""
-    caps = getattr(task, "caps", None)
-    return task.layers if caps is None else caps
-
-
-def set_cap(target, k: int) -> None:
-    """Set the cap K of a :func:`cap_target`."""
-    for t in (target if isinstance(target, (list, tuple)) else [target]):
-        t.max_it = k
 
 
 @dataclasses.dataclass
@@ -406,13 +393,3 @@ class Trainer:
         self._train_time = state.get("train_time", 0.0)
         self._times.update(state.get("times", {}))
         return state["epoch"] + 1
-
-
-def tensorboard_writer(directory: Path):
-    """A TensorBoard SummaryWriter on ``directory``, or an ImportError that says how to install it."""
-    try:
-        from torch.utils.tensorboard import SummaryWriter
-    except ImportError as err:
-        raise ImportError(f"TensorBoard logging needs the tensorboard package ({err}); install it with "
-                          "pip install 'fempdl[tensorboard]', or train without it") from None
-    return SummaryWriter(log_dir=str(directory))

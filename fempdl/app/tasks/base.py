@@ -5,7 +5,7 @@ import torch
 
 from fempdl.solve.assembly import assemble_scipy
 
-__all__ = ["Task", "make_optimizer", "optimisation_step", "operator_pattern"]
+__all__ = ["Task", "make_optimizer", "optimisation_step", "operator_pattern", "cap_target", "set_cap"]
 
 
 def optimisation_step(optimizer, loss: torch.Tensor) -> float:
@@ -78,3 +78,17 @@ def make_optimizer(params, kind: str, lr: float, decay: float):
         optimizer = torch.optim.SGD(params, lr=lr)
     scheduler = None if decay == 1.0 else torch.optim.lr_scheduler.ExponentialLR(optimizer, decay)
     return optimizer, scheduler
+
+
+def cap_target(task):
+    """What the cap K of ``task`` is set on: its ``caps`` (e.g. a
+    :class:`~fempdl.methods.newton_caps.NewtonCaps`, one number for a Newton layer's two
+    caps) when it has them, else its capped layers (each layer's ``max_it``)."""
+    caps = getattr(task, "caps", None)
+    return task.layers if caps is None else caps
+
+
+def set_cap(target, k: int) -> None:
+    """Set the cap K of a :func:`cap_target`."""
+    for t in (target if isinstance(target, (list, tuple)) else [target]):
+        t.max_it = k

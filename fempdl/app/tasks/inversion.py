@@ -53,9 +53,10 @@ from fempdl.app.tasks.metrics import sample_nmse
 from fempdl.bridge_torch import SolveLayer
 from fempdl.layer.newton_layer import NonlinearSolveLayer
 from fempdl.methods.hig import HIG
+from fempdl.methods.sip_nonlinear import ExactNonlinearInverse
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.options import KSPOptions
-from fempdl.methods.sip import (ExactLinearInverse, ExactNonlinearInverse, GaussNewtonInverse, TikhonovInverse,
+from fempdl.methods.sip import (ExactLinearInverse, GaussNewtonInverse, TikhonovInverse,
                                 proxy_loss)
 
 __all__ = ["InversionTask", "method_of"]
