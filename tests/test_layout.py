@@ -105,6 +105,20 @@ def test_every_module_has_a_place(graph):
         place(name)
 
 
+def test_no_module_is_hidden_from_git():
+    """A .gitignore pattern must not hide package files: a module present here but not committed
+    passes every local test and is missing from a fresh clone (``runs/`` once hid ``fempdl/app/runs/``)."""
+    git = subprocess.run(["git", "-C", str(PACKAGE.parent), "rev-parse", "--is-inside-work-tree"],
+                         capture_output=True, text=True)
+    if git.returncode != 0:
+        pytest.skip("not a git checkout")
+    files = [str(p.relative_to(PACKAGE.parent)) for p in PACKAGE.rglob("*") if p.is_file()
+             and "__pycache__" not in p.parts]
+    ignored = subprocess.run(["git", "-C", str(PACKAGE.parent), "check-ignore", "--no-index", *files],
+                             capture_output=True, text=True).stdout.split()
+    assert not ignored, f"files of the package that .gitignore hides: {ignored}"
+
+
 def test_imports_point_down_only(graph):
     wrong = [why for a, targets in graph.items() for b in sorted(targets) if (why := wrong_way(a, b))]
     assert not wrong, "\n".join(wrong)
