@@ -261,6 +261,8 @@ def test_tradeoff_writes_its_report(tradeoff_run):
     assert (f"K_eps = {split['k_eps']}, K_max from the sweep = {split['k_max_sweep']}, "
             f"PRDP's final K = {split['k_max_prdp']}") in stdout
     assert f"total {100 * split['total_savings']:.0f}% = IC {100 * split['ic_savings']:.0f}%" in stdout
+    assert (f"the solver's iterations are {100 * split['solver_share']:.0f}% of the baseline's time, so PRDP can "
+            f"save at most {100 * split['max_wall_time_savings']:.0f}%") in stdout
 
 
 def test_tradeoff_savings_are_consistent(tradeoff_run):
@@ -287,6 +289,13 @@ def test_tradeoff_savings_are_consistent(tradeoff_run):
     # The per-run directories hold the same rows.
     for label, sub in (("K=1", "k1"), ("K=2", "k2"), (f"K_eps={keps}", "converged"), ("PRDP", "prdp")):
         assert metrics(tradeoff_run["out"] / sub) == runs[label]["rows"]
+    # The clock's bound comes from the baseline's own split: its iterations' share of its wall time.
+    last = runs[f"K_eps={keps}"]["rows"][-1]
+    share = last["time_iterations"] / last["wall_time"]
+    assert 0 < share < 1 and split["solver_share"] == pytest.approx(share, rel=1e-12)
+    assert split["max_wall_time_savings"] == split["solver_share"]
+    assert split["predicted_wall_time_savings"] == pytest.approx(share * split["total_savings"], rel=1e-12)
+    assert split["predicted_wall_time_savings"] <= split["max_wall_time_savings"]
 
 
 def test_tradeoff_csv_matches_json(tradeoff_run):
