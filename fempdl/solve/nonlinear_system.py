@@ -206,7 +206,9 @@ class NonlinearSystem:
               record: bool = False):
         """Newton solves for ``batch`` samples; returns U (batch, n), and with ``record``
         also the :class:`NewtonPath` of the iterates. ``initial_guess`` (batch, n) starts
-        the iteration (its Dirichlet entries are replaced by the boundary values)."""
+        the iteration (its Dirichlet entries are replaced by the boundary values). ``keep_matrices``
+        belongs to the linear system's interface (the implicit operator passes it) and is unused: the
+        adjoint assembles J at the returned state, not at any iterate's."""
         p = self.problem
         n = p.output_size
         U = np.empty((batch, n))
