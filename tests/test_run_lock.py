@@ -57,7 +57,10 @@ def test_contenders_at_the_same_instant_never_hold_the_lock_together(tmp_path):
         while not all(os.path.exists(f"{out}.ready") for out in outs):
             assert time.monotonic() < deadline and all(p.poll() is None for p in procs), "a contender died"
             time.sleep(0.05)
-        go.write_text(repr(time.time() + 0.5))
+        # Written beside and renamed: a contender polling for the go file must never read it half-written.
+        staged = tmp_path / "go.staged"
+        staged.write_text(repr(time.time() + 0.5))
+        os.replace(staged, go)
         assert [p.wait(timeout=120) for p in procs] == [0] * contenders
     finally:
         for p in procs:
