@@ -2,7 +2,8 @@
 
 Poisson on the bundled L-shape (about 4k and 66k P1 DOFs, as in
 ``scripts/bench_layer.py``), the source f as control, B random sources, a
-pure cap of K iterations. One timed call is ``u = layer(f=F); (u * W).sum().backward()``:
+pure cap of K iterations, or (``cg-rtol``) CG + Jacobi to rtol 1e-8 without a cap, each column
+stopping at its own tolerance. One timed call is ``u = layer(f=F); (u * W).sum().backward()``:
 B forward solves and B transposed solves. The two engines (``engine="petsc"``:
 one KSP solve per sample; ``engine="batched"``: all samples at once, see
 :mod:`fempdl.iterative.batched`) are interleaved within every repeat; each
@@ -12,7 +13,8 @@ difference of u and of dJ/df). Also recorded: the choice ``engine="auto"`` makes
 
 Run::
 
-    .venv/bin/python scripts/bench_krylov.py            # both sizes, CG and GMRES(30), K=200, B=32 (CG also B=2,4,8)
+    .venv/bin/python scripts/bench_krylov.py            # both sizes, CG and GMRES(30), K=200, B=32 (CG also B=2,4,8),
+                                                        # and CG to rtol 1e-8 at B=32
     .venv/bin/python scripts/bench_krylov.py --sizes small --repeats 1 --out /tmp/k.json
 """
 from __future__ import annotations
@@ -37,9 +39,12 @@ from fempdl.ksp_adjoint import KSPOptions  # noqa: E402
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}
 TARGET = 2.0
+CONVERGED_RTOL = 1e-8
 
 
 def options(solver: str, K: int, engine: str) -> KSPOptions:
+    if solver == "cg-rtol":        # converged: each column stops at its own rtol, no cap
+        return KSPOptions.preset("cg", rtol=CONVERGED_RTOL, engine=engine)
     if solver == "cg":
         return KSPOptions.preset("cg", max_it=K, engine=engine)
     return KSPOptions.preset("gmres", max_it=K, gmres_restart=30, engine=engine)
@@ -79,8 +84,12 @@ def bench(size: str, args, rng) -> list:
                 times[e].append(call(layers[e], F, W)[0])
             loads.append(list(os.getloadavg()))
         best = {e: min(t) for e, t in times.items()}
+        converged = solver == "cg-rtol"
+        its = {e: layers[e].stats.total_iterations for e in ("petsc", "batched")}
         row = {"size": size, "dofs": prob.output_size, "solver": f"{solver}+jacobi" + ("(30)" if solver == "gmres" else ""),
-               "K": args.k, "B": batch, "seconds_min": best, "seconds_all": times,
+               "K": None if converged else args.k, "rtol": CONVERGED_RTOL if converged else None,
+               "iterations_fwd_plus_bwd_per_call": {e: n // (1 + args.repeats) for e, n in its.items()},
+               "B": batch, "seconds_min": best, "seconds_all": times,
                "speedup_batched_over_petsc": best["petsc"] / best["batched"],
                "per_repeat_ratios": [p / b for p, b in zip(times["petsc"], times["batched"])],
                "max_rel_diff_u": rel(u_b, u_p), "max_rel_diff_grad_f": rel(g_b, g_p),
@@ -98,7 +107,8 @@ def bench(size: str, args, rng) -> list:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--sizes", type=comma_list(str), default=["small", "large"])
-    parser.add_argument("--solvers", type=comma_list(str), default=["cg", "gmres"])
+    parser.add_argument("--solvers", type=comma_list(str), default=["cg", "gmres", "cg-rtol"],
+                        help="cg, gmres (capped at --k) and cg-rtol (CG + Jacobi to rtol 1e-8, no cap)")
     parser.add_argument("--k", type=int, default=200)
     parser.add_argument("--batches", type=comma_list(int), default=[2, 4, 8, 32],
                         help="batch sizes; all but the largest only for --small-batch-solvers")

@@ -1,4 +1,5 @@
-"""Capped Richardson, CG and GMRES for a whole batch: one sparse-times-dense product per iteration.
+"""Capped Richardson, CG and GMRES, and CG to a tolerance, for a whole batch: one sparse-times-dense
+product per iteration.
 
 For B right-hand sides stacked as the columns of R (n, B), K iterations of
 
@@ -12,8 +13,10 @@ writes the next iterate, the least memory traffic a Jacobi sweep can have
 (``scripts/bench_floor.py``); the iterates agree with PETSc's to round-off. CG and GMRES(m) run
 the recurrences of PETSc's KSPCG and KSPGMRES (classical Gram-Schmidt, as
 :mod:`fempdl.iterative.unrolled`) in place and without autograd
-(:func:`fast_cg`, :func:`fast_gmres`): whole-block operations, no loop over
-columns. PCJACOBI replaces a zero diagonal entry by 1, and so does this engine.
+(:mod:`fempdl.iterative.batched_cg`, :func:`fast_gmres`): whole-block operations, no loop over
+columns. CG also runs to a tolerance (rtol or atol set, or no cap), each column stopping at its
+own as KSPCG would and reporting its iterations and converged reason. PCJACOBI replaces a zero
+diagonal entry by 1, and so does this engine.
 
 The operator is a torch CSR copy of the assembled PETSc matrix (serial only,
 int32 indices), refreshed when the matrix is reassembled. When batching pays
@@ -31,13 +34,14 @@ import torch
 from petsc4py import PETSc
 
 from fempdl.core import tuning
-from fempdl.iterative.columns import SOLVED, column_dots, guarded_ratio, spmm_into
+from fempdl.iterative.batched_cg import Tolerance, converged_cg, fast_cg
+from fempdl.iterative.columns import spmm_into
 from fempdl.solve.petsc import petsc_to_scipy
 from fempdl.solve.options import KSPOptions
 from fempdl.iterative.sparse import sparse_to_torch, torch_to_scipy
-from fempdl.iterative.sweeps import column_groups, richardson, sweep_matrix, threads_for, torch_threads
+from fempdl.iterative.sweeps import column_groups, richardson, sweep_matrix, torch_threads
 
-__all__ = ["BatchedEngine", "fast_cg", "fast_gmres"]
+__all__ = ["BatchedEngine", "fast_cg", "converged_cg", "fast_gmres"]
 
 _OWN_OPTIONS = frozenset({"ksp_richardson_scale"})
 
@@ -58,14 +62,22 @@ class BatchedEngine:
             if opts.ksp_type not in ("richardson", "cg", "gmres") or opts.pc_type not in ("jacobi", "none"):
                 return (f"it implements Richardson, CG and GMRES with Jacobi or no preconditioner, not "
                         f"{opts.ksp_type}+{opts.pc_type}")
-            if not opts.capped or any(v is not None for v in (opts.rtol, opts.atol, opts.divtol)):
-                return "it runs a pure iteration cap (max_it set; rtol, atol and divtol unset)"
+            if opts.divtol is not None:
+                return "it has no divergence test (divtol is set)"
+            if opts.ksp_type != "cg" and not BatchedEngine.pure_cap(opts):
+                return ("it runs Richardson and GMRES with a pure iteration cap (max_it set; rtol, atol and "
+                        "divtol unset); only CG also runs to a tolerance")
             extra = set(opts.petsc_options) - _OWN_OPTIONS
             if extra:
                 return f"it does not interpret petsc_options {sorted(extra)}"
             if opts.options_prefix is not None:
                 return f"it reads no PETSc options (options_prefix={opts.options_prefix!r} is set)"
         return None
+
+    @staticmethod
+    def pure_cap(options: KSPOptions) -> bool:
+        """Whether ``options`` ask for exactly ``max_it`` iterations (no tolerance)."""
+        return options.capped and options.rtol is None and options.atol is None
 
     @staticmethod
     def faster_than_petsc(batch: int, ksp_type: str = "richardson") -> bool:
@@ -94,9 +106,13 @@ class BatchedEngine:
         return self._sweeps[key]
 
     def solve(self, R: np.ndarray, options: KSPOptions, *, transpose: bool = False,
-              X0: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-        """``options.max_it`` iterations for the rows of R (B, n), from zero or from
-        the rows of ``X0`` (B, n); returns (X (B, n), seconds)."""
+              X0: np.ndarray | None = None) -> tuple[np.ndarray, float, tuple | None]:
+        """Solve for the rows of R (B, n), from zero or from the rows of ``X0`` (B, n).
+
+        A pure cap runs ``options.max_it`` iterations; CG with a tolerance (rtol or atol set, or no
+        cap) runs each column until it meets it (:func:`~fempdl.iterative.batched_cg.converged_cg`).
+        Returns (X (B, n), seconds, per-column outcome): the outcome is ``None`` for a pure cap, else
+        (iterations (B,), reason names, final preconditioned residual norms (B,))."""
         if self._A is None:
             raise RuntimeError("BatchedEngine.load(A) must be called before solve")
         t0 = time.perf_counter()
@@ -108,21 +124,39 @@ class BatchedEngine:
         if options.ksp_type == "richardson":
             M = self._sweep_matrix(transpose, precondition, scale)
             X = richardson(M, rhs * (self._dinv * scale if precondition else scale), options.max_it, start)
-            return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0
-        # A warm start is the K-step solve of the residual equation, as in PETSc. CG's small
-        # groups may run on one thread; GMRES's batched Gram-Schmidt keeps them all.
-        threads = threads_for(op.values().numel(), min(tuning.CG_GROUP, rhs.shape[1])) if options.ksp_type == "cg" else None
+            return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0, None
+        # A warm start is the solve of the residual equation, as in PETSc. CG runs on one thread:
+        # its column products are small dense products whose second thread costs more than it
+        # saves (tuning.CG_THREADS); GMRES's batched Gram-Schmidt keeps them all.
+        threads = tuning.CG_THREADS if options.ksp_type == "cg" else None
+        outcome = None
         with torch.no_grad(), torch_threads(threads):
             res = rhs if start is None else rhs - op @ start
             P = self._dinv if precondition else None
-            if options.ksp_type == "cg":
+            if options.ksp_type == "gmres":
+                X = fast_gmres(op, P, res, options.max_it, options.gmres_restart or 30)
+            elif self.pure_cap(options):
                 X = torch.cat([fast_cg(op, P, res[:, i:i + w].contiguous(), options.max_it)
                                for i, w in column_groups(res.shape[1], tuning.CG_GROUP)], dim=1)
             else:
-                X = fast_gmres(op, P, res, options.max_it, options.gmres_restart or 30)
+                X, outcome = self._converged_cg(op, P, rhs, res, start is not None, options)
             if start is not None:
                 X.add_(start)
-        return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0
+        return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0, outcome
+
+    @staticmethod
+    def _converged_cg(op, P, rhs, res, warm: bool, options: KSPOptions) -> tuple[torch.Tensor, tuple]:
+        """CG to the tolerance of ``options`` per column, group by group; rtol is relative to
+        ||P b|| (KSPConvergedDefault with a nonzero guess), which from zero is the first residual's."""
+        tols = options.petsc_tolerances()
+        tol = Tolerance(tols["rtol"], tols["atol"], tols["max_it"])
+        reference = ((rhs if P is None else P * rhs).norm(dim=0).numpy() if warm else None)
+        parts = [converged_cg(op, P, res[:, i:i + w].contiguous(), tol,
+                              None if reference is None else reference[i:i + w])
+                 for i, w in column_groups(res.shape[1], tuning.CG_GROUP)]
+        X = torch.cat([part[0] for part in parts], dim=1)
+        outcome = tuple(np.concatenate([np.asarray(part[k]) for part in parts]) for k in (1, 2, 3))
+        return X, outcome
 
     def matmul(self, X: np.ndarray, *, transpose: bool = False) -> np.ndarray:
         """A X^T (or A^T X^T) for the rows of X (B, n), as rows (B, n)."""
@@ -130,38 +164,9 @@ class BatchedEngine:
         return np.ascontiguousarray((op @ torch.from_numpy(np.ascontiguousarray(X.T))).T.numpy())
 
 
-# ------------------------------------------------------------------ fast paths
-# In place and without autograd: the engine's solves never need an iterate kept.
-# They run the recurrences of fempdl.iterative.unrolled (PETSc's KSPCG and
-# KSPGMRES) for all columns at once, with whole-block torch operations only.
-
-def fast_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int) -> torch.Tensor:
-    """K steps of preconditioned CG (KSPCG's recurrences) from X = 0 for R (n, B); returns X (n, B).
-
-    One SpMM and two column-dot passes per iteration. A column counts as solved
-    once its preconditioned residual product r.z has fallen by 1e-40 from its
-    start, as in the unrolled CG (:mod:`fempdl.iterative.columns`)."""
-    X = torch.zeros_like(R)
-    r = R.clone()
-    buf = torch.empty_like(R)
-    z = r if P is None else P * r
-    p = z.clone()
-    beta = column_dots(r, z, buf)
-    floor = SOLVED * beta.abs()
-    w = torch.zeros_like(R)
-    for _ in range(K):
-        solved = beta.abs() <= floor
-        spmm_into(A, p, w)
-        a = guarded_ratio(beta, column_dots(p, w, buf), solved)
-        X.addcmul_(p, a)
-        r.addcmul_(w, a, value=-1.0)
-        if P is not None:
-            torch.mul(P, r, out=z)
-        beta_new = column_dots(r, z, buf)
-        torch.addcmul(z, p, guarded_ratio(beta_new, beta, solved), out=p)
-        beta = beta_new
-    return X
-
+# ------------------------------------------------------------------ GMRES
+# In place and without autograd: the engine's solves never need an iterate kept. It runs the
+# recurrences of fempdl.iterative.unrolled.gmres (PETSc's KSPGMRES) for all columns at once.
 
 def fast_gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int, restart: int) -> torch.Tensor:
     """K iterations of left-preconditioned GMRES(restart) with classical Gram-Schmidt from X = 0,

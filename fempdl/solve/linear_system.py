@@ -36,7 +36,7 @@ from fempdl.solve.assembly import (SYMMETRIC_PC_TYPES, ControlValues, KeptMatric
 from fempdl.solve.petsc import petsc_to_scipy
 from fempdl.solve.control_forms import ControlForms
 from fempdl.solve.options import KSPOptions
-from fempdl.solve.stats import CumulativeStats, capped_solve_stats
+from fempdl.solve.stats import CumulativeStats, batch_solve_stats
 from fempdl.core.problem import Problem
 
 __all__ = ["LinearSystem", "INITIAL_GUESS"]
@@ -265,16 +265,17 @@ class LinearSystem:
             return petsc_to_scipy(self._A)
 
     def record_batch(self, direction: str, options: KSPOptions, seconds: float, finite: np.ndarray,
-                     engine: str) -> None:
-        """Count one capped solve per sample of a batch solved outside PETSc (``finite``
-        (B,) bool: the sample's iterate is finite), then raise or warn per ``options``
-        if any is not."""
-        per_sample = [capped_solve_stats(options, seconds / len(finite), bool(ok), engine) for ok in finite]
+                     engine: str, outcome=None) -> None:
+        """Count one solve per sample of a batch solved outside PETSc (``finite`` (B,) bool: the
+        sample's iterate is finite; ``outcome``: per-sample iterations and reasons, ``None`` for a
+        pure cap, see :func:`~fempdl.solve.stats.batch_solve_stats`), then raise or warn per
+        ``options`` if any failed, as the first failed sample's PETSc solve would."""
+        per_sample = batch_solve_stats(options, seconds, finite, engine, outcome)
         for stats in per_sample:
             self.stats.record(direction, stats)
-        if not finite.all():
-            failed = next(st for st in per_sample if not st.ok)
-            self._solver.report_failure(direction, failed, finite=False, samples=int((~finite).sum()))
+        failed = [(st, ok) for st, ok in zip(per_sample, finite) if not st.ok]
+        if failed:
+            self._solver.report_failure(direction, failed[0][0], finite=bool(failed[0][1]), samples=len(failed))
 
     @property
     def matrix_version(self) -> int:
@@ -301,8 +302,8 @@ class LinearSystem:
             self._batched.load(self._A)
             self._batched_version = self._A_version
         opts = self.options if direction == "forward" else self.options.adjoint_options
-        X, seconds = self._batched.solve(R, opts, transpose=direction == "backward", X0=initial_guess)
-        self.record_batch(direction, opts, seconds, np.isfinite(X).all(axis=1), "batched")
+        X, seconds, outcome = self._batched.solve(R, opts, transpose=direction == "backward", X0=initial_guess)
+        self.record_batch(direction, opts, seconds, np.isfinite(X).all(axis=1), "batched", outcome)
         return X
 
     def destroy(self) -> None:

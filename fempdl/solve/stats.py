@@ -12,7 +12,7 @@ from petsc4py import PETSc
 from fempdl.solve.options import KSPOptions
 
 __all__ = ["SolveStats", "CumulativeStats", "SolverFailedError", "SolverWarning", "REASON_NAMES", "DIVERGED_MAX_IT",
-           "report_failure", "warn_at_caller", "capped_solve_stats"]
+           "report_failure", "warn_at_caller", "capped_solve_stats", "batch_solve_stats"]
 
 REASON_NAMES = {
     getattr(PETSc.KSP.ConvergedReason, n): n
@@ -129,6 +129,24 @@ def capped_solve_stats(options: KSPOptions, seconds: float, finite: bool, engine
     reason = PETSc.KSP.ConvergedReason.CONVERGED_ITS
     return SolveStats(iterations=options.max_it, reason=reason, reason_name=REASON_NAMES[reason],
                       residual_norm=None, time=seconds, capped=True, ok=finite, engine=engine)
+
+
+def batch_solve_stats(options: KSPOptions, seconds: float, finite, engine: str, outcome=None) -> list:
+    """Per-sample stats of a batch solved outside PETSc, each with its share of ``seconds``;
+    ``finite`` (B,) bool. ``outcome`` is ``None`` for a pure cap (``options.max_it`` iterations
+    each), else (iterations (B,), reason names (B,), final residual norms (B,)) per sample; a sample
+    is ok as a PETSc solve would be: finite, and converged or stopped by the cap."""
+    share = seconds / len(finite)
+    if outcome is None:
+        return [capped_solve_stats(options, share, bool(ok), engine) for ok in finite]
+    out = []
+    for ok, its, name, norm in zip(finite, *outcome):
+        reason = int(getattr(PETSc.KSP.ConvergedReason, name))
+        capped = options.capped and reason == DIVERGED_MAX_IT
+        out.append(SolveStats(iterations=int(its), reason=reason, reason_name=REASON_NAMES.get(reason, name),
+                              residual_norm=float(norm), time=share, capped=capped,
+                              ok=bool(ok) and (reason > 0 or capped), engine=engine))
+    return out
 
 
 class SolverWarning(RuntimeWarning):

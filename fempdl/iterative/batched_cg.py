@@ -1,0 +1,155 @@
+"""Preconditioned CG on (n, B) blocks, in place and without autograd: KSPCG's recurrences for every
+column at once, either for exactly K steps (:func:`fast_cg`) or until each column meets its own
+tolerance (:func:`converged_cg`).
+
+Preconditioner P: the inverse diagonal (n, 1) (PCJACOBI) or ``None``. One iteration is one sparse
+product and five whole-block passes: p.w; r <- r - a w; z <- P r; the column products r.z (and z.z
+for a tolerance) in one dense product; X <- X + a p; p <- z + b p. Column products go through
+``X^T Y`` (B, B) and its diagonal: one read of both blocks, where a multiply-then-sum would write
+and read a scratch block (``scripts/bench_krylov.py``). The sums run in another order than PETSc's,
+so iterates agree with KSPCG's to round-off, not bit for bit.
+
+Stopping to a tolerance follows KSPCG with the preconditioned norm and KSPConvergedDefault, column
+by column: dp_k = ||P r_k||, ttol = max(rtol ||P b||, atol) (||P b|| = dp_0 from a zero guess);
+a column stops with CONVERGED_RTOL (CONVERGED_ATOL below atol) at the first k with dp_k <= ttol,
+after k iterations; with DIVERGED_INDEFINITE_MAT when p.Ap = 0 or changes sign,
+DIVERGED_INDEFINITE_PC when r.z changes sign, DIVERGED_NANORINF on a NaN or inf product, and
+DIVERGED_MAX_IT (KSP_DIVERGED_ITS) after ``max_it`` iterations. A stopped column is frozen: its step lengths are 0, so
+its iterate and residual stay exactly what they were when it stopped, while the other columns go on.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from fempdl.iterative.columns import SOLVED, guarded_ratio, spmm_into
+
+__all__ = ["fast_cg", "converged_cg", "Tolerance"]
+
+
+def column_products(X: torch.Tensor, Y: torch.Tensor) -> torch.Tensor:
+    """sum_i X[i, b] Y[i, b] for each column b of two (n, B) blocks: the diagonal of X^T Y, one pass."""
+    return torch.mm(X.T, Y).diagonal()
+
+
+def fast_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int) -> torch.Tensor:
+    """K steps of preconditioned CG from X = 0 for R (n, B); returns X (n, B).
+
+    A column counts as solved once its r.z has fallen by 1e-40 from its start, as in the unrolled CG
+    (:mod:`fempdl.iterative.columns`): its step lengths are then 0."""
+    X = torch.zeros_like(R)
+    r = R.clone()
+    z = r if P is None else P * r
+    p = z.clone()
+    w = torch.empty_like(R)
+    beta = column_products(r, z)
+    floor = SOLVED * beta.abs()
+    for _ in range(K):
+        solved = beta.abs() <= floor
+        spmm_into(A, p, w)
+        a = guarded_ratio(beta, column_products(p, w), solved)
+        r.addcmul_(w, a, value=-1.0)
+        if P is not None:
+            torch.mul(P, r, out=z)
+        beta_new = column_products(r, z)
+        X.addcmul_(p, a)
+        torch.addcmul(z, p, guarded_ratio(beta_new, beta, solved), out=p)
+        beta = beta_new
+    return X
+
+
+class Tolerance:
+    """When a column of :func:`converged_cg` stops: ``rtol``, ``atol`` and ``max_it`` as PETSc reads them
+    (:meth:`fempdl.solve.options.KSPOptions.petsc_tolerances`)."""
+
+    def __init__(self, rtol: float, atol: float, max_it: int):
+        self.rtol, self.atol, self.max_it = float(rtol), float(atol), int(max_it)
+
+
+# Reason names of KSPConvergedReason (the caller maps them to PETSc's codes).
+_REASONS = ("CONVERGED_RTOL", "CONVERGED_ATOL", "DIVERGED_MAX_IT", "DIVERGED_INDEFINITE_MAT",
+            "DIVERGED_INDEFINITE_PC", "DIVERGED_NANORINF")
+_RTOL, _ATOL, _MAX_IT, _INDEFINITE_MAT, _INDEFINITE_PC, _NANORINF = range(len(_REASONS))
+_RUNNING = -1
+
+
+def converged_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, tol: Tolerance,
+                 reference: np.ndarray | None = None) -> tuple[torch.Tensor, np.ndarray, list, np.ndarray]:
+    """Preconditioned CG from X = 0 for R (n, B), each column until it meets ``tol`` (module docstring).
+
+    ``reference`` (B,): the norms ||P b|| that rtol is relative to, when R is the residual of a
+    warm start rather than b itself (``None``: dp_0, as from a zero guess).
+    Returns X (n, B), the iterations (B,) int, the reason names (B strings) and the last dp (B,)."""
+    n, batch = R.shape
+    X = torch.zeros_like(R)
+    # r and z side by side: r.z and z.z of all columns are one product [r z]^T z.
+    rz_block = torch.empty(n, 2 * batch, dtype=R.dtype) if P is not None else None
+    r = R.clone() if P is None else rz_block[:, :batch]
+    z = r if P is None else rz_block[:, batch:]
+    if P is not None:
+        r.copy_(R)
+        torch.mul(P, r, out=z)
+
+    def products():
+        if P is None:
+            rr = column_products(r, r).numpy().copy()
+            return rr, rr.copy()
+        G = torch.mm(rz_block.T, z).numpy()
+        return np.diagonal(G[:batch]).copy(), np.diagonal(G[batch:]).copy()
+
+    beta, zz = products()
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        dp = np.sqrt(np.abs(zz))
+        ttol = np.maximum(tol.rtol * (dp if reference is None else np.asarray(reference, dtype=float)), tol.atol)
+        its = np.zeros(batch, dtype=np.int64)
+        reason = np.full(batch, _RUNNING)
+        running = np.ones(batch, dtype=bool)
+        _stop(reason, running, ~np.isfinite(dp) | ~np.isfinite(beta), dp, ttol, tol.atol)
+        p = z.clone(memory_format=torch.contiguous_format)
+        w = torch.empty_like(R)
+        dpi_old = np.ones(batch)
+        for i in range(tol.max_it):
+            if not running.any():
+                break
+            its[running] = i + 1
+            spmm_into(A, p, w)
+            dpi = column_products(p, w).numpy().copy()
+            indefinite = (dpi == 0) | ((dpi * dpi_old <= 0) if i else False)
+            _stop(reason, running, ~np.isfinite(dpi), code=_NANORINF, other=indefinite, other_code=_INDEFINITE_MAT)
+            a = beta / dpi
+            a[~running] = 0.0                      # stopped columns stay exactly where they are
+            a_t = torch.from_numpy(a)
+            r.addcmul_(w, a_t, value=-1.0)
+            if P is not None:
+                torch.mul(P, r, out=z)
+            beta_new, zz = products()
+            X.addcmul_(p, a_t)
+            np.copyto(dp, np.sqrt(np.abs(zz)), where=running)
+            _stop(reason, running, ~np.isfinite(dp) | ~np.isfinite(beta_new), dp, ttol, tol.atol)
+            if i + 1 < tol.max_it:
+                # KSPCG tests these at the top of the next iteration, which it counts.
+                ends = running & (beta_new * beta <= 0)
+                if ends.any():
+                    its[ends] = i + 2
+                    _stop(reason, running, beta_new == 0, code=_ATOL, other=beta_new * beta < 0,
+                          other_code=_INDEFINITE_PC)
+            b = beta_new / beta
+            b[~running] = 0.0
+            torch.addcmul(z, p, torch.from_numpy(b), out=p)
+            beta, dpi_old = beta_new, dpi
+        reason[running] = _MAX_IT
+    return X, its, [_REASONS[k] for k in reason], dp
+
+
+def _stop(reason: np.ndarray, running: np.ndarray, nan: np.ndarray, dp=None, ttol=None, atol=0.0, *,
+          code: int = _NANORINF, other=None, other_code: int = _RUNNING) -> None:
+    """Stop running columns in place (``running`` cleared, ``reason`` set): those in ``nan`` with ``code``,
+    then those in ``other`` with ``other_code``, then (given ``dp``) KSPConvergedDefault's test
+    dp <= ttol, CONVERGED_ATOL below atol and CONVERGED_RTOL otherwise."""
+    for where, value in ((nan, code), (other, other_code)):
+        if where is not None and (hit := running & where).any():
+            reason[hit] = value
+            running &= ~hit
+    if dp is not None and (done := running & (dp <= ttol)).any():
+        reason[done] = np.where(dp[done] < atol, _ATOL, _RTOL)
+        running &= ~done
