@@ -103,11 +103,14 @@ class KSPOptions:
         engine: who runs the iterations of a layer's batch. ``"petsc"``: one KSP
             solve per sample (any KSP/PC, MPI). ``"batched"``: all samples at
             once, one sparse-times-dense product per iteration
-            (:mod:`fempdl.iterative.batched`; capped Richardson, CG or GMRES with Jacobi
-            or no preconditioner, serial; used whenever the call's matrix is shared
-            by the batch). ``"auto"`` (default): batched where it is faster than
-            the PETSc loop (:meth:`BatchedEngine.faster_than_petsc`: Richardson
-            from B = 2, CG from B = 8, GMRES never), PETSc otherwise. ``SolveStats.engine`` reports which ran.
+            (:mod:`fempdl.iterative.batched`; Richardson, CG or GMRES with Jacobi
+            or no preconditioner, serial, no ``divtol``; Richardson and GMRES with a pure
+            cap only, CG also to ``rtol``/``atol`` with or without a cap, each sample
+            stopping where its own KSPCG would, with its own iterations and reason in
+            the stats; used whenever the call's matrix is shared by the batch).
+            ``"auto"`` (default): batched where it is faster than the PETSc loop
+            (:meth:`BatchedEngine.faster_than_petsc`: Richardson from B = 2, CG capped
+            or converged from B = 8, GMRES never), PETSc otherwise. ``SolveStats.engine`` reports which ran.
         adjoint_operator: how the transposed solve gets A^T. ``"transpose"``:
             KSPSolveTranspose on A (the preconditioner's transpose is applied).
             ``"assembled"``: an explicitly assembled A^T (PETSc's MatTranspose,
