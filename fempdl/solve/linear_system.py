@@ -197,8 +197,9 @@ class LinearSystem:
             if use_batched and residual:
                 grads[INITIAL_GUESS] = G - self._batched.matmul(Lam, transpose=True)
             if use_batched and not per_sample_matrix and not by_form:
-                for name in rhs_mats:       # C_m^T lam_i for the whole batch in one product
-                    grads[name] = np.asarray((self._forms.rhs_matrix_scipy(name).T @ Lam.T).T)
+                with self._assembling():    # C_m^T lam_i, the gradient forms' values, in one product
+                    for name in rhs_mats:
+                        grads[name] = np.asarray((self._forms.rhs_matrix_scipy(name, transpose=True) @ Lam.T).T)
                 return grads
             for i in range(batch):
                 if per_sample_matrix or by_form:
@@ -220,9 +221,10 @@ class LinearSystem:
                     if residual:
                         self._A.multTranspose(self._x, self._rhs)
                         grads[INITIAL_GUESS][i] = G[i] - self._rhs.getArray(readonly=True)
-                for name, (C, on_control, _, _) in rhs_mats.items():
-                    C.multTranspose(self._x, on_control)       # C_m^T lam lives on m's space
-                    grads[name][i] = on_control.getArray(readonly=True)
+                with self._assembling():                       # the gradient form's value for an affine control
+                    for name, (C, on_control, _, _) in rhs_mats.items():
+                        C.multTranspose(self._x, on_control)   # C_m^T lam lives on m's space
+                        grads[name][i] = on_control.getArray(readonly=True)
                 if by_form:
                     set_owned(p.lam, self._x.getArray(readonly=True), n_owned)
                     set_owned(p.u, U[i], n_owned)
@@ -266,15 +268,15 @@ class LinearSystem:
 
     def record_batch(self, direction: str, options: KSPOptions, seconds: float, finite: np.ndarray,
                      engine: str) -> None:
-        """Count one capped solve per sample of a batch solved outside PETSc (``finite``
-        (B,) bool: the sample's iterate is finite), then raise or warn per ``options``
-        if any is not."""
-        per_sample = [capped_solve_stats(options, seconds / len(finite), bool(ok), engine) for ok in finite]
-        for stats in per_sample:
-            self.stats.record(direction, stats)
-        if not finite.all():
-            failed = next(st for st in per_sample if not st.ok)
-            self._solver.report_failure(direction, failed, finite=False, samples=int((~finite).sum()))
+        """Count one capped solve per sample of a batch solved outside PETSc (``finite`` (B,) bool: the
+        sample's iterate is finite), then raise or warn per ``options`` if any is not."""
+        bad, stats = int(np.count_nonzero(~finite)), {ok: capped_solve_stats(options, seconds / len(finite), ok,
+                                                                              engine) for ok in (False, True)}
+        for ok, count in sorted({False: bad, True: len(finite) - bad}.items(), key=lambda kv: kv[0] == finite[-1]):
+            if count:   # one record per kind, the last sample's last (stats.last)
+                self.stats.record(direction, stats[ok], solves=count)
+        if bad:
+            self._solver.report_failure(direction, stats[False], finite=False, samples=bad)
 
     @property
     def matrix_version(self) -> int:

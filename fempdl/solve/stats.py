@@ -91,22 +91,22 @@ class CumulativeStats:
     solves_by_engine: dict = field(default_factory=dict)
     last: SolveStats | None = None
 
-    def record(self, direction: str, stats: SolveStats) -> None:
-        """Add one solve; ``direction`` is ``"forward"`` or ``"backward"``."""
+    def record(self, direction: str, stats: SolveStats, solves: int = 1) -> None:
+        """Add ``solves`` solves, each with ``stats``; ``direction`` is ``"forward"`` or ``"backward"``."""
         if direction == "forward":
             self.max_forward_iterations = max(self.max_forward_iterations, stats.iterations)
-            self.forward_iterations += stats.iterations
-            self.forward_solves += 1
-            self.forward_time += stats.time
+            self.forward_iterations += solves * stats.iterations
+            self.forward_solves += solves
+            self.forward_time += solves * stats.time
         elif direction == "backward":
-            self.backward_iterations += stats.iterations
-            self.backward_solves += 1
-            self.backward_time += stats.time
+            self.backward_iterations += solves * stats.iterations
+            self.backward_solves += solves
+            self.backward_time += solves * stats.time
         else:
             raise ValueError(f"direction must be 'forward' or 'backward', got {direction!r}")
-        self.setup_time += stats.setup_time
-        self.failures += not stats.ok
-        self.solves_by_engine[stats.engine] = self.solves_by_engine.get(stats.engine, 0) + 1
+        self.setup_time += solves * stats.setup_time
+        self.failures += solves * (not stats.ok)
+        self.solves_by_engine[stats.engine] = self.solves_by_engine.get(stats.engine, 0) + solves
         self.last = stats
 
     @property
