@@ -385,7 +385,10 @@ def test_a_second_command_on_the_same_output_directory_is_refused_while_the_firs
                              stderr=subprocess.PIPE, env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
     try:
         deadline = time.monotonic() + 120
-        while not (out / "k4" / "metrics.csv").exists():       # the first run is training
+        # The first run holds the lock, its owner written, while it trains (its files come a second
+        # in, and its log, unread until the end, may fill the pipe before that).
+        lock = out / "k4" / rundir.LOCK
+        while not (lock.exists() and lock.stat().st_size):
             assert first.poll() is None and time.monotonic() < deadline, first.stderr.read().decode()
             time.sleep(0.1)
         code, err = call(argv + ["--overwrite"])
