@@ -252,3 +252,17 @@ def test_batched_solve_leaves_torch_threads_as_they_were(lshape, threads):
         assert torch.get_num_threads() == threads
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_batch_of_solves_is_recorded_as_that_many_solves():
+    """record(..., solves=n) adds what n records of the same solve add (a batch of samples solved outside PETSc)."""
+    from fempdl.solve.stats import CumulativeStats, capped_solve_stats
+    options = KSPOptions.preset("jacobi", max_it=5)
+    one, many = CumulativeStats(), CumulativeStats()
+    for direction in ("forward", "backward"):
+        for ok in (True, False):
+            stats = capped_solve_stats(options, 0.25, ok, "batched")
+            for _ in range(3):
+                one.record(direction, stats)
+            many.record(direction, stats, solves=3)
+    assert one == many and many.failures == 6 and many.solves_by_engine == {"batched": 12}

@@ -93,7 +93,7 @@ def test_checkpoints_hold_only_tensors_and_plain_values(tmp_path):
 
 @pytest.mark.parametrize("damage", ["truncated", "empty", "text", "no-model"])
 def test_a_corrupt_checkpoint_gives_one_error_naming_the_file_and_the_remedy(tmp_path, damage):
-    train(tmp_path, stop_after=2)
+    train(tmp_path, stop_after=2, checkpoint_every=0.0)     # a previous checkpoint to name
     path = tmp_path / "checkpoint.pt"
     data = path.read_bytes()
     if damage == "truncated":
@@ -116,7 +116,7 @@ def test_a_corrupt_checkpoint_gives_one_error_naming_the_file_and_the_remedy(tmp
 def test_the_previous_checkpoint_is_kept_and_restores(tmp_path):
     whole = train(tmp_path / "whole")
     out = tmp_path / "torn"
-    train(out, stop_after=3)
+    train(out, stop_after=3, checkpoint_every=0.0)                # files after every epoch
     assert torch.load(out / "checkpoint.prev.pt", weights_only=True)["epoch"] == 1
     (out / "checkpoint.pt").write_bytes(b"")           # a torn write
     os.replace(out / "checkpoint.prev.pt", out / "checkpoint.pt")
@@ -385,7 +385,10 @@ def test_a_second_command_on_the_same_output_directory_is_refused_while_the_firs
                              stderr=subprocess.PIPE, env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
     try:
         deadline = time.monotonic() + 120
-        while not (out / "k4" / "metrics.csv").exists():       # the first run is training
+        # The first run holds the lock, its owner written, while it trains (its files come a second
+        # in, and its log, unread until the end, may fill the pipe before that).
+        lock = out / "k4" / rundir.LOCK
+        while not (lock.exists() and lock.stat().st_size):
             assert first.poll() is None and time.monotonic() < deadline, first.stderr.read().decode()
             time.sleep(0.1)
         code, err = call(argv + ["--overwrite"])

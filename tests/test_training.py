@@ -90,3 +90,16 @@ def test_metrics_split_the_wall_time(tiny, baseline):
         assert row["time_iterations"] == pytest.approx(row["solve_time"], rel=1e-9)
     last = baseline.rows[-1]
     assert last["time_network"] > 0 and last["time_validation"] > 0 and last["time_assembly"] > 0
+
+
+def test_files_are_written_on_their_cadence_and_after_the_last_epoch(tiny, tmp_path):
+    """With a long checkpoint_every the files are written once, after the call's last epoch (all
+    its rows); with 0 after every epoch (the previous checkpoint is then the epoch before)."""
+    import torch
+    from fempdl.app.runs import checkpoints
+    runner.run(tiny, "fixed", 2, out_dir=tmp_path / "rare", k_eps_value=10, stop_after=3, checkpoint_every=1e9)
+    state = checkpoints.load(tmp_path / "rare" / checkpoints.CHECKPOINT)
+    assert state["epoch"] == 2 and not (tmp_path / "rare" / checkpoints.PREVIOUS).exists()
+    assert len(json.loads((tmp_path / "rare" / "metrics.json").read_text())) == 3
+    runner.run(tiny, "fixed", 2, out_dir=tmp_path / "each", k_eps_value=10, stop_after=3, checkpoint_every=0.0)
+    assert torch.load(tmp_path / "each" / checkpoints.PREVIOUS, weights_only=True)["epoch"] == 1

@@ -115,6 +115,21 @@ def test_bad_guess_is_refused(heat):
         layer(u0=u0, initial_guess=torch.full((heat.output_size,), float("nan"), dtype=torch.float64))
 
 
+@pytest.mark.parametrize("engine", ["petsc", "batched"])
+def test_a_state_passed_as_control_and_guess_is_checked_and_solved_as_two(heat, engine):
+    """A time step's state is the control u0 and the starting point at once (one tensor for two
+    inputs, converted once): the same result as two equal tensors, and a NaN in it is refused
+    naming the control, in float32 as in float64."""
+    layer = SolveLayer(heat, KSPOptions.preset("jacobi", max_it=4, engine=engine))
+    state = control_values(heat, "u0", 16).float()
+    kappa = torch.ones(heat.control_size("kappa"), dtype=torch.float32)
+    once = layer(u0=state, kappa=kappa, initial_guess=state)
+    assert torch.equal(once, layer(u0=state.clone(), kappa=kappa, initial_guess=state.clone()))
+    state[3, 5] = state[7, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"control 'u0' contains 2 NaN/inf value\(s\)"):
+        layer(u0=state, kappa=kappa, initial_guess=state)
+
+
 def test_adjoint_reuses_the_forward_per_sample_matrices(heat, monkeypatch):
     """A batch of per-sample matrices (kappa) is assembled once, in the forward pass;
     the adjoint copies the kept matrices and gives the same gradient as reassembly."""

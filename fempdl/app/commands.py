@@ -39,8 +39,8 @@ def execute(args) -> int:
         with _library_log(getattr(args, "log_every", None), MPI.COMM_WORLD.rank):
             return _load_and_run(args)
     except KeyboardInterrupt:
-        print("fempdl: interrupted; a run's last finished epoch is in its checkpoint (continue with --resume)",
-              file=sys.stderr)
+        print("fempdl: interrupted; a run's checkpoint holds its epochs finished up to a second before "
+              "(continue with --resume)", file=sys.stderr)
         return 130
     except USER_ERRORS as err:
         return _refuse(err)

@@ -161,7 +161,8 @@ class BatchedEngine:
     def matmul(self, X: np.ndarray, *, transpose: bool = False) -> np.ndarray:
         """A X^T (or A^T X^T) for the rows of X (B, n), as rows (B, n)."""
         op = self._At if transpose else self._A
-        return np.ascontiguousarray((op @ torch.from_numpy(np.ascontiguousarray(X.T))).T.numpy())
+        with torch_threads(threads_for(op.values().numel(), X.shape[0])):   # a small product: one thread
+            return np.ascontiguousarray((op @ torch.from_numpy(np.ascontiguousarray(X.T))).T.numpy())
 
 
 # ------------------------------------------------------------------ GMRES

@@ -24,7 +24,8 @@ from torch import Tensor
 
 from fempdl.solve.linear_system import INITIAL_GUESS
 
-__all__ = ["ImplicitSolve", "FirstOrderOnly", "SECOND_DERIVATIVE_MESSAGE", "count_on_all_ranks", "register_layer", "nonfinite_control_message"]
+__all__ = ["ImplicitSolve", "FirstOrderOnly", "SECOND_DERIVATIVE_MESSAGE", "count_on_all_ranks", "count_nonfinite",
+           "register_layer", "nonfinite_control_message"]
 
 # Live layers by integer handle: the operators take the handle, not the layer
 # (an operator's arguments are tensors and plain values).
@@ -59,15 +60,16 @@ def implicit_solve(handle: int, names: str, batch: int, keep_matrices: bool, flo
     layer = _layer(handle)
     t0 = time.perf_counter()
     names = _split(names)
-    for name, t in zip(names, tensors):
-        bad = count_on_all_ranks(~torch.isfinite(t), layer.problem)
+    values = _float64_values(names, tensors)
+    for name, a in values.items():
+        bad = count_nonfinite(a, layer.problem)
         if bad:
             raise ValueError(nonfinite_control_message(name, bad))
     shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
-    arrays = _batched_arrays(names, tensors, batch)
+    arrays = _batched(values, batch)
     guess = arrays.pop(INITIAL_GUESS, None)
     U = layer.system.solve(arrays, batch, shared, initial_guess=guess, keep_matrices=keep_matrices)
-    if float32 and count_on_all_ranks(~np.isfinite(U.astype(np.float32)), layer.problem):
+    if float32 and count_nonfinite(U.astype(np.float32), layer.problem):
         layer._report_overflow(torch.float32)
     layer.stats.layer_time += time.perf_counter() - t0
     return torch.from_numpy(np.ascontiguousarray(U, dtype=np.float64))  # the layout register_fake promises
@@ -87,13 +89,13 @@ def implicit_adjoint(handle: int, names: str, wanted: str, tensors: list[Tensor]
     t0 = time.perf_counter()
     names, wanted = _split(names), _split(wanted)
     G = _to_numpy(du)
-    bad = count_on_all_ranks(~np.isfinite(G), layer.problem)
+    bad = count_nonfinite(G, layer.problem)
     if bad:
         raise ValueError(f"the gradient flowing back into SolveLayer contains {bad} NaN/inf "
                          "value(s); the loss or the layers after this one produced them")
     batch = G.shape[0]
     shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
-    arrays = _batched_arrays(names, tensors, batch)
+    arrays = _batched(_float64_values(names, tensors), batch)
     arrays.pop(INITIAL_GUESS, None)
     grads = layer.system.adjoint(arrays, _to_numpy(u), G, [n for n in wanted if n != INITIAL_GUESS],
                                  shared, initial_guess=INITIAL_GUESS in wanted)
@@ -237,16 +239,36 @@ class FirstOrderOnly(torch.autograd.Function):
 def count_on_all_ranks(mask, problem) -> int:
     """Number of True entries over all ranks: every rank must take the same branch
     (raise, or go on into collective solves)."""
-    return problem.V.mesh.comm.allreduce(int(mask.sum()))
+    comm = problem.V.mesh.comm
+    count = int(mask.sum())
+    return comm.allreduce(count) if comm.size > 1 else count
+
+
+def count_nonfinite(values: np.ndarray, problem) -> int:
+    """Number of NaN/inf entries of ``values`` over all ranks, as :func:`count_on_all_ranks`; one
+    pass over a finite array (the usual case), the count only when there is something to report."""
+    local = np.isfinite(values).all()
+    return count_on_all_ranks(np.array(0) if local else ~np.isfinite(values), problem)
 
 
 def _split(names: str) -> list[str]:
     return names.split(",") if names else []
 
 
-def _batched_arrays(names, tensors, batch: int) -> dict:
-    """float64 arrays (batch, n_m) per control; shared (n_m,) controls as broadcast views."""
-    return {n: np.broadcast_to(_to_numpy(t), (batch, t.shape[-1])) for n, t in zip(names, tensors)}
+def _float64_values(names, tensors) -> dict:
+    """float64 arrays per control, (B, n_m) or (n_m,); a tensor passed for two names (a time
+    step's state as control and as initial guess) is converted once."""
+    converted, values = {}, {}
+    for n, t in zip(names, tensors):
+        if id(t) not in converted:
+            converted[id(t)] = _to_numpy(t)
+        values[n] = converted[id(t)]
+    return values
+
+
+def _batched(values: dict, batch: int) -> dict:
+    """(batch, n_m) arrays per control: shared (n_m,) controls as broadcast views."""
+    return {n: a if a.ndim == 2 else np.broadcast_to(a, (batch, a.shape[-1])) for n, a in values.items()}
 
 
 def _to_numpy(t: torch.Tensor) -> np.ndarray:

@@ -107,28 +107,32 @@ class Timer:
 
 
 class ControlValues:
-    """Sets control Functions per sample and restores their values on exit."""
+    """Sets control Functions per sample and restores their values on exit (saved at the first
+    :meth:`set_sample`: a call that never sets them, a batched affine solve, copies nothing)."""
 
     def __init__(self, problem: Problem, controls: Mapping[str, np.ndarray]):
-        self._fns = {n: problem.control(n) for n in controls}
-        self._sizes = {n: problem.control_size(n) for n in controls}
+        self._problem = problem
         self._values = controls
-        self._saved = {}
+        self._fns = self._saved = None
 
     def __enter__(self):
-        self._saved = {n: fn.x.array.copy() for n, fn in self._fns.items()}
         return self
 
     def __exit__(self, *exc):
-        for n, fn in self._fns.items():
-            fn.x.array[:] = self._saved[n]
+        if self._saved is not None:
+            for n, fn in self._fns.items():
+                fn.x.array[:] = self._saved[n]
 
     def set_sample(self, i: int) -> None:
+        if self._saved is None:
+            self._fns = {n: self._problem.control(n) for n in self._values}
+            self._sizes = {n: self._problem.control_size(n) for n in self._values}
+            self._saved = {n: fn.x.array.copy() for n, fn in self._fns.items()}
         for n, fn in self._fns.items():
             set_owned(fn, self._values[n][i], self._sizes[n])
 
     def zeroed(self, names):
-        return Zeroed([self._fns[n] for n in names])
+        return Zeroed([self._problem.control(n) for n in names])
 
 
 class Zeroed:
@@ -180,7 +184,7 @@ def fingerprint_matches(fp: tuple, inputs, comm) -> bool:
     """Whether every input still has its fingerprinted value, on every rank (the
     answer decides on collective reassembly, so all ranks must agree)."""
     local = len(fp) == len(inputs) and all(np.array_equal(old, value_of(obj)) for old, obj in zip(fp, inputs))
-    return comm.allreduce(local, op=MPI.LAND)
+    return comm.allreduce(local, op=MPI.LAND) if comm.size > 1 else local
 
 
 def value_of(obj) -> np.ndarray:

@@ -31,7 +31,7 @@ class ControlForms:
         self._comm = problem.V.mesh.comm
         self._base: dict = {}                  # frozenset(names) -> (Vec, fingerprint)
         self._matrices: dict = {}              # name -> (Mat, vec on m, vec on V, fingerprint)
-        self._scipy: dict = {}                 # name -> (fingerprint, scipy C_m)
+        self._scipy: dict = {}                 # name -> (fingerprint, scipy C_m, C_m^T)
         self._gradients: dict = {}             # name -> ghosted Vec on M
 
     def base_rhs(self, names: frozenset, ctl: "ControlValues") -> PETSc.Vec:
@@ -66,13 +66,15 @@ class ControlForms:
         self._matrices[name] = entry
         return entry
 
-    def rhs_matrix_scipy(self, name: str):
-        """C_m as scipy CSR, refreshed with the PETSc matrix of :meth:`rhs_matrix`."""
+    def rhs_matrix_scipy(self, name: str, transpose: bool = False):
+        """C_m (or with ``transpose`` C_m^T, (n_m, n)) as scipy CSR, refreshed with the PETSc matrix of
+        :meth:`rhs_matrix`."""
         entry = self.rhs_matrix(name)
         cached = self._scipy.get(name)
         if cached is None or cached[0] is not entry[3]:
-            cached = self._scipy[name] = (entry[3], petsc_to_scipy(entry[0]))
-        return cached[1]
+            C = petsc_to_scipy(entry[0])
+            cached = self._scipy[name] = (entry[3], C, C.T.tocsr())   # CSR both ways: no conversion per product
+        return cached[2] if transpose else cached[1]
 
     def gradient(self, name: str) -> np.ndarray:
         """The assembled gradient form of control ``name`` (owned values; u and lam set by the caller)."""

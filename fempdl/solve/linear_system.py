@@ -36,7 +36,7 @@ from fempdl.solve.assembly import (SYMMETRIC_PC_TYPES, ControlValues, KeptMatric
 from fempdl.solve.petsc import petsc_to_scipy
 from fempdl.solve.control_forms import ControlForms
 from fempdl.solve.options import KSPOptions
-from fempdl.solve.stats import CumulativeStats, batch_solve_stats
+from fempdl.solve.stats import CumulativeStats, record_batch
 from fempdl.core.problem import Problem
 
 __all__ = ["LinearSystem", "INITIAL_GUESS"]
@@ -197,8 +197,9 @@ class LinearSystem:
             if use_batched and residual:
                 grads[INITIAL_GUESS] = G - self._batched.matmul(Lam, transpose=True)
             if use_batched and not per_sample_matrix and not by_form:
-                for name in rhs_mats:       # C_m^T lam_i for the whole batch in one product
-                    grads[name] = np.asarray((self._forms.rhs_matrix_scipy(name).T @ Lam.T).T)
+                with self._assembling():    # C_m^T lam_i, the gradient forms' values, in one product
+                    for name in rhs_mats:
+                        grads[name] = np.asarray((self._forms.rhs_matrix_scipy(name, transpose=True) @ Lam.T).T)
                 return grads
             for i in range(batch):
                 if per_sample_matrix or by_form:
@@ -220,9 +221,10 @@ class LinearSystem:
                     if residual:
                         self._A.multTranspose(self._x, self._rhs)
                         grads[INITIAL_GUESS][i] = G[i] - self._rhs.getArray(readonly=True)
-                for name, (C, on_control, _, _) in rhs_mats.items():
-                    C.multTranspose(self._x, on_control)       # C_m^T lam lives on m's space
-                    grads[name][i] = on_control.getArray(readonly=True)
+                with self._assembling():                       # the gradient form's value for an affine control
+                    for name, (C, on_control, _, _) in rhs_mats.items():
+                        C.multTranspose(self._x, on_control)   # C_m^T lam lives on m's space
+                        grads[name][i] = on_control.getArray(readonly=True)
                 if by_form:
                     set_owned(p.lam, self._x.getArray(readonly=True), n_owned)
                     set_owned(p.u, U[i], n_owned)
@@ -268,14 +270,12 @@ class LinearSystem:
                      engine: str, outcome=None) -> None:
         """Count one solve per sample of a batch solved outside PETSc (``finite`` (B,) bool: the
         sample's iterate is finite; ``outcome``: per-sample iterations and reasons, ``None`` for a
-        pure cap, see :func:`~fempdl.solve.stats.batch_solve_stats`), then raise or warn per
+        pure cap, see :func:`~fempdl.solve.stats.record_batch`), then raise or warn per
         ``options`` if any failed, as the first failed sample's PETSc solve would."""
-        per_sample = batch_solve_stats(options, seconds, finite, engine, outcome)
-        for stats in per_sample:
-            self.stats.record(direction, stats)
-        failed = [(st, ok) for st, ok in zip(per_sample, finite) if not st.ok]
-        if failed:
-            self._solver.report_failure(direction, failed[0][0], finite=bool(failed[0][1]), samples=len(failed))
+        failure = record_batch(self.stats, direction, options, seconds, finite, engine, outcome)
+        if failure is not None:
+            stats, finite_iterate, count = failure
+            self._solver.report_failure(direction, stats, finite=finite_iterate, samples=count)
 
     @property
     def matrix_version(self) -> int:

@@ -7,12 +7,13 @@ import sys
 import warnings
 from dataclasses import dataclass, field
 
+import numpy as np
 from petsc4py import PETSc
 
 from fempdl.solve.options import KSPOptions
 
 __all__ = ["SolveStats", "CumulativeStats", "SolverFailedError", "SolverWarning", "REASON_NAMES", "DIVERGED_MAX_IT",
-           "report_failure", "warn_at_caller", "capped_solve_stats", "batch_solve_stats"]
+           "report_failure", "warn_at_caller", "capped_solve_stats", "record_batch"]
 
 REASON_NAMES = {
     getattr(PETSc.KSP.ConvergedReason, n): n
@@ -91,22 +92,22 @@ class CumulativeStats:
     solves_by_engine: dict = field(default_factory=dict)
     last: SolveStats | None = None
 
-    def record(self, direction: str, stats: SolveStats) -> None:
-        """Add one solve; ``direction`` is ``"forward"`` or ``"backward"``."""
+    def record(self, direction: str, stats: SolveStats, solves: int = 1) -> None:
+        """Add ``solves`` solves, each with ``stats``; ``direction`` is ``"forward"`` or ``"backward"``."""
         if direction == "forward":
             self.max_forward_iterations = max(self.max_forward_iterations, stats.iterations)
-            self.forward_iterations += stats.iterations
-            self.forward_solves += 1
-            self.forward_time += stats.time
+            self.forward_iterations += solves * stats.iterations
+            self.forward_solves += solves
+            self.forward_time += solves * stats.time
         elif direction == "backward":
-            self.backward_iterations += stats.iterations
-            self.backward_solves += 1
-            self.backward_time += stats.time
+            self.backward_iterations += solves * stats.iterations
+            self.backward_solves += solves
+            self.backward_time += solves * stats.time
         else:
             raise ValueError(f"direction must be 'forward' or 'backward', got {direction!r}")
-        self.setup_time += stats.setup_time
-        self.failures += not stats.ok
-        self.solves_by_engine[stats.engine] = self.solves_by_engine.get(stats.engine, 0) + 1
+        self.setup_time += solves * stats.setup_time
+        self.failures += solves * (not stats.ok)
+        self.solves_by_engine[stats.engine] = self.solves_by_engine.get(stats.engine, 0) + solves
         self.last = stats
 
     @property
@@ -131,22 +132,34 @@ def capped_solve_stats(options: KSPOptions, seconds: float, finite: bool, engine
                       residual_norm=None, time=seconds, capped=True, ok=finite, engine=engine)
 
 
-def batch_solve_stats(options: KSPOptions, seconds: float, finite, engine: str, outcome=None) -> list:
-    """Per-sample stats of a batch solved outside PETSc, each with its share of ``seconds``;
-    ``finite`` (B,) bool. ``outcome`` is ``None`` for a pure cap (``options.max_it`` iterations
-    each), else (iterations (B,), reason names (B,), final residual norms (B,)) per sample; a sample
-    is ok as a PETSc solve would be: finite, and converged or stopped by the cap."""
+def record_batch(cumulative, direction: str, options: KSPOptions, seconds: float, finite, engine: str,
+                 outcome=None):
+    """Record a batch solved outside PETSc in ``cumulative`` (:class:`CumulativeStats`), one solve per
+    sample, each with its share of ``seconds``; ``finite`` (B,) bool. ``outcome`` is ``None`` for a
+    pure cap (``options.max_it`` iterations each: two kinds of record, finite or not, each recorded
+    once with its count, the last sample's kind last), else (iterations (B,), reason names (B,),
+    final residual norms (B,)) per sample; a sample is ok as a PETSc solve would be: finite, and
+    converged or stopped by the cap. Returns (the first failed sample's stats, whether its iterate
+    is finite, how many failed), or ``None`` when none did."""
     share = seconds / len(finite)
     if outcome is None:
-        return [capped_solve_stats(options, share, bool(ok), engine) for ok in finite]
-    out = []
+        bad = int(np.count_nonzero(~finite))
+        kinds = {ok: capped_solve_stats(options, share, ok, engine) for ok in (False, True)}
+        for ok, count in sorted({False: bad, True: len(finite) - bad}.items(), key=lambda kv: kv[0] == finite[-1]):
+            if count:
+                cumulative.record(direction, kinds[ok], solves=count)
+        return (kinds[False], False, bad) if bad else None
+    failed = []
     for ok, its, name, norm in zip(finite, *outcome):
         reason = int(getattr(PETSc.KSP.ConvergedReason, name))
         capped = options.capped and reason == DIVERGED_MAX_IT
-        out.append(SolveStats(iterations=int(its), reason=reason, reason_name=REASON_NAMES.get(reason, name),
-                              residual_norm=float(norm), time=share, capped=capped,
-                              ok=bool(ok) and (reason > 0 or capped), engine=engine))
-    return out
+        stats = SolveStats(iterations=int(its), reason=reason, reason_name=REASON_NAMES.get(reason, name),
+                           residual_norm=float(norm), time=share, capped=capped,
+                           ok=bool(ok) and (reason > 0 or capped), engine=engine)
+        cumulative.record(direction, stats)
+        if not stats.ok:
+            failed.append((stats, bool(ok)))
+    return (failed[0][0], failed[0][1], len(failed)) if failed else None
 
 
 class SolverWarning(RuntimeWarning):

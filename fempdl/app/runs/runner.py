@@ -27,7 +27,7 @@ from fempdl.core import io, mesh
 from fempdl.app.schema import NONLINEAR_PDES, Scene
 from fempdl.app.tasks import SPECS, spec_of, task_class
 from fempdl.app.tasks.nonlinear_emulator import newton_options
-from fempdl.app.runs.training import Trainer
+from fempdl.app.runs.training import CHECKPOINT_EVERY, Trainer
 from fempdl.app.tasks.base import cap_target, set_cap
 from fempdl.bridge_torch import SolveLayer
 from fempdl.solve.options import KSPOptions
@@ -198,7 +198,8 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
         epochs: int | None = None, progress: bool = False, k_eps_value: int | None = None,
         stop_after: int | None = None, parallel: str | None = None,
         comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None, save: bool = False,
-        tensorboard: bool = False, overwrite: bool = False) -> RunResult:
+        tensorboard: bool = False, overwrite: bool = False,
+        checkpoint_every: float = CHECKPOINT_EVERY) -> RunResult:
     """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp").
 
     ``parallel`` ("data" or "mesh") trains on the ranks of ``comm`` together
@@ -209,7 +210,8 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
     ``out_dir``; rank 0, or every rank of a distributed mesh). ``tensorboard`` also
     writes the metrics as TensorBoard scalars into ``out_dir``/tensorboard. An
     ``out_dir`` holding an earlier run needs ``resume`` (continue it) or
-    ``overwrite`` (replace it)."""
+    ``overwrite`` (replace it). ``checkpoint_every``: the seconds between writes of the files
+    (:class:`~fempdl.app.runs.training.Trainer`)."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
     if save and (out_dir is None or not spec_of(scene.task).writes_fields):
@@ -224,7 +226,8 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
                           out_dir=out_dir, prdp=prdp, seed=scene.data.seed if seed is None else seed,
                           progress=progress, tensorboard=_board_dir(out_dir, tensorboard),
                           stop_after=stop_after, stop_at=scene.optimizer.stop_at, parallel=parallel, comm=comm,
-                          settings=run_settings(scene, mode=mode, k=k, seed=seed), overwrite=overwrite)
+                          settings=run_settings(scene, mode=mode, k=k, seed=seed), overwrite=overwrite,
+                          checkpoint_every=checkpoint_every)
         rows = trainer.run(resume=resume)
         if save and (parallel == "mesh" or comm.rank == 0):    # a distributed mesh is written by all ranks
             save_fields(task, out_dir, title=f"{scene.name}, {mode}" + (f" K={k}" if k else ""))
@@ -270,7 +273,7 @@ def _batch(scene: Scene) -> int:
 
 def run_method(scene: Scene, method: str, *, out_dir: Path | None = None, resume: bool = False, epochs: int | None = None,
         progress: bool = False, stop_after: int | None = None, stop_at_time: float | None = None,
-        tensorboard: bool = False, overwrite: bool = False) -> RunResult:
+        tensorboard: bool = False, overwrite: bool = False, checkpoint_every: float = CHECKPOINT_EVERY) -> RunResult:
     """Train a sip or hig scene with ``method`` (its own, or "backprop"); metrics and checkpoints in ``out_dir``.
 
     ``stop_at_time`` ends the run once its training steps took that many
@@ -281,7 +284,8 @@ def run_method(scene: Scene, method: str, *, out_dir: Path | None = None, resume
                           out_dir=out_dir, seed=scene.data.seed, progress=progress, stop_after=stop_after,
                           tensorboard=_board_dir(out_dir, tensorboard),
                           stop_at=scene.optimizer.stop_at, stop_at_time=stop_at_time,
-                          settings=run_settings(scene, method=method), overwrite=overwrite)
+                          settings=run_settings(scene, method=method), overwrite=overwrite,
+                          checkpoint_every=checkpoint_every)
         rows = trainer.run(resume=resume)
     finally:
         task.close()

@@ -2,15 +2,18 @@
 
 :class:`Trainer` runs epochs of ``task.train_step`` over shuffled mini-batches
 of a task (:class:`fempdl.app.tasks.base.Task` says what a task provides),
-validates, steps the PRDP controller, and after every epoch writes
+validates, steps the PRDP controller, and writes
 ``metrics.csv``/``metrics.json`` (one row per epoch: losses, K, cumulative
-iterations and times, and ``time_<part>`` for each of :data:`TIME_PARTS`,
-adding up to ``wall_time``; a task with Newton layers adds ``newton_steps``, its
-iterations being the inner Krylov ones) and ``checkpoint.pt`` (model, optimizer, scheduler,
-PRDP, layer counters, each rank's task state, RNG states, rows). Every file is written atomically
-(:mod:`fempdl.app.runs.checkpoints`), so an interrupted run keeps its last epoch;
-``run(resume=True)`` continues it with the same metrics as an uninterrupted
-run, and refuses a resume whose settings differ (:meth:`Trainer.fingerprint`).
+iterations and times, and ``time_<part>`` for each of :data:`TIME_PARTS`
+(:mod:`fempdl.app.runs.timesplit`), adding up to ``wall_time``; a task with Newton layers adds
+``newton_steps``, its iterations being the inner Krylov ones) and ``checkpoint.pt`` (model,
+optimizer, scheduler, PRDP, layer counters, each rank's task state, RNG states, rows) after
+the last epoch and after every epoch that ends ``checkpoint_every`` seconds or more after the
+files were last written (every epoch of a run whose epochs take longer). Every file is written
+atomically (:mod:`fempdl.app.runs.checkpoints`), so an interrupted run keeps the epochs finished
+up to ``checkpoint_every`` seconds before it; ``run(resume=True)`` continues it with the same
+metrics as an uninterrupted run, and refuses a resume whose settings differ
+(:meth:`Trainer.fingerprint`).
 
 Under MPI (``parallel="data"`` or ``"mesh"``) every rank runs this loop in
 step: data mode shards every batch and the validation samples, mesh mode has
@@ -24,7 +27,6 @@ import csv
 import dataclasses
 import json
 import logging
-import time
 from pathlib import Path
 
 import numpy as np
@@ -39,10 +41,12 @@ from fempdl.app.runs import checkpoints
 from fempdl.app.runs import rundir
 from fempdl.app.runs.board import tensorboard_writer
 from fempdl.app.runs.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
+from fempdl.app.runs.timesplit import TIME_FIELDS, TIME_PARTS, TimeSplit
 from fempdl.app.tasks.base import cap_target, set_cap
 from fempdl.methods.prdp import PRDP
 
-__all__ = ["Trainer", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES", "CHECKPOINT"]
+__all__ = ["Trainer", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES", "CHECKPOINT", "TIME_PARTS",
+           "TIME_FIELDS"]
 # Fingerprint keys a resumed run may change: the run's length, which --epochs and an
 # equal-training-time extension (fempdl.app.reports.compare) move.
 RESUMABLE_CHANGES = ("run.scene.optimizer.epochs", "run.epochs")
@@ -53,16 +57,13 @@ KEYS_ADDED_LATER = {"run.scene.solver.warm_start": False,      # the inverse tas
 PARALLEL_MODES = ("data", "mesh")
 _log = logging.getLogger(__name__)
 
-# Where the wall time went, cumulative seconds per part (they add up to wall_time).
-TIME_PARTS = ("iterations", "setup", "assembly", "adjoint_operator", "network", "validation", "other")
-TIME_FIELDS = tuple(f"time_{part}" for part in TIME_PARTS)
 METRIC_FIELDS = ("epoch", "train_loss", "val_metric", "k", "forward_iterations", "backward_iterations",
                  "total_iterations", "solve_time", "train_time", "wall_time") + TIME_FIELDS
 # Newton layers add their steps (forward and unrolled backward) to the rows.
 NEWTON_FIELDS = ("newton_steps",)
-# The layers' own counters behind the solver parts of the split.
-_LAYER_PARTS = {"iterations": "solve_time", "setup": "setup_time", "assembly": "assembly_time",
-                "adjoint_operator": "adjoint_operator_time"}
+# Seconds of a run between writes of its files: a checkpoint costs milliseconds (a network's and
+# its optimizer's state), which after every epoch of a fast scene would be a share of the run.
+CHECKPOINT_EVERY = 1.0
 
 
 @dataclasses.dataclass
@@ -96,6 +97,9 @@ class Trainer:
             already in ``out_dir``; without it that is refused
             (:class:`~fempdl.app.runs.rundir.RunDirectoryError`), as the command
             refuses without ``--overwrite``.
+        checkpoint_every: write the files after an epoch that ends at least this many seconds of
+            the run's clock after they were last written (and after the last epoch of the call);
+            0 writes them after every epoch.
     """
 
     task: object
@@ -114,6 +118,7 @@ class Trainer:
     settings: dict | None = None
     rows: list = dataclasses.field(default_factory=list)
     overwrite: bool = False
+    checkpoint_every: float = CHECKPOINT_EVERY
 
     def __post_init__(self):
         if self.parallel not in (None, *PARALLEL_MODES):
@@ -122,8 +127,8 @@ class Trainer:
             self.comm = MPI.COMM_SELF
         self._writer = self.comm.rank == 0
         self._shuffle = torch.Generator().manual_seed(self.seed)
-        self._elapsed = self._train_time = 0.0
-        self._times = dict.fromkeys(TIME_PARTS, 0.0)
+        self._clock = TimeSplit(self.task)
+        self._saved_at = None         # the clock's elapsed time at the last checkpoint
         if self.out_dir is not None and self._writer:
             self.out_dir = Path(self.out_dir)
             self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -174,33 +179,32 @@ class Trainer:
                    disable=not (self.progress and self._writer), desc="epochs")
         done = 0
         self.comm.barrier()   # the ranks finish building their tasks at different times; time from here
+        self._clock.start_clock()
         for epoch in bar:
             if hasattr(self.task, "start_epoch"):
                 self.task.start_epoch(epoch)
-            t0 = time.perf_counter()
             k_used = self.k
-            before = self._layer_seconds()
+            self._clock.start_steps()
             losses = [self._train_step(idx) for idx in self._batches()]
-            train_seconds = time.perf_counter() - t0
-            trained = self._layer_seconds()     # what validation solves belongs to validation
-            self._train_time += train_seconds
+            self._clock.end_steps()         # what validation solves belongs to validation
             metric = self._validate()
-            validation_seconds = time.perf_counter() - t0 - train_seconds
+            self._clock.end_validation()
             if self.prdp is not None:
                 self.prdp.step(metric)
             if self.task.scheduler is not None:
                 self.task.scheduler.step()
-            parallel.check_identical(self.comm, k=self.k, val_metric=metric, parameters=self._fingerprint())
-            epoch_seconds = time.perf_counter() - t0
-            self._elapsed += epoch_seconds
-            self._split_time(epoch_seconds, train_seconds, validation_seconds, before, trained)
+            if self.comm.size > 1:
+                parallel.check_identical(self.comm, k=self.k, val_metric=metric, parameters=self._fingerprint())
+            self._clock.end_epoch()
             self.rows.append(self._row(epoch, float(np.mean(losses)), metric, k_used))
             bar.set_postfix(loss=f"{self.rows[-1]['train_loss']:.2e}", val=f"{metric:.2e}", K=k_used)
-            self._save(epoch)
+            done += 1
+            last = (epoch + 1 == self.epochs or self._reached_target()
+                    or (self.stop_after is not None and done >= self.stop_after))
+            self._save(epoch, last)
             self._log_epoch(self.rows[-1])
             self._board_epoch(self.rows[-1])
-            done += 1
-            if self._reached_target() or (self.stop_after is not None and done >= self.stop_after):
+            if last:
                 break
         return self.rows
 
@@ -220,22 +224,6 @@ class Trainer:
                 if isinstance(value, (int, float)) and not isinstance(value, bool) and key != "epoch":
                     self._board.add_scalar(key, value, row["epoch"] + 1)
             self._board.flush()
-
-    def _layer_seconds(self) -> dict:
-        """The task's layers' time counters, summed over the layers."""
-        keys = ("layer_time", *_LAYER_PARTS.values())
-        return {key: sum(getattr(layer.stats, key) for layer in self.task.layers) for key in keys}
-
-    def _split_time(self, epoch: float, train: float, validation: float, before: dict, after: dict) -> None:
-        """Add one epoch to the time split: the layers' own parts, the rest of the
-        training steps (network forward/backward, optimizer), validation, and what
-        remains (the layers' conversions, PRDP, scheduler, agreement checks)."""
-        spent = {part: after[key] - before[key] for part, key in _LAYER_PARTS.items()}
-        spent["network"] = train - (after["layer_time"] - before["layer_time"])
-        spent["validation"] = validation
-        spent["other"] = epoch - sum(spent.values())     # the parts add up to the epoch exactly
-        for part, seconds in spent.items():
-            self._times[part] += seconds
 
     def _reached_target(self) -> bool:
         if not self.rows:
@@ -291,9 +279,9 @@ class Trainer:
         fwd, bwd, solve_time = counts
         row = {"epoch": epoch, "train_loss": loss, "val_metric": metric, "k": k,
                "forward_iterations": fwd, "backward_iterations": bwd, "total_iterations": fwd + bwd,
-               "solve_time": solve_time, "train_time": self.comm.allreduce(self._train_time, op=MPI.MAX),
-               "wall_time": self.comm.allreduce(self._elapsed, op=MPI.MAX),
-               **{f"time_{part}": seconds for part, seconds in self._times.items()}}
+               "solve_time": solve_time, "train_time": self.comm.allreduce(self._clock.train_time, op=MPI.MAX),
+               "wall_time": self.comm.allreduce(self._clock.elapsed, op=MPI.MAX),
+               **{f"time_{part}": seconds for part, seconds in self._clock.seconds.items()}}
         newton = [layer.stats for layer in self.task.layers if hasattr(layer.stats, "newton_steps")]
         if newton:      # Newton layers: their iterations above are the inner ones; the steps come apart
             steps = sum(s.newton_steps + s.backward_newton_steps for s in newton)
@@ -301,9 +289,13 @@ class Trainer:
         return row
 
     # -------------------------------------------------------------- files
-    def _save(self, epoch: int) -> None:
-        if self.out_dir is None:
+    def _save(self, epoch: int, last: bool) -> None:
+        """Write the files after ``epoch`` if it is the ``last`` of this call or they are due
+        (``checkpoint_every``; decided on the row's wall time, the same on every rank)."""
+        wall = self.rows[-1]["wall_time"]
+        if self.out_dir is None or not (last or wall - (self._saved_at or 0.0) >= self.checkpoint_every):
             return
+        self._saved_at = wall
         layer_stats = self.comm.gather([dataclasses.asdict(layer.stats) for layer in self.task.layers])
         task_states = self.comm.gather(getattr(self.task, "state_dict", dict)())
         if not self._writer:
@@ -318,8 +310,8 @@ class Trainer:
                 writer.writerows(self.rows)
         write_atomically(self.out_dir / "metrics.csv", write_csv)
         state = {
-            "epoch": epoch, "rows": self.rows, "elapsed": self._elapsed, "train_time": self._train_time,
-            "times": dict(self._times),
+            "epoch": epoch, "rows": self.rows, "elapsed": self._clock.elapsed, "train_time": self._clock.train_time,
+            "times": dict(self._clock.seconds),
             "model": self.task.model.state_dict(), "optimizer": self.task.optimizer.state_dict(),
             "scheduler": None if self.task.scheduler is None else self.task.scheduler.state_dict(),
             "prdp": None if self.prdp is None else self.prdp.state_dict(),
@@ -386,10 +378,10 @@ class Trainer:
             raise ValueError(f"{path} holds task state that {type(self.task).__name__} cannot take (no load_state_dict)")
         checkpoints.restore_rng(state["rng"], self._shuffle)
         self.rows = list(state["rows"])
-        self._elapsed = state["elapsed"]
+        self._clock.elapsed = self._saved_at = state["elapsed"]
         if "train_time" not in state and self.stop_at_time is not None:
             raise ValueError(f"{path} was written before fempdl timed training steps (no train_time); it cannot "
                              "be extended to a training time: rerun it without resume")
-        self._train_time = state.get("train_time", 0.0)
-        self._times.update(state.get("times", {}))
+        self._clock.train_time = state.get("train_time", 0.0)
+        self._clock.seconds.update(state.get("times", {}))
         return state["epoch"] + 1
