@@ -39,7 +39,7 @@ from fempdl.iterative.columns import spmm_into
 from fempdl.solve.petsc import petsc_to_scipy
 from fempdl.solve.options import KSPOptions
 from fempdl.iterative.sparse import sparse_to_torch, torch_to_scipy
-from fempdl.iterative.sweeps import column_groups, richardson, sweep_matrix, torch_threads
+from fempdl.iterative.sweeps import column_groups, richardson, sweep_matrix, threads_for, torch_threads
 
 __all__ = ["BatchedEngine", "fast_cg", "converged_cg", "fast_gmres"]
 
