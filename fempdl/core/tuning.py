@@ -20,10 +20,6 @@ CG_MIN_BATCH = 8
 SWEEP_GROUP = 8
 #: Columns per group of batched CG (scripts/bench_krylov.py: best at 4k and 66k DOFs).
 CG_GROUP = 8
-#: torch threads of batched CG. Its column products are (B, n) x (n, B) dense products; on two
-#: threads each wakes a second one twice per iteration, and on a shared 2-core machine 66k DOFs
-#: ran 1.4x slower than on one (4k DOFs 7x).
-CG_THREADS = 1
 #: Below this many multiply-adds per sparse product (nonzeros x group width), one torch thread is
 #: faster than two: 4k and 16k DOFs ran faster on one, 66k on two (scripts/bench_floor.py).
 PARALLEL_MIN_WORK = 2_000_000

@@ -125,10 +125,9 @@ class BatchedEngine:
             M = self._sweep_matrix(transpose, precondition, scale)
             X = richardson(M, rhs * (self._dinv * scale if precondition else scale), options.max_it, start)
             return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0, None
-        # A warm start is the solve of the residual equation, as in PETSc. CG runs on one thread:
-        # its column products are small dense products whose second thread costs more than it
-        # saves (tuning.CG_THREADS); GMRES's batched Gram-Schmidt keeps them all.
-        threads = tuning.CG_THREADS if options.ksp_type == "cg" else None
+        # A warm start is the solve of the residual equation, as in PETSc. CG's small groups may
+        # run on one thread; GMRES's batched Gram-Schmidt keeps them all.
+        threads = threads_for(op.values().numel(), min(tuning.CG_GROUP, rhs.shape[1])) if options.ksp_type == "cg" else None
         outcome = None
         with torch.no_grad(), torch_threads(threads):
             res = rhs if start is None else rhs - op @ start

@@ -3,10 +3,10 @@ column at once, either for exactly K steps (:func:`fast_cg`) or until each colum
 tolerance (:func:`converged_cg`).
 
 Preconditioner P: the inverse diagonal (n, 1) (PCJACOBI) or ``None``. One iteration is one sparse
-product and five whole-block passes: p.w; r <- r - a w; z <- P r; the column products r.z (and z.z
-for a tolerance) in one dense product; X <- X + a p; p <- z + b p. Column products go through
-``X^T Y`` (B, B) and its diagonal: one read of both blocks, where a multiply-then-sum would write
-and read a scratch block (``scripts/bench_krylov.py``). The sums run in another order than PETSc's,
+product, the column products p.w and r.z (and z.z for a tolerance) as multiply-then-sum passes
+through a scratch block, and the updates of X, r, z and p. (A dense X^T Y product per column
+pair reads each block once but runs far slower inside MKL's gemm on tiny values and with a second
+thread busy; the multiply-then-sum kernels do not.) The sums run in another order than PETSc's,
 so iterates agree with KSPCG's to round-off, not bit for bit.
 
 Stopping to a tolerance follows KSPCG with the preconditioned norm and KSPConvergedDefault, column
@@ -22,37 +22,34 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from fempdl.iterative.columns import SOLVED, guarded_ratio, spmm_into
+from fempdl.iterative.columns import SOLVED, column_dots, guarded_ratio, spmm_into
 
 __all__ = ["fast_cg", "converged_cg", "Tolerance"]
-
-
-def column_products(X: torch.Tensor, Y: torch.Tensor) -> torch.Tensor:
-    """sum_i X[i, b] Y[i, b] for each column b of two (n, B) blocks: the diagonal of X^T Y, one pass."""
-    return torch.mm(X.T, Y).diagonal()
 
 
 def fast_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int) -> torch.Tensor:
     """K steps of preconditioned CG from X = 0 for R (n, B); returns X (n, B).
 
-    A column counts as solved once its r.z has fallen by 1e-40 from its start, as in the unrolled CG
-    (:mod:`fempdl.iterative.columns`): its step lengths are then 0."""
+    One sparse product and two column-dot passes per iteration. A column counts as solved once its
+    r.z has fallen by 1e-40 from its start, as in the unrolled CG (:mod:`fempdl.iterative.columns`):
+    its step lengths are then 0."""
     X = torch.zeros_like(R)
     r = R.clone()
+    buf = torch.empty_like(R)
     z = r if P is None else P * r
     p = z.clone()
-    w = torch.empty_like(R)
-    beta = column_products(r, z)
+    beta = column_dots(r, z, buf)
     floor = SOLVED * beta.abs()
+    w = torch.zeros_like(R)
     for _ in range(K):
         solved = beta.abs() <= floor
         spmm_into(A, p, w)
-        a = guarded_ratio(beta, column_products(p, w), solved)
+        a = guarded_ratio(beta, column_dots(p, w, buf), solved)
+        X.addcmul_(p, a)
         r.addcmul_(w, a, value=-1.0)
         if P is not None:
             torch.mul(P, r, out=z)
-        beta_new = column_products(r, z)
-        X.addcmul_(p, a)
+        beta_new = column_dots(r, z, buf)
         torch.addcmul(z, p, guarded_ratio(beta_new, beta, solved), out=p)
         beta = beta_new
     return X
@@ -82,20 +79,14 @@ def converged_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, tol: 
     Returns X (n, B), the iterations (B,) int, the reason names (B strings) and the last dp (B,)."""
     n, batch = R.shape
     X = torch.zeros_like(R)
-    # r and z side by side: r.z and z.z of all columns are one product [r z]^T z.
-    rz_block = torch.empty(n, 2 * batch, dtype=R.dtype) if P is not None else None
-    r = R.clone() if P is None else rz_block[:, :batch]
-    z = r if P is None else rz_block[:, batch:]
-    if P is not None:
-        r.copy_(R)
-        torch.mul(P, r, out=z)
+    r = R.clone()
+    z = r if P is None else P * r
+    buf = torch.empty_like(R)
 
     def products():
-        if P is None:
-            rr = column_products(r, r).numpy().copy()
-            return rr, rr.copy()
-        G = torch.mm(rz_block.T, z).numpy()
-        return np.diagonal(G[:batch]).copy(), np.diagonal(G[batch:]).copy()
+        """r.z and z.z per column (B,) each, as numpy."""
+        rz = column_dots(r, z, buf).numpy().copy()
+        return rz, (rz.copy() if P is None else column_dots(z, z, buf).numpy().copy())
 
     beta, zz = products()
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
@@ -105,7 +96,7 @@ def converged_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, tol: 
         reason = np.full(batch, _RUNNING)
         running = np.ones(batch, dtype=bool)
         _stop(reason, running, ~np.isfinite(dp) | ~np.isfinite(beta), dp, ttol, tol.atol)
-        p = z.clone(memory_format=torch.contiguous_format)
+        p = z.clone()
         w = torch.empty_like(R)
         dpi_old = np.ones(batch)
         for i in range(tol.max_it):
@@ -113,7 +104,7 @@ def converged_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, tol: 
                 break
             its[running] = i + 1
             spmm_into(A, p, w)
-            dpi = column_products(p, w).numpy().copy()
+            dpi = column_dots(p, w, buf).numpy().copy()
             indefinite = (dpi == 0) | ((dpi * dpi_old <= 0) if i else False)
             _stop(reason, running, ~np.isfinite(dpi), code=_NANORINF, other=indefinite, other_code=_INDEFINITE_MAT)
             a = beta / dpi
