@@ -281,10 +281,18 @@ except KeyboardInterrupt:
 """
 
 
+def _interruptible_child() -> None:
+    """A child's SIGINT as a terminal gives it: unblocked, default disposition (Python then installs
+    KeyboardInterrupt). Both are inherited across fork and exec, and a library in this test process
+    (a thread that blocked SIGINT, a launcher that ignores it) must not make Ctrl-C look ignored."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_stops_a_long_petsc_solve():
     """The solve would take hours: SIGINT after a second must end it with KeyboardInterrupt."""
     done = subprocess.run([sys.executable, "-c", _INTERRUPTED_SOLVE], capture_output=True, text=True, timeout=120,
-                          env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
+                          env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}, preexec_fn=_interruptible_child)
     assert done.returncode == 0, done.stderr
     iterations = int(done.stdout.split("after")[1].split()[0])
     assert 0 < iterations < 10 ** 9
@@ -381,15 +389,19 @@ def test_a_second_command_on_the_same_output_directory_is_refused_while_the_firs
     path.write_text(inverse_text(optimizer={"epochs": 100000}))
     out = tmp_path / "out"
     argv = ["run", str(path), "--k", "4", "--out", str(out), "--no-progress", "--no-baseline"]
-    first = subprocess.Popen([sys.executable, "-m", "fempdl.app.cli", *argv], stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE, env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
+    # Its log goes to a file: a pipe read only at the end fills within a second of training, and a
+    # child blocked writing its last words after Ctrl-C would never exit.
+    log = tmp_path / "first.log"
+    with open(log, "wb") as sink:
+        first = subprocess.Popen([sys.executable, "-m", "fempdl.app.cli", *argv], stdout=subprocess.DEVNULL,
+                                 stderr=sink, env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"},
+                                 preexec_fn=_interruptible_child)
     try:
         deadline = time.monotonic() + 120
-        # The first run holds the lock, its owner written, while it trains (its files come a second
-        # in, and its log, unread until the end, may fill the pipe before that).
+        # The first run holds the lock, its owner written, while it trains (its files come a second in).
         lock = out / "k4" / rundir.LOCK
         while not (lock.exists() and lock.stat().st_size):
-            assert first.poll() is None and time.monotonic() < deadline, first.stderr.read().decode()
+            assert first.poll() is None and time.monotonic() < deadline, log.read_text()[-2000:]
             time.sleep(0.1)
         code, err = call(argv + ["--overwrite"])
         assert code == 2 and f"in use by another run (process {first.pid}" in err
@@ -398,7 +410,7 @@ def test_a_second_command_on_the_same_output_directory_is_refused_while_the_firs
         first.send_signal(signal.SIGINT)
         first.wait(timeout=60)
     assert not (out / rundir.LOCK).exists()                      # released on Ctrl-C
-    err = first.stderr.read().decode()
+    err = log.read_text()
     assert first.returncode == 130 and "Traceback" not in err and "fempdl: interrupted;" in err, err[-2000:]
 
 
