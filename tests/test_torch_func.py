@@ -155,6 +155,18 @@ def test_checks_still_raise_under_transforms(prob, layer):
         torch.func.grad(lambda f: (layer(f=f) * float("nan")).sum())(f)
 
 
+@pytest.mark.parametrize("transform", ["jvp", "jacfwd", "hessian"])
+def test_forward_mode_is_refused_by_name(prob, layer, transform):
+    """The derivative is an adjoint (reverse mode); the layer has no forward-mode rule (one would keep
+    torch.compile from tracing it whole), so forward mode stops with PyTorch's error, as documented."""
+    f, kappa = torch.ones(sizes(prob)[0], dtype=F64), torch.ones(sizes(prob)[1], dtype=F64)
+    loss = lambda x: (layer(f=x, kappa=kappa) ** 2).sum()  # noqa: E731
+    run = {"jvp": lambda: torch.func.jvp(loss, (f,), (f,)), "jacfwd": lambda: torch.func.jacfwd(loss)(f),
+           "hessian": lambda: torch.func.hessian(loss)(f)}[transform]
+    with pytest.raises(NotImplementedError, match="jvp function .* forward mode AD"):
+        run()
+
+
 def test_compile_is_one_opaque_op_and_matches_eager(prob, layer):
     nf, _, _ = sizes(prob)
     torch.manual_seed(0)

@@ -99,7 +99,7 @@ class NonlinearProblem(ProblemBase):
         # The implicit gradient needs dF/du whatever J the iteration uses (a Picard J changes the
         # iteration, not the solution): compiled apart only when J was given.
         self.exact_J_form = _dolfinx.compile_form(exact_J) if given_J else self.J_form
-        J_coefficients = set(J.coefficients())
+        J_coefficients = set(expand_derivatives(J).coefficients())
         self.jacobian_controls = frozenset(n for n, fn in checked.items() if fn in J_coefficients)
         self._test = F.arguments()[0]
         self._forms: dict = {}

@@ -38,6 +38,12 @@ class ProblemBase:
         """Set V, bcs (checked to be Dirichlet conditions on V), the validated ``controls``,
         the work Functions ``u`` and ``lam``, BC DOFs, fields, null spaces and constants."""
         self.V = V
+        if bcs is None:
+            bcs = ()
+        elif _dolfinx.is_dirichlet_bc(bcs):
+            bcs = (bcs,)         # one condition given bare
+        elif not hasattr(bcs, "__iter__"):
+            raise TypeError(f"bcs must be a list of dolfinx.fem.dirichletbc, got {type(bcs).__name__}")
         self.bcs = tuple(bcs)
         for i, bc in enumerate(self.bcs):
             if not _dolfinx.is_dirichlet_bc(bc):

@@ -18,17 +18,19 @@ Gradients, exactly:
 * ``diff="unrolled"``: the exact derivative of the N-step plain Newton map
   that was computed, with respect to the controls and the warm start
   (:mod:`fempdl.layer.newton_unrolled`); needs ``snes_type="newton"`` and an
-  exact inner step (a direct or converged inner solve).
+  exact inner step (a direct or converged inner solve), and takes at least one
+  step even from a solution.
 
 Second derivatives are refused with a RuntimeError in both modes (the
-backward is a first-order adjoint). Shapes: controls (B, n_m) or shared
-(n_m,); ``initial_guess`` (B, n) or (n,); the output (B, n) if any input is
-batched, else (n,), in float64 unless every input is float32.
+backward is a first-order adjoint); forward-mode transforms (torch.func.jvp,
+hessian) stop with PyTorch's NotImplementedError. The unrolled map runs eagerly
+under torch.compile and refuses torch.func. Shapes: controls (B, n_m) or
+shared (n_m,); ``initial_guess`` (B, n) or (n,); the output (B, n) if any input
+is batched, else (n,), in float64 unless every input is float32.
 """
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import torch
 
@@ -86,7 +88,8 @@ class NonlinearSolveLayer(SystemLayer):
             raise ValueError("max_unrolled_values applies to diff='unrolled' layers")
         self.diff = diff
         self.max_unrolled_values = max_unrolled_values
-        self._init_system(problem, NonlinearSystem(problem, options))
+        # Unrolled: at least one step even from a solution, where the map is not the identity nearby.
+        self._init_system(problem, NonlinearSystem(problem, options, force_step=diff == "unrolled"))
 
     second_derivative_message = (
         "second derivatives through NonlinearSolveLayer are not implemented: both its implicit and its unrolled "
@@ -118,10 +121,7 @@ class NonlinearSolveLayer(SystemLayer):
         names, tensors, batch, batched, dtype, device = self._inputs(positional, initial_guess, controls)
         if self.diff == "unrolled":
             self._check_memory(batch)
-            t0 = time.perf_counter()
-            out = UnrolledNewton.apply(self, names, batch,
-                                       *[t.to(device="cpu", dtype=torch.float64) for t in tensors])
-            self.stats.layer_time += time.perf_counter() - t0
+            out = _unrolled(self, names, batch, [t.to(device="cpu", dtype=torch.float64) for t in tensors])
             if dtype != torch.float64 and count_on_all_ranks(~torch.isfinite(out.to(dtype)), self.problem):
                 self._report_overflow(dtype)
         else:
@@ -141,7 +141,15 @@ class NonlinearSolveLayer(SystemLayer):
         return {"max_it": self.max_it, "inner_max_it": self.inner_max_it}
 
     def set_extra_state(self, state: dict) -> None:
-        super().set_extra_state(state)
+        if not isinstance(state, dict) or "max_it" not in state:
+            raise ValueError(f"{type(self).__name__} state must be a dict with 'max_it', got {state!r}")
+        # Both caps are checked before either moves: a refused state leaves the layer as it was.
+        options = self.system.options.with_max_it(state["max_it"])
+        if "inner_max_it" in state:
+            options = options.with_inner_max_it(state["inner_max_it"])
+        if self.diff == "unrolled":
+            check_unrolled_newton(options)
+        self.max_it = state["max_it"]
         if "inner_max_it" in state:
             self.inner_max_it = state["inner_max_it"]
 
@@ -152,3 +160,15 @@ class NonlinearSolveLayer(SystemLayer):
         return (f"controls={list(self.problem.control_names)}, n={self.problem.output_size}, "
                 f"snes={o.snes_type}, max_it={o.max_it}, ksp={o.ksp.ksp_type}+{o.ksp.pc_type}, "
                 f"inner_max_it={o.ksp.max_it}, diff={self.diff!r}")
+
+
+@torch.compiler.disable
+def _unrolled(layer: NonlinearSolveLayer, names: tuple, batch: int, tensors: list) -> torch.Tensor:
+    """The unrolled Newton map, run eagerly: torch.compile breaks its graph here (the iterates it keeps
+    are not a traceable operator), so a compiled model around an unrolled layer still trains."""
+    if any(torch._C._functorch.is_functorch_wrapped_tensor(t) for t in tensors):
+        raise RuntimeError("a diff='unrolled' NonlinearSolveLayer does not compose with torch.func (grad, vjp, "
+                           "jacrev, vmap): its backward replays the iterates of one autograd call. Use "
+                           "loss.backward(), or diff='implicit', which composes with torch.func")
+    return UnrolledNewton.apply(layer, names, batch, *tensors)
+

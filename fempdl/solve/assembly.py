@@ -220,7 +220,9 @@ def check_operator(A: PETSc.Mat, controls: list[str]) -> None:
         indptr, _, data = A.getValuesCSR()
         nonzero = np.concatenate([[0], np.cumsum(data != 0.0)])
         empty = int(np.count_nonzero(nonzero[indptr[suspects + 1]] == nonzero[indptr[suspects]]))
-    empty = A.getComm().tompi4py().allreduce(empty)
+    comm = A.getComm()
+    if comm.getSize() > 1:
+        empty = comm.tompi4py().allreduce(empty)
     if finite and not empty:
         return
     source = (f"control(s) {controls}" if controls else

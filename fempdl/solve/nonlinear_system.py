@@ -26,7 +26,6 @@ from __future__ import annotations
 import functools
 import math
 import time
-import weakref
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -42,8 +41,9 @@ from fempdl.solve.control_forms import ControlForms
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.newton_stats import (SNES_REASON_NAMES, NewtonCumulativeStats, NewtonSolveStats,
                                        report_newton_failure)
-from fempdl.solve.options import MAX_PETSC_INT, KSPOptions
+from fempdl.solve.options import KSPOptions
 from fempdl.solve.petsc import create_ksp, destroy_ksp, unique_prefix
+from fempdl.solve.snes import create_snes, destroy_snes, weak_callback
 from fempdl.solve.stats import DIVERGED_MAX_IT, REASON_NAMES, SolveStats
 
 __all__ = ["NonlinearSystem", "NewtonPath", "INITIAL_GUESS"]
@@ -72,9 +72,11 @@ class NonlinearSystem:
     Args:
         problem: the nonlinear problem.
         options: the Newton options; ``options.ksp`` (the inner solve) must be set.
+        force_step: take at least one Newton step even from a solution (an unrolled
+            derivative needs one: the map is not the identity near a solution).
     """
 
-    def __init__(self, problem: NonlinearProblem, options: NewtonOptions):
+    def __init__(self, problem: NonlinearProblem, options: NewtonOptions, force_step: bool = False):
         if not isinstance(options, NewtonOptions) or options.ksp is None:
             raise ValueError("NonlinearSystem needs NewtonOptions with the inner solve's options (ksp=...)")
         self.problem = problem
@@ -93,7 +95,8 @@ class NonlinearSystem:
         self.stats = NewtonCumulativeStats()
         self._forms = ControlForms(problem, self._b, functools.partial(Timer, self.stats, "assembly_time"))
         self._step_vectors: dict = {}
-        self._prefix = unique_prefix("snes")
+        self._force_step = force_step
+        self._jacobian_controls: list = []       # named when an assembled Jacobian is singular
         self._snes = None
         self._ksp = None
         self._adjoint_solver = None
@@ -141,23 +144,8 @@ class NonlinearSystem:
         ksp_options: KSPOptions = options.ksp
         check_symmetric_factor(ksp_options, p)
         self._ksp = create_ksp(self._J, ksp_options, unique_prefix("newton_ksp"), p.fields or None)
-        snes = PETSc.SNES().create(self._comm)
-        snes.setOptionsPrefix(self._prefix)
-        snes.setType("newtonls" if options.snes_type == "newton" else options.snes_type)
-        db = PETSc.Options()
-        if options.snes_type != "newtontr":
-            db[self._prefix + "snes_linesearch_type"] = "basic" if options.plain else (options.linesearch or "bt")
-            db[self._prefix + "snes_linesearch_damping"] = options.damping
-        snes.setKSP(self._ksp)
-        snes.setFunction(_weak(self._residual), self._b)
-        snes.setJacobian(_weak(self._jacobian), self._J)
-        snes.setFromOptions()
-        snes.setTolerances(**options.snes_tolerances())
-        snes.setMaxFunctionEvaluations(MAX_PETSC_INT)
-        # A capped inner solve "fails" by reaching its cap: that is what was asked for.
-        snes.setMaxLinearSolveFailures(MAX_PETSC_INT if ksp_options.capped else 1)
-        snes.setMonitor(_weak(self._monitor))
-        self._snes = snes
+        self._snes = create_snes(self._comm, options, self._ksp, *map(weak_callback, (
+            self._residual, self._jacobian, self._monitor)), self._b, self._J, force_step=self._force_step)
         self._adjoint_solver = CappedSolver(self._J, ksp_options, fields=p.fields or None)
         self._adjoint_solver.stats = self.stats
         self._exact_adjoint_solver = self._adjoint_solver
@@ -185,8 +173,16 @@ class NonlinearSystem:
             _dolfinx.assemble_matrix_into(J, self.problem.J_form, self.problem.bcs)
             if P.handle != J.handle:
                 _dolfinx.assemble_matrix_into(P, self.problem.J_form, self.problem.bcs)
+        # A singular J (an empty row: a zero coefficient) would give MUMPS a tiny or huge finite step.
+        check_operator(J, self._jacobian_controls)
 
     def _monitor(self, snes, its, fnorm) -> None:
+        if its < len(self._residual_norms):
+            # Called again for the same step (a trust region's rejected step): keep its last value only.
+            self._residual_norms[its] = float(fnorm)
+            if self._recording is not None:
+                self._recording[its] = snes.getSolution().getArray(readonly=True).copy()
+            return
         self._residual_norms.append(float(fnorm))
         if its > 0:
             ksp = snes.getKSP()
@@ -213,6 +209,7 @@ class NonlinearSystem:
         n = p.output_size
         U = np.empty((batch, n))
         paths = [] if record else None
+        self._jacobian_controls = sorted(frozenset(controls) & p.jacobian_controls)
         with ControlValues(p, controls) as ctl:
             for i in range(batch):
                 ctl.set_sample(i)
@@ -237,8 +234,9 @@ class NonlinearSystem:
         try:
             self._snes.solve(None, sol)
         except PETSc.Error as err:
-            if isinstance(err.__cause__, KeyboardInterrupt):
-                raise err.__cause__ from None
+            self._renew()
+            if err.__cause__ is not None and not isinstance(err.__cause__, PETSc.Error):
+                raise err.__cause__ from None      # a callback's own error (a check, Ctrl-C), not PETSc's
             raise
         elapsed = time.perf_counter() - t0
         # The inner solves' time: the SNES time less its assemblies, shared by its steps.
@@ -247,9 +245,10 @@ class NonlinearSystem:
             self.stats.forward_time += elapsed - (self.stats.assembly_time - assembly_before)
         reason = int(self._snes.getConvergedReason())
         steps = int(self._snes.getIterationNumber())
+        del self._residual_norms[steps + 1:]       # a trust region's last, rejected step is no step
         x = sol.getArray(readonly=True).copy()
         finite = bool(np.isfinite(x).all()) and all(np.isfinite(self._residual_norms))
-        finite = self._comm.allreduce(finite, op=_LAND)
+        finite = self._comm.allreduce(finite, op=_LAND) if self._comm.size > 1 else finite
         capped = self._options.capped and reason == _SNES_MAX_IT and steps == self._options.max_it
         if self._options.capped and reason in _STALLED and self._at_round_off():
             # A capped line search or trust region cannot improve a residual at round-off and stops
@@ -271,6 +270,14 @@ class NonlinearSystem:
             report_newton_failure(self._options, stats, inner)
         return x
 
+    def _renew(self) -> None:
+        """Fresh solvers and iterate after a solve that stopped on an error: PETSc leaves the vectors a
+        callback was reading locked (newer versions then refuse to write them)."""
+        self._free_solvers()
+        self._sol.destroy()
+        self._sol = _dolfinx.create_vector(self.problem.F_form)
+        self._build(self._options)
+
     def _at_round_off(self) -> bool:
         """Whether the last residual norm meets the uncapped tolerances (``rtol`` relative to the first, or ``atol``)."""
         norms = self._residual_norms
@@ -290,6 +297,7 @@ class NonlinearSystem:
         if initial_guess:
             grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
         G = self._zero_bc(G)
+        self._jacobian_controls = sorted(frozenset(controls) & p.jacobian_controls)
         with ControlValues(p, controls) as ctl:
             for i in range(batch):
                 ctl.set_sample(i)
@@ -335,7 +343,7 @@ class NonlinearSystem:
                            else (self._J, p.J_form, self._adjoint_solver))
         with Timer(self.stats, "assembly_time"):
             _dolfinx.assemble_matrix_into(A, form, p.bcs)
-            check_operator(A, [])
+            check_operator(A, self._jacobian_controls)
         self._rhs.setArray(g)
         solver.solve_transpose(self._rhs, self._lam)
         set_owned(p.lam, self._lam.getArray(readonly=True), p.output_size)
@@ -362,9 +370,7 @@ class NonlinearSystem:
     # --------------------------------------------------------------- cleanup
     def _free_solvers(self) -> None:
         if self._snes is not None:
-            PETSc.Options().delValue(self._prefix + "snes_linesearch_type")
-            PETSc.Options().delValue(self._prefix + "snes_linesearch_damping")
-            self._snes.destroy()
+            destroy_snes(self._snes)
             destroy_ksp(self._ksp)
             for solver in {id(s): s for s in (self._adjoint_solver, self._exact_adjoint_solver)}.values():
                 solver.destroy()
@@ -389,12 +395,3 @@ class NonlinearSystem:
         except Exception:  # interpreter shutdown: PETSc may already be finalised
             pass
 
-
-def _weak(method):
-    """A callback that calls ``method`` through a weak reference: the SNES holds its callbacks, and a
-    bound method would make system and SNES a cycle that only a cyclic collection frees."""
-    ref = weakref.WeakMethod(method)
-
-    def call(*args):
-        return ref()(*args)
-    return call
