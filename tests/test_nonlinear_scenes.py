@@ -16,7 +16,7 @@ from fempdl.app.runs import runner
 from fempdl.app.tasks.inversion import InversionTask
 from fempdl.app.tasks.nonlinear_emulator import NonlinearEmulatorTask
 from fempdl.methods.hig import HIG
-from fempdl.methods.newton_caps import NewtonCaps, newton_k_eps
+from fempdl.methods.newton_caps import NewtonCaps, converged_caps, newton_k_eps
 from fempdl.methods.sip_nonlinear import ExactNonlinearInverse
 
 from helpers import tiny_scene
@@ -102,13 +102,17 @@ def test_k_eps_is_newton_k_eps_under_the_scenes_rule():
         inputs = task.k_eps_rhs()
         assert torch.equal(inputs["initial_guess"], inputs["u0"])          # warm start: Newton from the state
         expected = newton_k_eps(task.caps, rtol=sc.data.k_eps_rtol, **inputs)
+        need = converged_caps(task.layer, rtol=sc.data.k_eps_rtol, **inputs)
+        assert task.caps.converged == need and expected == max(need.newton_steps, -(-need.inner_iterations // 2))
+        task.caps.converged = None
         assert runner.newton_caps_eps(task, sc.data.k_eps_rtol) == expected >= 2
+        assert task.caps.converged == need
         steps = newton_k_eps(NewtonCaps(task.layers, "newton"), rtol=sc.data.k_eps_rtol, **inputs)
-        assert runner.newton_caps_eps(task, sc.data.k_eps_rtol, refine="newton") == steps
+        assert steps == need.newton_steps
     finally:
         task.close()
     result = runner.run(sc, "converged", epochs=1)
-    assert result.k_eps == expected and result.rows[0]["k"] == expected
+    assert result.k_eps == expected and result.rows[0]["k"] == expected and result.converged_caps == need
 
 
 @pytest.mark.parametrize("k", [1, 2])
@@ -129,19 +133,31 @@ def test_prdp_refines_k_and_moves_the_caps_by_the_rule(refine):
     ks = [row["k"] for row in result.rows]
     assert ks[0] == 1 and ks[-1] > 1 and ks == sorted(ks) and ks[-1] <= result.k_eps
     steps, inner = per_epoch(result.rows, "newton_steps"), per_epoch(result.rows, "forward_iterations")
-    if refine == "inner":       # Newton takes the steps converged solves need; K Jacobi iterations each
-        task = runner.build_task(sc, runner.layer_options(sc, 1))
-        try:
-            n_eps = runner.newton_caps_eps(task, sc.data.k_eps_rtol, refine="newton")
-        finally:
-            task.close()
+    need = result.converged_caps
     for k, s, its in zip(ks, steps, inner):
         if refine == "newton":
             assert (s, its) == (k * TRAIN, k * TRAIN)                  # LU: one "iteration" per step
-        elif refine == "inner":
-            assert (s, its) == (n_eps * TRAIN, k * n_eps * TRAIN)
-        else:
-            assert (s, its) == (k * TRAIN, 2 * k * k * TRAIN)          # K steps of inner_per_k K iterations
+        elif refine == "inner":     # Newton takes the steps converged solves need; K Jacobi iterations each
+            assert (s, its) == (need.newton_steps * TRAIN, k * need.newton_steps * TRAIN)
+        else:                       # K steps of inner_per_k K iterations, neither past what converged solves need
+            n, per_step = min(k, need.newton_steps), min(2 * k, need.inner_iterations)
+            assert (s, its) == (n * TRAIN, n * per_step * TRAIN)
+
+
+def test_under_both_neither_cap_runs_past_what_converged_solves_need():
+    # Jacobi with inner_per_k = 1: K_eps is the inner iterations a step needs, well above the Newton steps.
+    sc = emulator_scene("both", solver={"preset": "jacobi", "inner_per_k": 1}, optimizer={"epochs": 6},
+                        prdp={"k0": 2})
+    base = runner.run(sc, "converged", epochs=1)
+    need = base.converged_caps
+    assert (need.newton_steps, need.inner_iterations, base.k_eps) == (3, 15, 15)
+    # The baseline runs the Newton steps converged solves need, not K_eps of them.
+    assert (base.rows[0]["newton_steps"], base.rows[0]["forward_iterations"]) == (3 * TRAIN, 3 * 15 * TRAIN)
+    prdp = runner.run(sc, "prdp", k_eps_value=base.k_eps, converged_caps=need)
+    ks = [row["k"] for row in prdp.rows]
+    assert ks[0] == 2 and max(ks) > 3
+    for k, s, its in zip(ks, per_epoch(prdp.rows, "newton_steps"), per_epoch(prdp.rows, "forward_iterations")):
+        assert (s, its) == (min(k, 3) * TRAIN, min(k, 3) * min(k, 15) * TRAIN)
 
 
 def test_the_caps_follow_the_rule_on_the_layer():

@@ -179,7 +179,8 @@ def _command(args, sc, out: Path) -> int:
         mode, k, label = ("fixed", args.k, f"K={args.k}") if args.k else ("prdp", None, "PRDP")
         sub = out / (f"k{args.k}" if args.k else "prdp")
         runs[label] = runner.run(sc, mode, k, out_dir=sub, resume=_can_resume(args, sub),
-                                      k_eps_value=None if baseline is None else baseline.k_eps, **common)
+                                      k_eps_value=None if baseline is None else baseline.k_eps,
+                                      converged_caps=None if baseline is None else baseline.converged_caps, **common)
     if baseline is not None:
         runs[f"K_eps={baseline.k_eps}"] = baseline
     if MPI.COMM_WORLD.rank == 0:

@@ -55,13 +55,14 @@ def sweep(scene: Scene, *, ks: list[int] | None = None, out_dir: Path | None = N
     baseline = runner.run(scene, "converged", out_dir=_sub(out_dir, "converged"), progress=progress,
                           overwrite=overwrite)
     keps = baseline.k_eps
+    measured = {"k_eps_value": keps, "converged_caps": baseline.converged_caps}     # the baseline's, not again
     runs = {}
     for k in ks or geometric_caps(keps):
         runs[f"K={k}"] = runner.run(scene, "fixed", k, out_dir=_sub(out_dir, f"k{k}"), progress=progress,
-                                    k_eps_value=keps, overwrite=overwrite)
+                                    overwrite=overwrite, **measured)
     runs[f"K_eps={keps}"] = baseline
     runs["PRDP"] = runner.run(scene, "prdp", out_dir=_sub(out_dir, "prdp"), progress=progress,
-                              k_eps_value=keps, overwrite=overwrite)
+                              overwrite=overwrite, **measured)
     return runs
 
 
