@@ -9,7 +9,7 @@ import torch
 import ufl
 from mpi4py import MPI
 
-from fempdl import NewtonOptions, NonlinearProblem, NonlinearSolveLayer, SolveLayer, forms, mesh
+from fempdl import KSPOptions, NewtonOptions, NonlinearProblem, NonlinearSolveLayer, SolveLayer, forms, mesh
 from fempdl.app import scene
 from fempdl.app.reports import tradeoff
 from fempdl.app.runs import runner
@@ -169,6 +169,23 @@ def test_the_caps_follow_the_rule_on_the_layer():
         assert task.reference.max_it is None            # the reference stays converged
     finally:
         task.close()
+
+
+@pytest.mark.parametrize("refine", ["inner", "both"])
+def test_newton_caps_refuse_to_cap_the_inner_solve_of_an_unrolled_layer(refine):
+    problem = forms.nonlinear_diffusion.problem(mesh.load("lshape", MPI.COMM_SELF, h=0.5), ("f",), alpha=2.0)
+    inner = KSPOptions.preset("gmres", max_it=None, rtol=1e-10)         # converged: what unrolling needs
+    layer = NonlinearSolveLayer(problem, NewtonOptions(max_it=2, ksp=inner), diff="unrolled")
+    try:
+        with pytest.raises(ValueError) as by_layer:
+            layer.inner_max_it = 1
+        with pytest.raises(ValueError) as by_caps:           # at construction, not when PRDP first sets K
+            NewtonCaps(layer, refine)
+        assert str(by_caps.value) == str(by_layer.value)
+        assert "diff='unrolled' needs the exact Newton step" in str(by_caps.value)
+        assert NewtonCaps(layer, "newton").refine == "newton"
+    finally:
+        layer.close()
 
 
 def test_a_resumed_prdp_run_continues_with_its_caps(tmp_path):

@@ -28,6 +28,7 @@ import torch
 
 from fempdl.core.checks import check_int
 from fempdl.layer.newton_layer import NonlinearSolveLayer
+from fempdl.layer.newton_unrolled import check_unrolled_newton
 
 __all__ = ["ConvergedCaps", "NewtonCaps", "REFINE", "converged_caps", "newton_k_eps"]
 
@@ -74,6 +75,9 @@ class NewtonCaps:
             if direct:
                 raise ValueError(f"refine={refine!r} caps the inner Krylov solve, but layer(s) {direct} solve each "
                                  "step directly; give them an iterative inner solve (e.g. ksp='cg')")
+            for layer in self.layers:       # what the layer would say when PRDP first sets K
+                if layer.diff == "unrolled":
+                    check_unrolled_newton(layer.options.with_inner_max_it(inner_per_k))
         self.refine, self.inner_per_k = refine, inner_per_k
         self.converged: ConvergedCaps | None = None
         self._k: int | None = None
