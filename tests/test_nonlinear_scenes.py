@@ -3,6 +3,8 @@ exact Newton counts, the trade-off sweep) and the nonlinear-poisson SIP and HIG 
 without a PDE solve, the per-step Jacobian of HIG, both training)."""
 from __future__ import annotations
 
+import re
+
 import dolfinx.fem
 import pytest
 import torch
@@ -85,6 +87,16 @@ def test_newton_solver_keys_are_checked(edit, fragment):
     with pytest.raises(scene.SceneError) as info:
         scene.parse(tiny_scene("emulator", NONLINEAR_HEAT, edit), source="bad.toml")
     assert fragment in str(info.value), str(info.value)
+
+
+def test_the_iterative_presets_a_refusal_names_are_the_accepted_ones():
+    with pytest.raises(scene.SceneError) as info:
+        scene.parse(tiny_scene("emulator", NONLINEAR_HEAT, {"solver": {"preset": "lu", "refine": "inner"}}))
+    named = re.search(r"choose an iterative preset \(([^)]*)\)", str(info.value)).group(1).split(", ")
+    assert named == ["jacobi", "gmres", "gmres-ilu"]                   # not cg: the Jacobian is not symmetric
+    for preset in named:
+        edit = {"solver": {"preset": preset, "refine": "inner"}}
+        assert scene.parse(tiny_scene("emulator", NONLINEAR_HEAT, edit)).solver.preset == preset
 
 
 def test_the_nonlinear_sip_scene_takes_the_exact_inverse_only():
