@@ -37,7 +37,7 @@ from test_mpi import mpirun
 
 COMM = MPI.COMM_WORLD
 F64 = torch.float64
-# Converged Newton with a backtracking line search, to a residual 1e-12 relative: with quadratic
+# Converged plain Newton (the default snes_type), to a residual 1e-12 relative: with quadratic
 # convergence the last step lands far below that, so solutions are exact to ~||J^-1|| * 1e-12.
 CONVERGED = NewtonOptions(rtol=1e-12, atol=1e-14, ksp="lu")
 PLAIN = NewtonOptions(snes_type="newton", rtol=1e-12, atol=1e-14, ksp="lu")

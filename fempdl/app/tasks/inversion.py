@@ -107,7 +107,7 @@ class InversionTask(Task):
             self.problem, self.control = forms.heat.problem(msh, controls=("u0",), dt=pde.dt, theta=pde.theta,
                                                             kappa=pde.kappa, degree=pde.degree), "u0"
         self.free = np.setdiff1d(np.arange(self.problem.output_size), self.problem.bc_dofs)
-        if self.nonlinear:      # converged Newton (line search, LU, rtol 1e-10) from zero
+        if self.nonlinear:      # converged plain Newton (full steps, LU, rtol 1e-10) from zero
             self.layer = NonlinearSolveLayer(self.problem, NewtonOptions(ksp="lu"))
         else:
             self.layer = SolveLayer(self.problem, KSPOptions.preset("lu"))
