@@ -288,6 +288,44 @@ def test_hig_by_jacrev_is_the_state_dependent_jacobian_of_the_newton_solve(nonli
         HIG(torch.nn.Linear(2, 2)).jacobian(torch.zeros(1, 2), physics_jacobian="columns")
 
 
+def test_the_data_and_the_validation_are_not_counted_as_training():
+    sc = scene.parse(tiny_scene("sip", pde={"type": "nonlinear-poisson", "kappa": 0.05, "alpha": 2.0},
+                                optimizer={"epochs": 2}))
+    train = sc.data.train
+    # SIP's exact nonlinear inverse solves no PDE: nothing to count, from the first epoch on.
+    rows = runner.run_method(sc, "sip").rows
+    assert [(r["newton_steps"], r["forward_iterations"], r["total_iterations"]) for r in rows] == [(0, 0, 0)] * 2
+    # Backprop: one Newton solve and one adjoint LU solve per training sample per epoch, no more.
+    instance = InversionTask(sc, "backprop")
+    try:
+        assert (instance.layer.stats.newton_solves, instance.layer.stats.forward_iterations) == (0, 0)
+        assert instance.reference.stats.newton_solves == train + sc.data.validation
+        instance.train_step(torch.arange(train))
+        instance.validate()
+        assert (instance.layer.stats.newton_solves, instance.layer.stats.backward_iterations) == (train, train)
+    finally:
+        instance.close()
+    rows = runner.run_method(sc, "backprop").rows
+    assert per_epoch(rows, "backward_iterations") == [train] * 2
+    assert per_epoch(rows, "forward_iterations") == per_epoch(rows, "newton_steps")     # LU: one per step
+    # HIG's validation solves P(x0) too, on the reference layer.
+    hig = InversionTask(scene.parse(tiny_scene("hig", pde={"type": "nonlinear-poisson", "alpha": 2.0})), "hig")
+    try:
+        hig.validate()
+        assert hig.layer.stats.newton_solves == 0
+        assert hig.reference.stats.newton_solves == hig.train_size + 2 * hig.val_size
+    finally:
+        hig.close()
+
+
+def test_the_linear_sip_rows_count_the_inverse_solves_only():
+    sc = scene.parse(tiny_scene("sip", optimizer={"epochs": 3}))
+    rows = runner.run_method(sc, "sip").rows
+    # The exact linear inverse evaluates P(x0): one LU solve per training sample, every epoch the same.
+    assert per_epoch(rows, "forward_iterations") == [sc.data.train] * 3
+    assert [r["backward_iterations"] for r in rows] == [0] * 3
+
+
 @pytest.mark.parametrize("task", ["sip", "hig"])
 def test_sip_and_hig_train_on_the_nonlinear_inverse(task):
     sc = scene.parse(tiny_scene(task, pde={"type": "nonlinear-poisson", "kappa": 0.05, "alpha": 2.0},
