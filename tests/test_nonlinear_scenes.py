@@ -207,7 +207,35 @@ def test_a_resumed_prdp_run_continues_with_its_caps(tmp_path):
     resumed = runner.run(sc, "prdp", out_dir=tmp_path, resume=True).rows
     for key in ("k", "val_metric", "newton_steps", "forward_iterations", "backward_iterations"):
         assert [row[key] for row in resumed] == pytest.approx([row[key] for row in whole], rel=1e-9), key
-    assert (tmp_path / "metrics.csv").read_text().splitlines()[0].endswith(",newton_steps")
+    assert (tmp_path / "metrics.csv").read_text().splitlines()[0].endswith(",newton_steps,backward_newton_steps")
+
+
+def test_the_unrolled_backward_newton_steps_are_counted_apart(tmp_path):
+    sc = emulator_scene("newton", solver={"diff": "unrolled"})
+    rows = runner.run(sc, "fixed", 2, epochs=2, out_dir=tmp_path / "unrolled").rows
+    backward = per_epoch(rows, "backward_newton_steps")
+    forward = [total - steps for total, steps in zip(per_epoch(rows, "newton_steps"), backward)]
+    assert forward == backward == [2 * TRAIN] * 2          # the unrolled pass runs the forward's steps back
+    header = (tmp_path / "unrolled" / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert header[-2:] == ["newton_steps", "backward_newton_steps"]
+    implicit = runner.run(emulator_scene("newton"), "fixed", 2, epochs=1).rows
+    assert (implicit[0]["newton_steps"], implicit[0]["backward_newton_steps"]) == (2 * TRAIN, 0)
+
+
+def test_a_checkpoint_from_before_the_backward_newton_steps_resumes(tmp_path):
+    from fempdl.app.runs import checkpoints
+    from fempdl.app.runs.training import CHECKPOINT
+    sc = emulator_scene("newton", solver={"diff": "unrolled"})
+    runner.run(sc, "fixed", 1, epochs=2, out_dir=tmp_path, stop_after=1)
+    state = checkpoints.load(tmp_path / CHECKPOINT)
+    for row in state["rows"]:
+        del row["backward_newton_steps"]
+    checkpoints.save(tmp_path, state)
+    rows = runner.run(sc, "fixed", 1, epochs=2, out_dir=tmp_path, resume=True).rows
+    assert "backward_newton_steps" not in rows[0] and rows[1]["backward_newton_steps"] == 2 * TRAIN
+    lines = (tmp_path / "metrics.csv").read_text().splitlines()
+    assert lines[0].endswith(",newton_steps,backward_newton_steps")
+    assert lines[1].endswith(f",{2 * TRAIN},") and lines[2].endswith(f",{4 * TRAIN},{2 * TRAIN}")
 
 
 def test_the_tradeoff_sweep_runs_and_counts_newton_steps(tmp_path):
