@@ -15,6 +15,7 @@ from fempdl import KSPOptions, NewtonOptions, NonlinearProblem, NonlinearSolveLa
 from fempdl.app import scene
 from fempdl.app.reports import tradeoff
 from fempdl.app.runs import runner
+from fempdl.app.runs.timesplit import TIME_PARTS
 from fempdl.app.tasks.inversion import InversionTask
 from fempdl.app.tasks.nonlinear_emulator import NonlinearEmulatorTask
 from fempdl.methods.hig import HIG
@@ -250,6 +251,38 @@ def test_the_tradeoff_sweep_runs_and_counts_newton_steps(tmp_path):
     assert any(line.startswith("Newton steps:") for line in tradeoff.summary_lines(split))
     tradeoff.write_report(sc, runs, split, tmp_path)
     assert (tmp_path / "tradeoff.csv").read_text().splitlines()[0].endswith(",newton_steps")
+
+
+def made_up_run(mode: str, k: int, wall: float, steps: int, **seconds: float) -> runner.RunResult:
+    """A one-epoch run of ``steps`` Newton steps (one LU iteration each) taking ``seconds`` per part."""
+    row = {"epoch": 0, "k": k, "val_metric": 1.0, "total_iterations": steps, "newton_steps": steps,
+           "wall_time": wall, **{f"time_{part}": seconds.get(part, 0.0) for part in TIME_PARTS}}
+    return runner.RunResult(scene="made-up", mode=mode, k_eps=4, rows=[row], out_dir=None)
+
+
+def test_the_clock_bound_counts_what_the_cap_moves():
+    # Each Newton step assembles J and F and sets up its solve: with the Newton cap, those shrink too.
+    base = made_up_run("converged", 4, 10.0, 400, iterations=2.0, setup=0.5, assembly=3.0, network=2.0,
+                       validation=2.0, other=0.5)
+    prdp = made_up_run("prdp", 1, 5.5, 100, iterations=0.5, setup=0.125, assembly=0.75, network=2.0,
+                       validation=2.0, other=0.125)
+    runs = {"K_eps=4": base, "PRDP": prdp}
+    newton = tradeoff.savings(runs, refine="newton")
+    assert newton["max_wall_time_savings"] == pytest.approx(0.55)              # (2 + 0.5 + 3) / 10
+    assert newton["wall_time_savings"] == pytest.approx(0.45) and newton["newton_savings"] == 0.75
+    assert newton["predicted_wall_time_savings"] == pytest.approx(0.55 * 0.75)
+    assert ("the clock: the solver's iterations and the Newton steps' assembly and set-up are 55% of the "
+            "baseline's time, so PRDP can save at most 55% of the wall time here; its savings predict 41%, it "
+            "reached 45%") == tradeoff.summary_lines(newton)[3]
+    # refine = "inner" leaves the Newton steps as converged solves need: the iterations alone shrink, and a
+    # saving past their share is said to come from elsewhere.
+    inner = tradeoff.savings(runs, refine="inner")
+    assert (inner["max_wall_time_savings"], inner["capped_parts"]) == (pytest.approx(0.2), ["iterations"])
+    line = tradeoff.summary_lines(inner)[3]
+    assert line.startswith("the clock: the solver's iterations are 20% of the baseline's time, so PRDP can save "
+                           "at most 20% of the wall time here; its iteration saving predicts 15%, it reached 45% "
+                           "(past the bound: costs the cap does not move differ between the runs")
+    assert "past the bound" not in tradeoff.summary_lines(newton)[3]
 
 
 # ------------------------------------------------------------------ SIP and HIG on nonlinear-poisson

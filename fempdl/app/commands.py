@@ -151,7 +151,7 @@ def _command(args, sc, out: Path) -> int:
         return _methods(args, sc, progress, out)
     if args.command == "tradeoff":
         runs = tradeoff.sweep(sc, ks=args.ks, out_dir=out, progress=progress, overwrite=True)
-        split = tradeoff.savings(runs, stop_at=sc.optimizer.stop_at)
+        split = tradeoff.savings(runs, stop_at=sc.optimizer.stop_at, refine=sc.solver.refine)
         paths = tradeoff.write_report(sc, runs, split, out)
         print(tradeoff.comparison_table(runs))
         print("\n".join(tradeoff.summary_lines(split)))
