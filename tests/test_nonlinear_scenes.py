@@ -3,6 +3,7 @@ exact Newton counts, the trade-off sweep) and the nonlinear-poisson SIP and HIG 
 without a PDE solve, the per-step Jacobian of HIG, both training)."""
 from __future__ import annotations
 
+import logging
 import re
 
 import dolfinx.fem
@@ -251,6 +252,19 @@ def test_the_tradeoff_sweep_runs_and_counts_newton_steps(tmp_path):
     assert any(line.startswith("Newton steps:") for line in tradeoff.summary_lines(split))
     tradeoff.write_report(sc, runs, split, tmp_path)
     assert (tmp_path / "tradeoff.csv").read_text().splitlines()[0].endswith(",newton_steps")
+
+
+def test_the_converged_caps_are_measured_once_and_logged_with_k_eps(caplog):
+    sc = emulator_scene("inner", optimizer={"epochs": 1})
+    with caplog.at_level(logging.INFO, logger="fempdl.app.runs.runner"):
+        runs = tradeoff.sweep(sc, ks=[1, 2])
+    need = runs["PRDP"].converged_caps
+    # One measurement, by the baseline: the fixed-K and PRDP runs take it; its Newton steps are no K_eps.
+    assert [r.getMessage() for r in caplog.records if r.name == "fempdl.app.runs.runner"] == [
+        f"K_eps = {need.inner_iterations} (Newton, refine=inner, to rtol {sc.data.k_eps_rtol}; what converged "
+        f"solves take at most: Newton steps {need.newton_steps}, inner iterations per step {need.inner_iterations})"]
+    assert all(run.converged_caps == need for run in runs.values())
+    assert [run.newton_steps for run in runs.values()] == [need.newton_steps * TRAIN] * 4
 
 
 def made_up_run(mode: str, k: int, wall: float, steps: int, **seconds: float) -> runner.RunResult:

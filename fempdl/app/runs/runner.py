@@ -153,8 +153,8 @@ def newton_caps_eps(task, rtol: float, shard_over: MPI.Comm = MPI.COMM_SELF) -> 
     task.caps.converged = ConvergedCaps(*(shard_over.allreduce(count, op=MPI.MAX)
                                           for count in (local.newton_steps, local.inner_iterations)))
     most = task.caps.k_eps
-    _log.info("K_eps = %d (Newton, refine=%s, to rtol %s; converged solves take at most %d Newton steps and "
-              "%d inner iterations a step)", most, task.caps.refine, rtol, task.caps.converged.newton_steps,
+    _log.info("K_eps = %d (Newton, refine=%s, to rtol %s; what converged solves take at most: Newton steps %d, "
+              "inner iterations per step %d)", most, task.caps.refine, rtol, task.caps.converged.newton_steps,
               task.caps.converged.inner_iterations)
     return most
 
