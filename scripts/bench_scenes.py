@@ -71,7 +71,7 @@ def bench_scene(name: str, seeds: list[int], sweep: bool) -> dict:
     out["wall_time_savings"] = 1.0 - out["ratios"]["wall_time"]
     if sweep:
         runs = tradeoff.sweep(sc)
-        out["sweep"] = {"savings": tradeoff.savings(runs, stop_at=sc.optimizer.stop_at),
+        out["sweep"] = {"savings": tradeoff.savings(runs, stop_at=sc.optimizer.stop_at, refine=sc.solver.refine),
                         "runs": {label: summary(r) for label, r in runs.items()}}
     return out
 

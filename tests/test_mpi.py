@@ -155,13 +155,18 @@ def test_fempdl_run_parallel_data_under_mpirun(tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["run", "poisson-inverse", "--parallel", "data"], "has one; use --parallel mesh"),
     (["run", "heat-emulator-2d", "--parallel", "mesh"], "use --parallel data"),
-    (["run", "heat-emulator-2d"], "needs `fempdl run SCENE --parallel data|mesh`"),
+    (["run", "heat-emulator-2d"], "running on 2 ranks needs a mode: `fempdl run heat-emulator-2d --parallel data`"),
+    (["compare", "sip-nonlinear"], "scene 'sip-nonlinear': sip scenes train on one process"),
+    (["tradeoff", "poisson-inverse"], "`fempdl tradeoff` trains its runs on one process; run it without mpirun "
+                                      "(one run on 2 ranks: `fempdl run poisson-inverse --parallel mesh`)"),
 ])
 def test_fempdl_refuses_parallel_modes_that_do_not_fit(args, message, tmp_path):
     # A fresh --out: a run left in ./runs by `make run` would be refused first.
     done = mpirun(2, "-m", "fempdl.app.cli", *args, "--out", str(tmp_path / "out"), timeout=120)
     assert done.returncode == 2
     assert message in done.stderr
+    if "--parallel" not in args:     # refused before any work: rank 0 says it, once
+        assert done.stderr.count("fempdl: ") == 1, done.stderr
 
 
 def test_the_distributed_mesh_example_recovers_the_serial_source():

@@ -3,20 +3,24 @@ exact Newton counts, the trade-off sweep) and the nonlinear-poisson SIP and HIG 
 without a PDE solve, the per-step Jacobian of HIG, both training)."""
 from __future__ import annotations
 
+import logging
+import re
+
 import dolfinx.fem
 import pytest
 import torch
 import ufl
 from mpi4py import MPI
 
-from fempdl import NewtonOptions, NonlinearProblem, NonlinearSolveLayer, SolveLayer, forms, mesh
+from fempdl import KSPOptions, NewtonOptions, NonlinearProblem, NonlinearSolveLayer, SolveLayer, forms, mesh
 from fempdl.app import scene
 from fempdl.app.reports import tradeoff
 from fempdl.app.runs import runner
+from fempdl.app.runs.timesplit import TIME_PARTS
 from fempdl.app.tasks.inversion import InversionTask
 from fempdl.app.tasks.nonlinear_emulator import NonlinearEmulatorTask
 from fempdl.methods.hig import HIG
-from fempdl.methods.newton_caps import NewtonCaps, newton_k_eps
+from fempdl.methods.newton_caps import NewtonCaps, converged_caps, newton_k_eps
 from fempdl.methods.sip_nonlinear import ExactNonlinearInverse
 
 from helpers import tiny_scene
@@ -87,6 +91,16 @@ def test_newton_solver_keys_are_checked(edit, fragment):
     assert fragment in str(info.value), str(info.value)
 
 
+def test_the_iterative_presets_a_refusal_names_are_the_accepted_ones():
+    with pytest.raises(scene.SceneError) as info:
+        scene.parse(tiny_scene("emulator", NONLINEAR_HEAT, {"solver": {"preset": "lu", "refine": "inner"}}))
+    named = re.search(r"choose an iterative preset \(([^)]*)\)", str(info.value)).group(1).split(", ")
+    assert named == ["jacobi", "gmres", "gmres-ilu"]                   # not cg: the Jacobian is not symmetric
+    for preset in named:
+        edit = {"solver": {"preset": preset, "refine": "inner"}}
+        assert scene.parse(tiny_scene("emulator", NONLINEAR_HEAT, edit)).solver.preset == preset
+
+
 def test_the_nonlinear_sip_scene_takes_the_exact_inverse_only():
     with pytest.raises(scene.SceneError, match="inverse must be 'exact' for nonlinear-poisson"):
         scene.parse(tiny_scene("sip", pde={"type": "nonlinear-poisson"}, sip={"inverse": "tikhonov", "damping": 0.1}))
@@ -102,13 +116,17 @@ def test_k_eps_is_newton_k_eps_under_the_scenes_rule():
         inputs = task.k_eps_rhs()
         assert torch.equal(inputs["initial_guess"], inputs["u0"])          # warm start: Newton from the state
         expected = newton_k_eps(task.caps, rtol=sc.data.k_eps_rtol, **inputs)
+        need = converged_caps(task.layer, rtol=sc.data.k_eps_rtol, **inputs)
+        assert task.caps.converged == need and expected == max(need.newton_steps, -(-need.inner_iterations // 2))
+        task.caps.converged = None
         assert runner.newton_caps_eps(task, sc.data.k_eps_rtol) == expected >= 2
+        assert task.caps.converged == need
         steps = newton_k_eps(NewtonCaps(task.layers, "newton"), rtol=sc.data.k_eps_rtol, **inputs)
-        assert runner.newton_caps_eps(task, sc.data.k_eps_rtol, refine="newton") == steps
+        assert steps == need.newton_steps
     finally:
         task.close()
     result = runner.run(sc, "converged", epochs=1)
-    assert result.k_eps == expected and result.rows[0]["k"] == expected
+    assert result.k_eps == expected and result.rows[0]["k"] == expected and result.converged_caps == need
 
 
 @pytest.mark.parametrize("k", [1, 2])
@@ -129,19 +147,31 @@ def test_prdp_refines_k_and_moves_the_caps_by_the_rule(refine):
     ks = [row["k"] for row in result.rows]
     assert ks[0] == 1 and ks[-1] > 1 and ks == sorted(ks) and ks[-1] <= result.k_eps
     steps, inner = per_epoch(result.rows, "newton_steps"), per_epoch(result.rows, "forward_iterations")
-    if refine == "inner":       # Newton takes the steps converged solves need; K Jacobi iterations each
-        task = runner.build_task(sc, runner.layer_options(sc, 1))
-        try:
-            n_eps = runner.newton_caps_eps(task, sc.data.k_eps_rtol, refine="newton")
-        finally:
-            task.close()
+    need = result.converged_caps
     for k, s, its in zip(ks, steps, inner):
         if refine == "newton":
             assert (s, its) == (k * TRAIN, k * TRAIN)                  # LU: one "iteration" per step
-        elif refine == "inner":
-            assert (s, its) == (n_eps * TRAIN, k * n_eps * TRAIN)
-        else:
-            assert (s, its) == (k * TRAIN, 2 * k * k * TRAIN)          # K steps of inner_per_k K iterations
+        elif refine == "inner":     # Newton takes the steps converged solves need; K Jacobi iterations each
+            assert (s, its) == (need.newton_steps * TRAIN, k * need.newton_steps * TRAIN)
+        else:                       # K steps of inner_per_k K iterations, neither past what converged solves need
+            n, per_step = min(k, need.newton_steps), min(2 * k, need.inner_iterations)
+            assert (s, its) == (n * TRAIN, n * per_step * TRAIN)
+
+
+def test_under_both_neither_cap_runs_past_what_converged_solves_need():
+    # Jacobi with inner_per_k = 1: K_eps is the inner iterations a step needs, well above the Newton steps.
+    sc = emulator_scene("both", solver={"preset": "jacobi", "inner_per_k": 1}, optimizer={"epochs": 6},
+                        prdp={"k0": 2})
+    base = runner.run(sc, "converged", epochs=1)
+    need = base.converged_caps
+    assert (need.newton_steps, need.inner_iterations, base.k_eps) == (3, 15, 15)
+    # The baseline runs the Newton steps converged solves need, not K_eps of them.
+    assert (base.rows[0]["newton_steps"], base.rows[0]["forward_iterations"]) == (3 * TRAIN, 3 * 15 * TRAIN)
+    prdp = runner.run(sc, "prdp", k_eps_value=base.k_eps, converged_caps=need)
+    ks = [row["k"] for row in prdp.rows]
+    assert ks[0] == 2 and max(ks) > 3
+    for k, s, its in zip(ks, per_epoch(prdp.rows, "newton_steps"), per_epoch(prdp.rows, "forward_iterations")):
+        assert (s, its) == (min(k, 3) * TRAIN, min(k, 3) * min(k, 15) * TRAIN)
 
 
 def test_the_caps_follow_the_rule_on_the_layer():
@@ -155,6 +185,23 @@ def test_the_caps_follow_the_rule_on_the_layer():
         task.close()
 
 
+@pytest.mark.parametrize("refine", ["inner", "both"])
+def test_newton_caps_refuse_to_cap_the_inner_solve_of_an_unrolled_layer(refine):
+    problem = forms.nonlinear_diffusion.problem(mesh.load("lshape", MPI.COMM_SELF, h=0.5), ("f",), alpha=2.0)
+    inner = KSPOptions.preset("gmres", max_it=None, rtol=1e-10)         # converged: what unrolling needs
+    layer = NonlinearSolveLayer(problem, NewtonOptions(max_it=2, ksp=inner), diff="unrolled")
+    try:
+        with pytest.raises(ValueError) as by_layer:
+            layer.inner_max_it = 1
+        with pytest.raises(ValueError) as by_caps:           # at construction, not when PRDP first sets K
+            NewtonCaps(layer, refine)
+        assert str(by_caps.value) == str(by_layer.value)
+        assert "diff='unrolled' needs the exact Newton step" in str(by_caps.value)
+        assert NewtonCaps(layer, "newton").refine == "newton"
+    finally:
+        layer.close()
+
+
 def test_a_resumed_prdp_run_continues_with_its_caps(tmp_path):
     sc = emulator_scene("inner", optimizer={"epochs": 5})
     whole = runner.run(sc, "prdp").rows
@@ -162,7 +209,35 @@ def test_a_resumed_prdp_run_continues_with_its_caps(tmp_path):
     resumed = runner.run(sc, "prdp", out_dir=tmp_path, resume=True).rows
     for key in ("k", "val_metric", "newton_steps", "forward_iterations", "backward_iterations"):
         assert [row[key] for row in resumed] == pytest.approx([row[key] for row in whole], rel=1e-9), key
-    assert (tmp_path / "metrics.csv").read_text().splitlines()[0].endswith(",newton_steps")
+    assert (tmp_path / "metrics.csv").read_text().splitlines()[0].endswith(",newton_steps,backward_newton_steps")
+
+
+def test_the_unrolled_backward_newton_steps_are_counted_apart(tmp_path):
+    sc = emulator_scene("newton", solver={"diff": "unrolled"})
+    rows = runner.run(sc, "fixed", 2, epochs=2, out_dir=tmp_path / "unrolled").rows
+    backward = per_epoch(rows, "backward_newton_steps")
+    forward = [total - steps for total, steps in zip(per_epoch(rows, "newton_steps"), backward)]
+    assert forward == backward == [2 * TRAIN] * 2          # the unrolled pass runs the forward's steps back
+    header = (tmp_path / "unrolled" / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert header[-2:] == ["newton_steps", "backward_newton_steps"]
+    implicit = runner.run(emulator_scene("newton"), "fixed", 2, epochs=1).rows
+    assert (implicit[0]["newton_steps"], implicit[0]["backward_newton_steps"]) == (2 * TRAIN, 0)
+
+
+def test_a_checkpoint_from_before_the_backward_newton_steps_resumes(tmp_path):
+    from fempdl.app.runs import checkpoints
+    from fempdl.app.runs.training import CHECKPOINT
+    sc = emulator_scene("newton", solver={"diff": "unrolled"})
+    runner.run(sc, "fixed", 1, epochs=2, out_dir=tmp_path, stop_after=1)
+    state = checkpoints.load(tmp_path / CHECKPOINT)
+    for row in state["rows"]:
+        del row["backward_newton_steps"]
+    checkpoints.save(tmp_path, state)
+    rows = runner.run(sc, "fixed", 1, epochs=2, out_dir=tmp_path, resume=True).rows
+    assert "backward_newton_steps" not in rows[0] and rows[1]["backward_newton_steps"] == 2 * TRAIN
+    lines = (tmp_path / "metrics.csv").read_text().splitlines()
+    assert lines[0].endswith(",newton_steps,backward_newton_steps")
+    assert lines[1].endswith(f",{2 * TRAIN},") and lines[2].endswith(f",{4 * TRAIN},{2 * TRAIN}")
 
 
 def test_the_tradeoff_sweep_runs_and_counts_newton_steps(tmp_path):
@@ -177,6 +252,51 @@ def test_the_tradeoff_sweep_runs_and_counts_newton_steps(tmp_path):
     assert any(line.startswith("Newton steps:") for line in tradeoff.summary_lines(split))
     tradeoff.write_report(sc, runs, split, tmp_path)
     assert (tmp_path / "tradeoff.csv").read_text().splitlines()[0].endswith(",newton_steps")
+
+
+def test_the_converged_caps_are_measured_once_and_logged_with_k_eps(caplog):
+    sc = emulator_scene("inner", optimizer={"epochs": 1})
+    with caplog.at_level(logging.INFO, logger="fempdl.app.runs.runner"):
+        runs = tradeoff.sweep(sc, ks=[1, 2])
+    need = runs["PRDP"].converged_caps
+    # One measurement, by the baseline: the fixed-K and PRDP runs take it; its Newton steps are no K_eps.
+    assert [r.getMessage() for r in caplog.records if r.name == "fempdl.app.runs.runner"] == [
+        f"K_eps = {need.inner_iterations} (Newton, refine=inner, to rtol {sc.data.k_eps_rtol}; what converged "
+        f"solves take at most: Newton steps {need.newton_steps}, inner iterations per step {need.inner_iterations})"]
+    assert all(run.converged_caps == need for run in runs.values())
+    assert [run.newton_steps for run in runs.values()] == [need.newton_steps * TRAIN] * 4
+
+
+def made_up_run(mode: str, k: int, wall: float, steps: int, **seconds: float) -> runner.RunResult:
+    """A one-epoch run of ``steps`` Newton steps (one LU iteration each) taking ``seconds`` per part."""
+    row = {"epoch": 0, "k": k, "val_metric": 1.0, "total_iterations": steps, "newton_steps": steps,
+           "wall_time": wall, **{f"time_{part}": seconds.get(part, 0.0) for part in TIME_PARTS}}
+    return runner.RunResult(scene="made-up", mode=mode, k_eps=4, rows=[row], out_dir=None)
+
+
+def test_the_clock_bound_counts_what_the_cap_moves():
+    # Each Newton step assembles J and F and sets up its solve: with the Newton cap, those shrink too.
+    base = made_up_run("converged", 4, 10.0, 400, iterations=2.0, setup=0.5, assembly=3.0, network=2.0,
+                       validation=2.0, other=0.5)
+    prdp = made_up_run("prdp", 1, 5.5, 100, iterations=0.5, setup=0.125, assembly=0.75, network=2.0,
+                       validation=2.0, other=0.125)
+    runs = {"K_eps=4": base, "PRDP": prdp}
+    newton = tradeoff.savings(runs, refine="newton")
+    assert newton["max_wall_time_savings"] == pytest.approx(0.55)              # (2 + 0.5 + 3) / 10
+    assert newton["wall_time_savings"] == pytest.approx(0.45) and newton["newton_savings"] == 0.75
+    assert newton["predicted_wall_time_savings"] == pytest.approx(0.55 * 0.75)
+    assert ("the clock: the solver's iterations and the Newton steps' assembly and set-up are 55% of the "
+            "baseline's time, so PRDP can save at most 55% of the wall time here; its savings predict 41%, it "
+            "reached 45%") == tradeoff.summary_lines(newton)[3]
+    # refine = "inner" leaves the Newton steps as converged solves need: the iterations alone shrink, and a
+    # saving past their share is said to come from elsewhere.
+    inner = tradeoff.savings(runs, refine="inner")
+    assert (inner["max_wall_time_savings"], inner["capped_parts"]) == (pytest.approx(0.2), ["iterations"])
+    line = tradeoff.summary_lines(inner)[3]
+    assert line.startswith("the clock: the solver's iterations are 20% of the baseline's time, so PRDP can save "
+                           "at most 20% of the wall time here; its iteration saving predicts 15%, it reached 45% "
+                           "(past the bound: costs the cap does not move differ between the runs")
+    assert "past the bound" not in tradeoff.summary_lines(newton)[3]
 
 
 # ------------------------------------------------------------------ SIP and HIG on nonlinear-poisson
@@ -241,6 +361,44 @@ def test_hig_by_jacrev_is_the_state_dependent_jacobian_of_the_newton_solve(nonli
     assert not torch.allclose(HIG._physics_jacrev(physics, 2 * x, problem.output_size), by_jacrev, rtol=1e-3)
     with pytest.raises(ValueError, match="physics_jacobian must be"):
         HIG(torch.nn.Linear(2, 2)).jacobian(torch.zeros(1, 2), physics_jacobian="columns")
+
+
+def test_the_data_and_the_validation_are_not_counted_as_training():
+    sc = scene.parse(tiny_scene("sip", pde={"type": "nonlinear-poisson", "kappa": 0.05, "alpha": 2.0},
+                                optimizer={"epochs": 2}))
+    train = sc.data.train
+    # SIP's exact nonlinear inverse solves no PDE: nothing to count, from the first epoch on.
+    rows = runner.run_method(sc, "sip").rows
+    assert [(r["newton_steps"], r["forward_iterations"], r["total_iterations"]) for r in rows] == [(0, 0, 0)] * 2
+    # Backprop: one Newton solve and one adjoint LU solve per training sample per epoch, no more.
+    instance = InversionTask(sc, "backprop")
+    try:
+        assert (instance.layer.stats.newton_solves, instance.layer.stats.forward_iterations) == (0, 0)
+        assert instance.reference.stats.newton_solves == train + sc.data.validation
+        instance.train_step(torch.arange(train))
+        instance.validate()
+        assert (instance.layer.stats.newton_solves, instance.layer.stats.backward_iterations) == (train, train)
+    finally:
+        instance.close()
+    rows = runner.run_method(sc, "backprop").rows
+    assert per_epoch(rows, "backward_iterations") == [train] * 2
+    assert per_epoch(rows, "forward_iterations") == per_epoch(rows, "newton_steps")     # LU: one per step
+    # HIG's validation solves P(x0) too, on the reference layer.
+    hig = InversionTask(scene.parse(tiny_scene("hig", pde={"type": "nonlinear-poisson", "alpha": 2.0})), "hig")
+    try:
+        hig.validate()
+        assert hig.layer.stats.newton_solves == 0
+        assert hig.reference.stats.newton_solves == hig.train_size + 2 * hig.val_size
+    finally:
+        hig.close()
+
+
+def test_the_linear_sip_rows_count_the_inverse_solves_only():
+    sc = scene.parse(tiny_scene("sip", optimizer={"epochs": 3}))
+    rows = runner.run_method(sc, "sip").rows
+    # The exact linear inverse evaluates P(x0): one LU solve per training sample, every epoch the same.
+    assert per_epoch(rows, "forward_iterations") == [sc.data.train] * 3
+    assert [r["backward_iterations"] for r in rows] == [0] * 3
 
 
 @pytest.mark.parametrize("task", ["sip", "hig"])

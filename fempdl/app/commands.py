@@ -27,12 +27,6 @@ def execute(args) -> int:
     parallel.abort_on_error()  # under mpirun: one rank's error ends the job, never a hang
     if args.command != "scenes":
         parallel.fit_threads(args.threads)
-    if args.command != "scenes" and getattr(args, "parallel", None) is None and MPI.COMM_WORLD.size > 1:
-        # Without a mode every rank would train the same run and write the same files.
-        print(f"fempdl: running on {MPI.COMM_WORLD.size} ranks needs `fempdl run SCENE --parallel data|mesh`",
-              file=sys.stderr)
-        return 2
-
     try:
         if args.command == "scenes":
             return _scenes(args)
@@ -86,6 +80,11 @@ def _scenes(args) -> int:
 
 def _load_and_run(args) -> int:
     sc = scene.load(args.scene, args.set)
+    refusal = _ranks_refusal(args, sc, MPI.COMM_WORLD.size)
+    if refusal is not None:
+        if MPI.COMM_WORLD.rank == 0:
+            print(f"fempdl: {refusal}", file=sys.stderr)
+        return 2
     if args.epochs is not None:
         sc = dataclasses.replace(sc, optimizer=dataclasses.replace(sc.optimizer, epochs=args.epochs))
     out = _output_directory(args, sc)
@@ -124,6 +123,24 @@ def _library_log(every: int | None, rank: int):
         logger.propagate = propagate
 
 
+def _ranks_refusal(args, sc, ranks: int) -> str | None:
+    """Why the command cannot run ``sc`` on ``ranks`` processes as asked (None if it can): without a
+    ``--parallel`` mode every rank would train the same runs and write the same files."""
+    if ranks == 1 or getattr(args, "parallel", None) is not None:
+        return None
+    modes = spec_of(sc.task).parallel
+    if not modes:           # sip and hig scenes: check_parallel says why they train on one process
+        try:
+            runner.check_parallel(sc, "data")
+        except ValueError as err:
+            return str(err)
+    one_run = f"`fempdl run {sc.name} --parallel {'|'.join(modes)}`"
+    if args.command == "run":
+        return f"running on {ranks} ranks needs a mode: {one_run}"
+    return (f"`fempdl {args.command}` trains its runs on one process; run it without mpirun (one run on "
+            f"{ranks} ranks: {one_run})")
+
+
 def _output_directory(args, sc) -> Path:
     """--out, or runs/<scene name>[/tradeoff|/compare]; refused (RunDirectoryError) when it holds a run
     that neither --resume nor --overwrite says what to do with."""
@@ -151,7 +168,7 @@ def _command(args, sc, out: Path) -> int:
         return _methods(args, sc, progress, out)
     if args.command == "tradeoff":
         runs = tradeoff.sweep(sc, ks=args.ks, out_dir=out, progress=progress, overwrite=True)
-        split = tradeoff.savings(runs, stop_at=sc.optimizer.stop_at)
+        split = tradeoff.savings(runs, stop_at=sc.optimizer.stop_at, refine=sc.solver.refine)
         paths = tradeoff.write_report(sc, runs, split, out)
         print(tradeoff.comparison_table(runs))
         print("\n".join(tradeoff.summary_lines(split)))
@@ -179,7 +196,8 @@ def _command(args, sc, out: Path) -> int:
         mode, k, label = ("fixed", args.k, f"K={args.k}") if args.k else ("prdp", None, "PRDP")
         sub = out / (f"k{args.k}" if args.k else "prdp")
         runs[label] = runner.run(sc, mode, k, out_dir=sub, resume=_can_resume(args, sub),
-                                      k_eps_value=None if baseline is None else baseline.k_eps, **common)
+                                      k_eps_value=None if baseline is None else baseline.k_eps,
+                                      converged_caps=None if baseline is None else baseline.converged_caps, **common)
     if baseline is not None:
         runs[f"K_eps={baseline.k_eps}"] = baseline
     if MPI.COMM_WORLD.rank == 0:

@@ -18,6 +18,9 @@ from fempdl.app.schema import (NONLINEAR_PDES, POSITIVE, PDE_UNUSED, REQUIRED, S
 from fempdl.app.tasks import SPECS
 from fempdl.app.scene_budget import check_mesh, check_size
 
+# The presets of a Newton step's inner solve: LU or a Krylov method for a nonsymmetric Jacobian (no cg).
+NEWTON_PRESETS = ("lu", "jacobi", "gmres", "gmres-ilu")
+
 __all__ = ["Scene", "SceneError", "load", "available", "bundled_text", "parse", "schema_text"]
 
 
@@ -214,14 +217,14 @@ def _check_solver(values: dict, raw: dict, source: str) -> None:
 def _check_newton(solver: dict, given: dict, source: str) -> None:
     """[solver] of a Newton layer: ``refine`` says what K caps, and the inner solve must fit it."""
     refine = solver["refine"]
-    if solver["preset"] in ("cg", "schur"):
+    if solver["preset"] not in NEWTON_PRESETS:
         raise SceneError(f"{source}: [solver] preset {solver['preset']!r} does not fit a Newton step: the Jacobian of "
-                         "kappa (1 + alpha u^2) grad u is not symmetric (its 2 alpha u grad u term); choose lu, "
-                         "jacobi, gmres or gmres-ilu")
+                         "kappa (1 + alpha u^2) grad u is not symmetric (its 2 alpha u grad u term); choose "
+                         f"{', '.join(NEWTON_PRESETS[:-1])} or {NEWTON_PRESETS[-1]}")
     if refine != "newton" and solver["preset"] == "lu":
         raise SceneError(f"{source}: [solver] refine = {refine!r} caps the inner Krylov iterations, but preset 'lu' "
-                         "solves each Newton step directly; choose an iterative preset (jacobi, cg, gmres, "
-                         "gmres-ilu) or refine = 'newton'")
+                         f"solves each Newton step directly; choose an iterative preset "
+                         f"({', '.join(NEWTON_PRESETS[1:])}) or refine = 'newton'")
     if "inner_per_k" in given and refine != "both":
         raise SceneError(f"{source}: [solver] inner_per_k applies to refine = 'both' (K Newton steps of "
                          f"inner_per_k K inner iterations), not {refine!r}; remove it")

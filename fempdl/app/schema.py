@@ -241,7 +241,8 @@ class SolverConfig:
     refine: str | None = _key(str, "newton", doc="what K caps in a Newton layer (nonlinear PDEs): newton steps "
                                                  "(the inner solve converged), inner Krylov iterations per step "
                                                  "(Newton steps: as many as converged solves need), or both "
-                                                 "(K steps of inner_per_k K iterations)", choices=REFINE)
+                                                 "(K steps of inner_per_k K iterations, neither cap past what "
+                                                 "converged solves need)", choices=REFINE)
     inner_per_k: int | None = _key(int, 1, doc="inner iterations per Newton step per unit of K (refine = both)",
                                    minimum=1)
 

@@ -9,7 +9,12 @@ moves one number; :class:`NewtonCaps` is the PRDP target that says which cap it 
 * ``"inner"``: K Krylov iterations per step, the Newton cap as configured;
 * ``"both"``: N = K and ``inner_per_k`` * K Krylov iterations per step: both
   refinements move together, the inner solve staying ``inner_per_k`` times finer
-  than the Newton count.
+  than the Newton count. Once :func:`newton_k_eps` has measured what converged solves
+  need (:class:`ConvergedCaps`, kept as ``converged``), neither cap exceeds its own
+  converged value: N = min(K, N_eps) and min(``inner_per_k`` * K, inner_eps) iterations
+  per step, so that K_eps, the larger of the two in units of K, does not run the other
+  cap past convergence (K_eps Newton steps of K_eps iterations each where converged
+  solves take N_eps steps).
 
 Example:
     >>> ctrl = PRDP(NewtonCaps(layer, "both", inner_per_k=5), k0=1, dk=1, k_cap=8)
@@ -23,10 +28,24 @@ import torch
 
 from fempdl.core.checks import check_int
 from fempdl.layer.newton_layer import NonlinearSolveLayer
+from fempdl.layer.newton_unrolled import check_unrolled_newton
 
-__all__ = ["NewtonCaps", "REFINE", "newton_k_eps"]
+__all__ = ["ConvergedCaps", "NewtonCaps", "REFINE", "converged_caps", "newton_k_eps"]
 
 REFINE = ("newton", "inner", "both")
+
+
+@dataclasses.dataclass(frozen=True)
+class ConvergedCaps:
+    """What converged solves need: the most Newton steps of a solve (N_eps) and the most inner
+    iterations of a step (inner_eps), measured by :func:`converged_caps`."""
+
+    newton_steps: int
+    inner_iterations: int
+
+    def __post_init__(self):
+        check_int("ConvergedCaps.newton_steps", self.newton_steps, minimum=1)
+        check_int("ConvergedCaps.inner_iterations", self.inner_iterations, minimum=1)
 
 
 class NewtonCaps:
@@ -36,6 +55,10 @@ class NewtonCaps:
         layers: a :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` or a list of them.
         refine: ``"newton"``, ``"inner"`` or ``"both"``.
         inner_per_k: with ``"both"``, the inner iterations per step per unit of K (>= 1).
+
+    Attributes:
+        converged: the :class:`ConvergedCaps` that bound the caps under ``"both"`` (set by
+            :func:`newton_k_eps`, or assigned; None: unbounded).
     """
 
     def __init__(self, layers, refine: str = "newton", *, inner_per_k: int = 1):
@@ -52,7 +75,11 @@ class NewtonCaps:
             if direct:
                 raise ValueError(f"refine={refine!r} caps the inner Krylov solve, but layer(s) {direct} solve each "
                                  "step directly; give them an iterative inner solve (e.g. ksp='cg')")
+            for layer in self.layers:       # what the layer would say when PRDP first sets K
+                if layer.diff == "unrolled":
+                    check_unrolled_newton(layer.options.with_inner_max_it(inner_per_k))
         self.refine, self.inner_per_k = refine, inner_per_k
+        self.converged: ConvergedCaps | None = None
         self._k: int | None = None
 
     @property
@@ -68,14 +95,28 @@ class NewtonCaps:
     @max_it.setter
     def max_it(self, k: int) -> None:
         check_int("K", k, minimum=1)
+        newton, inner = k, (k if self.refine == "inner" else self.inner_per_k * k)
+        if self.refine == "both" and self.converged is not None:
+            newton, inner = min(newton, self.converged.newton_steps), min(inner, self.converged.inner_iterations)
         for layer in self.layers:
             if self.refine in ("newton", "both"):
-                layer.max_it = k
-            if self.refine == "inner":
-                layer.inner_max_it = k
-            elif self.refine == "both":
-                layer.inner_max_it = self.inner_per_k * k
+                layer.max_it = newton
+            if self.refine in ("inner", "both"):
+                layer.inner_max_it = inner
         self._k = k
+
+    @property
+    def k_eps(self) -> int:
+        """K_eps under the rule from ``converged``: N_eps (``"newton"``), inner_eps (``"inner"``), or the
+        larger of N_eps and ceil(inner_eps / inner_per_k) (``"both"``)."""
+        if self.converged is None:
+            raise ValueError("K_eps needs the converged caps: measure them with newton_k_eps first")
+        steps, per_step = self.converged.newton_steps, self.converged.inner_iterations
+        if self.refine == "newton":
+            return steps
+        if self.refine == "inner":
+            return per_step
+        return max(steps, math.ceil(per_step / self.inner_per_k))
 
     def caps(self) -> tuple:
         """(Newton cap, inner cap) of the first layer."""
@@ -86,15 +127,13 @@ class NewtonCaps:
         return f"NewtonCaps({len(self.layers)} layer(s), refine={self.refine!r}{extra}, K={self._k})"
 
 
-def newton_k_eps(caps: NewtonCaps, *, rtol: float = 1e-8, **controls) -> int:
-    """K_eps of a Newton layer under ``caps``' rule: the least K at which converged solves of
-    ``controls`` (the layer's keyword inputs, e.g. validation samples) need no more than the caps
-    allow, measured by a probe layer (Newton to ``rtol``, the inner solve to ``rtol``): the most
-    Newton steps (``"newton"``), the most inner iterations of a step (``"inner"``), or the larger of
-    the steps and ceil(inner iterations / inner_per_k) (``"both"``). Use it as PRDP's ``k_cap``."""
+def converged_caps(layer: NonlinearSolveLayer, *, rtol: float = 1e-8, **controls) -> ConvergedCaps:
+    """What converged solves of ``controls`` (the layer's keyword inputs, e.g. validation samples)
+    need, measured by a probe layer on ``layer``'s problem (Newton to ``rtol``, the inner solve to
+    ``rtol``; a direct inner solve as it is): the most Newton steps and the most inner iterations of
+    a step (at least 1 each)."""
     if not controls:
-        raise ValueError("give the inputs to measure K_eps on as keyword arguments")
-    layer = caps.layers[0]
+        raise ValueError("give the inputs to measure the converged caps on as keyword arguments")
     ksp = layer.options.ksp
     inner = ksp if ksp.direct else dataclasses.replace(ksp, max_it=None, rtol=rtol, atol=None, divtol=None,
                                                         adjoint=None, engine="petsc", options_prefix=None)
@@ -106,8 +145,13 @@ def newton_k_eps(caps: NewtonCaps, *, rtol: float = 1e-8, **controls) -> int:
         steps, per_step = probe.stats.max_newton_steps, probe.stats.max_forward_iterations
     finally:
         probe.close()
-    if caps.refine == "newton":
-        return max(steps, 1)
-    if caps.refine == "inner":
-        return max(per_step, 1)
-    return max(steps, math.ceil(per_step / caps.inner_per_k), 1)
+    return ConvergedCaps(max(steps, 1), max(per_step, 1))
+
+
+def newton_k_eps(caps: NewtonCaps, *, rtol: float = 1e-8, **controls) -> int:
+    """K_eps of a Newton layer under ``caps``' rule: the least K at which converged solves of
+    ``controls`` need no more than the caps allow (:attr:`NewtonCaps.k_eps`), from the
+    :func:`converged_caps` of its first layer, which it records as ``caps.converged`` (under
+    ``"both"`` they bound the caps from then on). Use it as PRDP's ``k_cap``."""
+    caps.converged = converged_caps(caps.layers[0], rtol=rtol, **controls)
+    return caps.k_eps

@@ -19,7 +19,7 @@ from fempdl import KSPOptions, NewtonOptions, NonlinearSolveLayer, forms
 from gathering import gathered     # tests/mpi, the script's folder
 
 CASES = {
-    # converged Newton with a line search, implicit gradient
+    # converged plain Newton (the default snes_type), implicit gradient
     "implicit": (NewtonOptions(rtol=1e-12, atol=1e-14, ksp="lu"), "implicit"),
     # plain Newton capped at 3 steps, each inner CG solve capped at 6 iterations
     "capped-cg": (NewtonOptions(snes_type="newton", max_it=3, ksp=KSPOptions.preset("cg", max_it=6)), "implicit"),

@@ -10,9 +10,12 @@ On a nonlinear PDE the task's layer is a Newton solve and K means what
 ``[solver] refine`` says (:class:`~fempdl.methods.newton_caps.NewtonCaps`, the
 task's ``caps``): Newton steps, inner iterations per step, or both. K_eps is
 then :func:`~fempdl.methods.newton_caps.newton_k_eps` under that rule, and
-fixed K, K_eps and PRDP all set K through the same ``caps``. With
-``refine = "inner"`` the Newton cap is the number of steps converged solves
-need on the reference inputs (measured like K_eps, the inner solve converged).
+fixed K, K_eps and PRDP all set K through the same ``caps``. The measurement
+behind K_eps (:class:`~fempdl.methods.newton_caps.ConvergedCaps`: the most Newton
+steps and inner iterations of a step converged solves need on the reference inputs)
+bounds the caps under ``refine = "both"``, and with ``refine = "inner"`` the Newton
+cap is its Newton steps. A run returns it (``RunResult.converged_caps``) so that
+later runs of the same scene take it (``converged_caps=``) instead of measuring again.
 """
 from __future__ import annotations
 
@@ -32,7 +35,7 @@ from fempdl.app.tasks.base import cap_target, set_cap
 from fempdl.bridge_torch import SolveLayer
 from fempdl.solve.options import KSPOptions
 from fempdl.core.parallel import shard
-from fempdl.methods.newton_caps import NewtonCaps, newton_k_eps
+from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps, converged_caps
 from fempdl.methods.prdp import PRDP
 
 __all__ = ["build_task", "check_parallel", "k_eps", "layer_options", "newton_caps_eps", "run", "run_method",
@@ -47,13 +50,16 @@ class RunResult:
     """What a run produced; ``rows`` are the per-epoch metrics of :class:`Trainer`.
 
     ``mode`` is a run mode of :data:`MODES`, or the training method of a sip or
-    hig scene (:mod:`fempdl.app.tasks.inversion`), whose runs have no ``k_eps``."""
+    hig scene (:mod:`fempdl.app.tasks.inversion`), whose runs have no ``k_eps``.
+    ``converged_caps``: on a Newton scene, what converged solves need (the measurement
+    behind ``k_eps``; pass it to :func:`run` with ``k_eps_value``), else None."""
 
     scene: str
     mode: str
     k_eps: int | None
     rows: list
     out_dir: str | None
+    converged_caps: ConvergedCaps | None = None
 
     @property
     def final_metric(self) -> float:
@@ -136,15 +142,20 @@ def layer_options(scene: Scene, k: int | None):
     return solver_options(scene, k)
 
 
-def newton_caps_eps(task, rtol: float, shard_over: MPI.Comm = MPI.COMM_SELF, refine: str | None = None) -> int:
-    """K_eps of a Newton task under its caps' rule (or ``refine``'s): :func:`newton_k_eps` on the task's
-    reference inputs (spread over ``shard_over``'s ranks, the maximum theirs)."""
-    caps = task.caps if refine is None else NewtonCaps(task.layers, refine)
+def newton_caps_eps(task, rtol: float, shard_over: MPI.Comm = MPI.COMM_SELF) -> int:
+    """K_eps of a Newton task under its caps' rule, as :func:`~fempdl.methods.newton_caps.newton_k_eps`
+    measures it: the :func:`converged_caps` of the task's reference inputs (spread over ``shard_over``'s
+    ranks, the maximum theirs), recorded as ``task.caps.converged``."""
     inputs = {name: torch.atleast_2d(value) for name, value in task.k_eps_rhs().items()}
     idx = shard(torch.arange(next(iter(inputs.values())).shape[0]), shard_over)
-    local = newton_k_eps(caps, rtol=rtol, **{name: value[idx] for name, value in inputs.items()}) if len(idx) else 1
-    most = shard_over.allreduce(local, op=MPI.MAX)
-    _log.info("K_eps = %d (Newton, refine=%s, to rtol %s)", most, caps.refine, rtol)
+    local = (converged_caps(task.caps.layers[0], rtol=rtol, **{name: value[idx] for name, value in inputs.items()})
+             if len(idx) else ConvergedCaps(1, 1))
+    task.caps.converged = ConvergedCaps(*(shard_over.allreduce(count, op=MPI.MAX)
+                                          for count in (local.newton_steps, local.inner_iterations)))
+    most = task.caps.k_eps
+    _log.info("K_eps = %d (Newton, refine=%s, to rtol %s; what converged solves take at most: Newton steps %d, "
+              "inner iterations per step %d)", most, task.caps.refine, rtol, task.caps.converged.newton_steps,
+              task.caps.converged.inner_iterations)
     return most
 
 
@@ -196,7 +207,7 @@ def run_settings(scene: Scene, **settings) -> dict:
 
 def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None = None, resume: bool = False,
         epochs: int | None = None, progress: bool = False, k_eps_value: int | None = None,
-        stop_after: int | None = None, parallel: str | None = None,
+        converged_caps: ConvergedCaps | None = None, stop_after: int | None = None, parallel: str | None = None,
         comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None, save: bool = False,
         tensorboard: bool = False, overwrite: bool = False,
         checkpoint_every: float = CHECKPOINT_EVERY) -> RunResult:
@@ -211,7 +222,8 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
     writes the metrics as TensorBoard scalars into ``out_dir``/tensorboard. An
     ``out_dir`` holding an earlier run needs ``resume`` (continue it) or
     ``overwrite`` (replace it). ``checkpoint_every``: the seconds between writes of the files
-    (:class:`~fempdl.app.runs.training.Trainer`)."""
+    (:class:`~fempdl.app.runs.training.Trainer`). ``k_eps_value`` and, on a Newton scene,
+    ``converged_caps`` (an earlier run's ``RunResult.converged_caps``) are taken instead of measured."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
     if save and (out_dir is None or not spec_of(scene.task).writes_fields):
@@ -221,7 +233,8 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
         raise ValueError("give k exactly when mode='fixed'")
     task = build_task(scene, layer_options(scene, k or 1), parallel, comm, seed)
     try:
-        keps, prdp = _set_caps(task, scene, mode, k, k_eps_value, comm if parallel == "data" else MPI.COMM_SELF)
+        keps, prdp = _set_caps(task, scene, mode, k, k_eps_value, converged_caps,
+                               comm if parallel == "data" else MPI.COMM_SELF)
         trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=_batch(scene),
                           out_dir=out_dir, prdp=prdp, seed=scene.data.seed if seed is None else seed,
                           progress=progress, tensorboard=_board_dir(out_dir, tensorboard),
@@ -233,26 +246,32 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
             save_fields(task, out_dir, title=f"{scene.name}, {mode}" + (f" K={k}" if k else ""))
     finally:
         task.close()
+    caps = getattr(task, "caps", None)
     return RunResult(scene=scene.name, mode=mode, k_eps=keps, rows=rows,
-                     out_dir=None if out_dir is None else str(out_dir))
+                     out_dir=None if out_dir is None else str(out_dir),
+                     converged_caps=caps.converged if isinstance(caps, NewtonCaps) else None)
 
 
 def _set_caps(task, scene: Scene, mode: str, k: int | None, k_eps_value: int | None,
-              shard_over: MPI.Comm) -> tuple[int, PRDP | None]:
+              converged: ConvergedCaps | None, shard_over: MPI.Comm) -> tuple[int, PRDP | None]:
     """K_eps (measured unless given) and the caps of ``mode``: K (fixed), K_eps (converged) or the
-    PRDP controller that moves them, all through the task's :func:`cap_target`."""
+    PRDP controller that moves them, all through the task's :func:`cap_target`. A Newton task's
+    converged caps are measured (with K_eps) unless given, or unless its rule needs none of them."""
     newton = isinstance(getattr(task, "caps", None), NewtonCaps)
-    if k_eps_value is not None:
+    if newton:
+        if converged is not None:
+            task.caps.converged = converged
+        elif k_eps_value is None or task.caps.refine != "newton":
+            newton_caps_eps(task, scene.data.k_eps_rtol, shard_over)
+        keps = task.caps.k_eps if k_eps_value is None else k_eps_value
+    elif k_eps_value is not None:
         keps = k_eps_value
-    elif newton:
-        keps = newton_caps_eps(task, scene.data.k_eps_rtol, shard_over)
     else:
         keps = k_eps(task, solver_options(scene, None, scene.data.k_eps_rtol), shard_over=shard_over,
                      batch=_batch(scene))
     if newton and task.caps.refine == "inner":     # K caps the inner solve; Newton takes the converged steps
-        steps = newton_caps_eps(task, scene.data.k_eps_rtol, shard_over, refine="newton")
         for layer in task.layers:
-            layer.max_it = steps
+            layer.max_it = task.caps.converged.newton_steps
     target = cap_target(task)
     if mode == "prdp":
         return keps, PRDP(target, dataclasses.replace(scene.prdp, k_cap=scene.prdp.k_cap or keps))

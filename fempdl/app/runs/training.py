@@ -6,7 +6,8 @@ validates, steps the PRDP controller, and writes
 ``metrics.csv``/``metrics.json`` (one row per epoch: losses, K, cumulative
 iterations and times, and ``time_<part>`` for each of :data:`TIME_PARTS`
 (:mod:`fempdl.app.runs.timesplit`), adding up to ``wall_time``; a task with Newton layers adds
-``newton_steps``, its iterations being the inner Krylov ones) and ``checkpoint.pt`` (model,
+``newton_steps``, forward and unrolled backward, and ``backward_newton_steps``, the latter apart,
+its iterations being the inner Krylov ones; rows written before have no ``backward_newton_steps``) and ``checkpoint.pt`` (model,
 optimizer, scheduler, PRDP, layer counters, each rank's task state, RNG states, rows) after
 the last epoch and after every epoch that ends ``checkpoint_every`` seconds or more after the
 files were last written (every epoch of a run whose epochs take longer). Every file is written
@@ -59,8 +60,8 @@ _log = logging.getLogger(__name__)
 
 METRIC_FIELDS = ("epoch", "train_loss", "val_metric", "k", "forward_iterations", "backward_iterations",
                  "total_iterations", "solve_time", "train_time", "wall_time") + TIME_FIELDS
-# Newton layers add their steps (forward and unrolled backward) to the rows.
-NEWTON_FIELDS = ("newton_steps",)
+# Newton layers add their steps (forward and unrolled backward) and the unrolled backward ones apart.
+NEWTON_FIELDS = ("newton_steps", "backward_newton_steps")
 # Seconds of a run between writes of its files: a checkpoint costs milliseconds (a network's and
 # its optimizer's state), which after every epoch of a fast scene would be a share of the run.
 CHECKPOINT_EVERY = 1.0
@@ -284,8 +285,11 @@ class Trainer:
                **{f"time_{part}": seconds for part, seconds in self._clock.seconds.items()}}
         newton = [layer.stats for layer in self.task.layers if hasattr(layer.stats, "newton_steps")]
         if newton:      # Newton layers: their iterations above are the inner ones; the steps come apart
-            steps = sum(s.newton_steps + s.backward_newton_steps for s in newton)
-            row["newton_steps"] = self.comm.allreduce(steps) if self.parallel == "data" else steps
+            steps = [sum(s.newton_steps + s.backward_newton_steps for s in newton),
+                     sum(s.backward_newton_steps for s in newton)]
+            if self.parallel == "data":
+                steps = [self.comm.allreduce(c) for c in steps]
+            row["newton_steps"], row["backward_newton_steps"] = steps
         return row
 
     # -------------------------------------------------------------- files
@@ -304,7 +308,7 @@ class Trainer:
 
         def write_csv(p: Path) -> None:
             with p.open("w", newline="") as fh:
-                extra = tuple(key for key in NEWTON_FIELDS if self.rows and key in self.rows[0])
+                extra = tuple(key for key in NEWTON_FIELDS if any(key in row for row in self.rows))
                 writer = csv.DictWriter(fh, fieldnames=METRIC_FIELDS + extra)
                 writer.writeheader()
                 writer.writerows(self.rows)

@@ -10,7 +10,7 @@ rule: ``caps`` is what the runner sets K on (fixed K, K_eps, PRDP). With
 ``[solver] warm_start`` Newton starts from the state being advanced, so K = 1 with
 ``refine = "newton"`` is one linearised step from it (the PRDP paper's Picard-like
 simplification: its matrix is Newton's Jacobian at that state). The reference data
-and validation use converged Newton (line search, LU, rtol 1e-10) from the state.
+and validation use converged plain Newton (full steps, LU, rtol 1e-10) from the state.
 """
 from __future__ import annotations
 
