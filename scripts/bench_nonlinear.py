@@ -21,7 +21,10 @@ Per sample, both sides run the same mathematics:
 Both sides' solutions and gradients are compared (max relative difference) and
 their Newton steps recorded. Timing: each is warmed up once, then the two are
 interleaved ``--repeats`` times; the figure is the ratio of the minima (other
-processes only add time). Target: fempdl / baseline <= 1.15. Writes
+processes only add time). Target: fempdl / baseline <= 1.15. Each row also holds
+the medians of the parts (``median_parts_s``): both sides' Newton solves and
+adjoints, and fempdl's layer around them (torch operator, checks, conversions);
+``layer_alone_min_s`` is that layer with the solves replaced by stored results. Writes
 ``bench-results/bench_nonlinear_<stack>.json``.
 
 Run (from the repository root)::
@@ -135,11 +138,13 @@ class DolfinxNewton:
         self.m.x.array[:n_m] = control
         self.m.x.scatter_forward()
         self.u.x.array[:] = 0.0
+        t0 = time.perf_counter()
         if self.newton is None:
             self.problem.solve()
             self.steps = self.problem.solver.getIterationNumber()
         else:
             self.steps, _ = self.newton.solve(self.u)
+        self.newton_time = time.perf_counter() - t0
         n = len(W)
         state = self.u.x.array[:n].copy()
         self.A.zeroEntries()
@@ -153,6 +158,41 @@ class DolfinxNewton:
         self.lam.x.scatter_forward()
         _dolfinx.assemble_vector_into(self.grad_vec, self.grad_form)
         return state, self.grad_vec.getArray(readonly=True)[:n_m].copy()
+
+
+class PartTimer:
+    """Times a NonlinearSystem's ``solve`` (the Newton solves) and ``adjoint`` inside the layer's calls:
+    the rest of a forward + backward is the layer's torch operator, its checks and conversions."""
+
+    def __init__(self, system):
+        self.last = {}
+        for part in ("solve", "adjoint"):
+            setattr(system, part, self._timed(part, getattr(system, part)))
+
+    def _timed(self, part, method):
+        def call(*args, **kwargs):
+            t0 = time.perf_counter()
+            result = method(*args, **kwargs)
+            self.last[part] = time.perf_counter() - t0
+            return result
+        return call
+
+
+def layer_alone(layer, name: str, control: np.ndarray, W: np.ndarray, repeats: int) -> float:
+    """The layer's forward + backward with its system's solve and adjoint replaced by their stored
+    results: the torch side alone, on warm caches (the minimum over ``10 * repeats`` calls)."""
+    system = layer.system
+    controls = {name: control[None, :]}
+    U = system.solve(controls, 1)
+    grads = system.adjoint(controls, U, W[None, :], [name])
+    system.solve = lambda *args, **kwargs: U.copy()
+    system.adjoint = lambda *args, **kwargs: {k: v.copy() for k, v in grads.items()}
+    times = []
+    for _ in range(10 * repeats):
+        t0 = time.perf_counter()
+        fempdl_forward_backward(layer, name, control, W)
+        times.append(time.perf_counter() - t0)
+    return min(times)
 
 
 def fempdl_forward_backward(layer, name: str, control: np.ndarray, W: np.ndarray):
@@ -173,9 +213,12 @@ def bench_case(case: str, size: str, snes_type: str, repeats: int, rng) -> dict:
     u_base, m_base = dolfinx.fem.Function(u.function_space), dolfinx.fem.Function(m.function_space)
     Fb = ufl.replace(F, {u: u_base, m: m_base})
     baseline = DolfinxNewton(Fb, u_base, bcs, m_base)
+    parts = PartTimer(layer.system)
     ours = fempdl_forward_backward(layer, name, control, W)       # warm-up: JIT, symbolic factorisation
     theirs = baseline.forward_backward(control, W)
     times = {"fempdl": [], "dolfinx": []}
+    split = {"fempdl_newton": [], "fempdl_adjoint": [], "fempdl_layer": [], "dolfinx_newton": [],
+             "dolfinx_adjoint": []}
     for _ in range(repeats):
         t0 = time.perf_counter()
         ours = fempdl_forward_backward(layer, name, control, W)
@@ -184,6 +227,11 @@ def bench_case(case: str, size: str, snes_type: str, repeats: int, rng) -> dict:
         t2 = time.perf_counter()
         times["fempdl"].append(t1 - t0)
         times["dolfinx"].append(t2 - t1)
+        split["fempdl_newton"].append(parts.last["solve"])
+        split["fempdl_adjoint"].append(parts.last["adjoint"])
+        split["fempdl_layer"].append(t1 - t0 - parts.last["solve"] - parts.last["adjoint"])
+        split["dolfinx_newton"].append(baseline.newton_time)
+        split["dolfinx_adjoint"].append(t2 - t1 - baseline.newton_time)
 
     def rel(a, b):
         return float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-300))
@@ -193,8 +241,12 @@ def bench_case(case: str, size: str, snes_type: str, repeats: int, rng) -> dict:
         "newton_steps": {"fempdl": layer.stats.last_newton.steps, "dolfinx": int(baseline.steps)},
         "max_rel_diff": {"solution": rel(ours[0], theirs[0]), "gradient": rel(ours[1], theirs[1])},
         "times_s": times, "min_s": {k: min(v) for k, v in times.items()},
+        # Where the difference lies: medians of each part over the repeats (the Newton solves, the
+        # adjoint with its gradient assembly, and for fempdl the torch layer around them).
+        "median_parts_s": {k: float(np.median(v)) for k, v in split.items()},
     }
     row["ratio"] = row["min_s"]["fempdl"] / row["min_s"]["dolfinx"]
+    row["layer_alone_min_s"] = layer_alone(layer, name, control, W, repeats)
     layer.close()
     return row
 
