@@ -96,10 +96,9 @@ class NonlinearSystem:
         self._forms = ControlForms(problem, self._b, functools.partial(Timer, self.stats, "assembly_time"))
         self._step_vectors: dict = {}
         self._force_step = force_step
+        self._stopped_on_error = False
         self._jacobian_controls: list = []       # named when an assembled Jacobian is singular
-        self._snes = None
-        self._ksp = None
-        self._adjoint_solver = None
+        self._snes = self._ksp = self._adjoint_solver = None
         self._options = options
         self._build(options)
         self._recording: list | None = None
@@ -188,8 +187,7 @@ class NonlinearSystem:
             ksp = snes.getKSP()
             reason = int(ksp.getConvergedReason())
             iterations = max(int(ksp.getIterationNumber()), 1 if self._options.ksp.direct else 0)
-            ksp_options = self._options.ksp
-            capped = ksp_options.capped and reason == DIVERGED_MAX_IT
+            capped = self._options.ksp.capped and reason == DIVERGED_MAX_IT
             self.stats.record("forward", SolveStats(
                 iterations=iterations, reason=reason, reason_name=REASON_NAMES.get(reason, str(reason)),
                 residual_norm=None, time=0.0, capped=capped, ok=reason > 0 or capped))
@@ -218,6 +216,8 @@ class NonlinearSystem:
 
     def _solve_one(self, guess: np.ndarray | None, paths: list | None) -> np.ndarray:
         p = self.problem
+        if self._stopped_on_error:
+            self._renew()
         sol = self._sol
         if guess is None:
             sol.set(0.0)
@@ -234,7 +234,7 @@ class NonlinearSystem:
         try:
             self._snes.solve(None, sol)
         except PETSc.Error as err:
-            self._renew()
+            self._stopped_on_error = True        # renewed by the next solve, on every rank together
             if err.__cause__ is not None and not isinstance(err.__cause__, PETSc.Error):
                 raise err.__cause__ from None      # a callback's own error (a check, Ctrl-C), not PETSc's
             raise
@@ -272,7 +272,9 @@ class NonlinearSystem:
 
     def _renew(self) -> None:
         """Fresh solvers and iterate after a solve that stopped on an error: PETSc leaves the vectors a
-        callback was reading locked (newer versions then refuse to write them)."""
+        callback was reading locked (newer versions then refuse to write them). Collective: it runs at
+        the next solve, not where the error surfaced (Ctrl-C may reach one rank only)."""
+        self._stopped_on_error = False
         self._free_solvers()
         self._sol.destroy()
         self._sol = _dolfinx.create_vector(self.problem.F_form)
