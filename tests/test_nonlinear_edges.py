@@ -16,7 +16,7 @@ import torch
 from mpi4py import MPI
 import dolfinx.mesh
 
-from fempdl import NewtonOptions, NonlinearProblem, NonlinearSolveLayer, forms
+from fempdl import NewtonOptions, NonlinearProblem, NonlinearSolveLayer, SolverFailedError, SolverWarning, forms
 
 F64 = torch.float64
 LU = NewtonOptions(rtol=1e-12, atol=1e-14, ksp="lu")
@@ -80,15 +80,40 @@ def test_an_implicit_solve_from_a_solution_takes_no_step(prob):
 
 # ------------------------------------------------------------------ a singular Jacobian
 @pytest.mark.parametrize("max_it", [2, None])
-def test_a_singular_jacobian_is_refused_in_the_forward_naming_the_control(prob, max_it):
+def test_a_singular_jacobian_stops_newton_naming_the_control(prob, max_it):
     """kappa = 0 empties J's interior rows: MUMPS would return a tiny finite step and the capped solve
-    would look fine. The check names kappa (f is not in J)."""
+    would look fine. Newton stops there as a named failure (f is not in J, so only kappa is named),
+    raised or warned like any other."""
     f, _ = inputs(prob)
     layer = NonlinearSolveLayer(prob, NewtonOptions(ksp="lu", max_it=max_it))
-    with pytest.raises(ValueError, match=r"25 empty rows \(it is singular\) with control\(s\) \['kappa'\]"):
+    with pytest.raises(SolverFailedError, match=r"met a Jacobian it cannot solve with \(25 empty rows \(it is "
+                                                r"singular\), controls \['kappa'\]\): SNES reason "
+                                                r"DIVERGED_JACOBIAN_DOMAIN after 0 step"):
         layer(f=f, kappa=torch.zeros_like(f))
-    # The layer still solves afterwards.
+    assert layer.stats.newton_failures == 1
+    # The layer still solves afterwards (PETSc >= 3.2x leaves the failed solve's vectors locked).
     assert layer(f=f, kappa=torch.ones_like(f)).abs().max() > 0.1
+    warn = NonlinearSolveLayer(prob, NewtonOptions(ksp="lu", max_it=max_it, on_failure="warn"))
+    with pytest.warns(SolverWarning, match="DIVERGED_JACOBIAN_DOMAIN"):
+        u = warn(f=f, kappa=torch.zeros_like(f))
+    assert torch.all(u == 0)                # the iterate: the zero start, boundary values 0
+    layer.close()
+    warn.close()
+
+
+def test_a_jacobian_singular_at_the_start_only_is_a_newton_failure_not_a_coefficient_error():
+    """q(u) = u^2 from zero: J(0) has no interior entries though every coefficient is fine. The message
+    names the degenerate start; a start away from zero converges."""
+    msh = dolfinx.mesh.create_unit_square(MPI.COMM_WORLD, 6, 6)
+    prob = forms.nonlinear_diffusion.problem(msh, controls=("f",), q=lambda u: u ** 2)
+    f = torch.full((prob.control_size("f"),), 1.0, dtype=F64)
+    layer = NonlinearSolveLayer(prob, NewtonOptions(ksp="lu"))
+    with pytest.raises(SolverFailedError, match=r"q\(u\) that vanishes at the initial guess"):
+        layer(f=f)
+    X = prob.dof_coordinates()
+    guess = torch.from_numpy(0.5 + 0.0 * X[:, 0])
+    u = layer(f=f, initial_guess=guess)
+    assert layer.stats.last_newton.ok and torch.isfinite(u).all()
     layer.close()
 
 

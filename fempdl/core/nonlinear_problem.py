@@ -44,8 +44,8 @@ class NonlinearProblem(ProblemBase):
             the Function ``u`` appears.
         u: the unknown, a ``dolfinx.fem.Function`` on the test function's space.
             Solves write each sample's solution into it (the layer's work state).
-        bcs: Dirichlet conditions on u's space (``dolfinx.fem.dirichletbc``); a
-            solution takes their values on the boundary.
+        bcs: Dirichlet conditions on u's space (``dolfinx.fem.dirichletbc``), a list or
+            one; a solution takes their values on the boundary.
         controls: ``{name: dolfinx.fem.Function}`` among F's coefficients, on u's mesh.
         J: the Jacobian, a bilinear form (test, trial on u's space); default
             ``ufl.derivative(F, u, TrialFunction(V))``. A different J (e.g. a Picard
@@ -59,7 +59,7 @@ class NonlinearProblem(ProblemBase):
         step: the work Function of a Newton step delta (unrolled derivatives).
         F_form, J_form: the compiled residual and Jacobian (the iteration's).
         exact_J_form: the compiled dF/du (the implicit gradient's; ``J_form`` unless J was given).
-        jacobian_controls: names of controls J depends on.
+        jacobian_controls, exact_jacobian_controls: names of the controls J and dF/du depend on.
     """
 
     def __init__(self, F: ufl.Form, u: dolfinx.fem.Function, bcs=(), controls: Mapping | None = None,
@@ -99,8 +99,8 @@ class NonlinearProblem(ProblemBase):
         # The implicit gradient needs dF/du whatever J the iteration uses (a Picard J changes the
         # iteration, not the solution): compiled apart only when J was given.
         self.exact_J_form = _dolfinx.compile_form(exact_J) if given_J else self.J_form
-        J_coefficients = set(expand_derivatives(J).coefficients())
-        self.jacobian_controls = frozenset(n for n, fn in checked.items() if fn in J_coefficients)
+        self.jacobian_controls = _controls_in(J, checked)
+        self.exact_jacobian_controls = _controls_in(exact_J, checked) if given_J else self.jacobian_controls
         self._test = F.arguments()[0]
         self._forms: dict = {}
 
@@ -142,3 +142,10 @@ class NonlinearProblem(ProblemBase):
     def __repr__(self) -> str:
         return (f"NonlinearProblem(V={_dolfinx.element_family(self.V)} {_dolfinx.element_degree(self.V)}, "
                 f"n={self.output_size}, controls={list(self.control_names)})")
+
+
+def _controls_in(form: ufl.Form, controls: Mapping) -> frozenset:
+    """Names of the ``controls`` among the coefficients of ``form`` once its derivatives are expanded."""
+    coefficients = set(expand_derivatives(form).coefficients())
+    return frozenset(name for name, fn in controls.items() if fn in coefficients)
+

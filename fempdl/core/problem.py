@@ -45,7 +45,7 @@ class Problem(ProblemBase):
     Args:
         a: bilinear UFL form (test function number 0, trial function number 1).
         L: linear UFL form on the same test space.
-        bcs: Dirichlet conditions on the trial space (``dolfinx.fem.dirichletbc``).
+        bcs: Dirichlet conditions on the trial space (``dolfinx.fem.dirichletbc``): a list, or one.
         controls: ``{name: dolfinx.fem.Function}``; each Function must appear as a
             coefficient of ``a`` or ``L`` and live on the same mesh.
 

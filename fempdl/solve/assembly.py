@@ -22,7 +22,7 @@ from fempdl.core import _dolfinx
 from fempdl.core.problem import Problem
 from fempdl.solve.petsc import petsc_to_scipy
 
-__all__ = ["check_operator", "check_symmetric_factor", "check_symmetric", "SYMMETRIC_PC_TYPES", "ControlValues", "KeptMatrices", "Timer", "attach_nullspace", "set_owned", "fingerprint",
+__all__ = ["check_operator", "operator_defect", "check_symmetric_factor", "check_symmetric", "SYMMETRIC_PC_TYPES", "ControlValues", "KeptMatrices", "Timer", "attach_nullspace", "set_owned", "fingerprint",
            "fingerprint_matches", "assemble_scipy"]
 
 
@@ -205,12 +205,25 @@ def assemble_scipy(form) -> sp.csr_matrix:
 
 
 def check_operator(A: PETSc.Mat, controls: list[str]) -> None:
-    """Raise ValueError on every rank when the assembled ``A`` has a NaN/inf entry or an empty row.
+    """Raise ValueError on every rank when the assembled ``A`` has a NaN/inf entry or an empty row
+    (:func:`operator_defect`). The message names ``controls``, the matrix controls set for this assembly."""
+    what = operator_defect(A)
+    if what is None:
+        return
+    source = (f"control(s) {controls}" if controls else
+              "the problem's coefficients (no matrix control was passed: check its fixed Functions and Constants)")
+    raise ValueError(f"the assembled matrix has {what} with {source}; check for a zero or non-finite "
+                     "coefficient (e.g. kappa = 0 somewhere) or a missing Dirichlet condition")
+
+
+def operator_defect(A: PETSc.Mat) -> str | None:
+    """What makes the assembled ``A`` unusable, the same answer on every rank: ``"NaN or inf entries"``,
+    ``"N empty rows (it is singular)"``, or ``None``.
 
     An empty row is a singular matrix, and neither a factorisation nor Jacobi says so: MUMPS returns
     a tiny or huge finite vector, PCJACOBI takes 1 for the zero diagonal and iterates on. It is what
-    a zero coefficient gives (kappa = 0 on a node's support); Dirichlet rows hold 1. The message
-    names ``controls``, the matrix controls set for this assembly. Costs a pass over the entries."""
+    a zero coefficient gives (kappa = 0 on a node's support); Dirichlet rows hold 1. Costs a pass
+    over the entries."""
     finite = np.isfinite(A.norm(PETSc.NormType.INFINITY))   # the largest row sum: inf or NaN iff an entry is
     diagonal = A.getDiagonal()
     suspects = np.flatnonzero(diagonal.getArray(readonly=True) == 0.0)
@@ -224,12 +237,8 @@ def check_operator(A: PETSc.Mat, controls: list[str]) -> None:
     if comm.getSize() > 1:
         empty = comm.tompi4py().allreduce(empty)
     if finite and not empty:
-        return
-    source = (f"control(s) {controls}" if controls else
-              "the problem's coefficients (no matrix control was passed: check its fixed Functions and Constants)")
-    what = "NaN or inf entries" if not finite else f"{empty} empty row{'s' if empty > 1 else ''} (it is singular)"
-    raise ValueError(f"the assembled matrix has {what} with {source}; check for a zero or non-finite "
-                     "coefficient (e.g. kappa = 0 somewhere) or a missing Dirichlet condition")
+        return None
+    return "NaN or inf entries" if not finite else f"{empty} empty row{'s' if empty > 1 else ''} (it is singular)"
 
 
 #: Preconditioners that read only one triangle of A: right only for a symmetric A.

@@ -128,6 +128,12 @@ class NewtonOptions:
             return dict(rtol=0.0, atol=0.0, stol=0.0, max_it=self.max_it)
         return dict(rtol=self.rtol, atol=self.atol, stol=0.0, max_it=self.converged_max_it)
 
+    def tolerances_met(self, residual_norms) -> bool:
+        """Whether the last of ||F(u_0)||, ..., ||F(u_k)|| meets the uncapped tolerances (``rtol``
+        relative to the first, or ``atol``)."""
+        return bool(residual_norms) and math.isfinite(residual_norms[-1]) and (
+            residual_norms[-1] <= self.rtol * residual_norms[0] or residual_norms[-1] <= self.atol)
+
     def with_max_it(self, max_it: int | None) -> "NewtonOptions":
         """A copy with the Newton cap moved."""
         return dataclasses.replace(self, max_it=max_it)

@@ -88,6 +88,11 @@ def report_newton_failure(options, stats: NewtonSolveStats, inner_reason: str | 
         cause = "the residual became NaN or inf"
         fix = ("the load or the controls may be beyond what the material model allows (e.g. an inverted element); "
                "reduce the load, start from a better initial_guess, or use snes_type='newtonls' with a line search")
+    elif stats.reason_name == "DIVERGED_JACOBIAN_DOMAIN":
+        cause = f"met a Jacobian it cannot solve with ({inner_reason})"
+        fix = ("J(u) at that iterate is singular: a zero coefficient (e.g. kappa = 0 on a node's support) or a "
+               "degenerate state (a conductivity q(u) that vanishes at the initial guess, such as q = u^2 from "
+               "zero); check the coefficients, or start from another initial_guess")
     elif stats.reason_name == "DIVERGED_MAX_IT":
         cause = "did not reach its tolerance"
         fix = "raise converged_max_it, loosen rtol/atol, start from a better initial_guess, or load in increments"

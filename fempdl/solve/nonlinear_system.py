@@ -1,25 +1,22 @@
 """The discrete system of a NonlinearProblem: batched Newton solves and their adjoints on arrays.
 
-:class:`NonlinearSystem` owns the PETSc objects of one
-:class:`~fempdl.core.nonlinear_problem.NonlinearProblem` for one
-:class:`~fempdl.solve.newton_options.NewtonOptions` (Jacobian, residual and
-solution vectors, a PETSc SNES whose KSP is the inner solve, and a
-:class:`~fempdl.ksp_adjoint.CappedSolver` for transposed solves), and works on
-NumPy arrays of owned DOF values, one row per sample:
+:class:`NonlinearSystem` owns the PETSc objects of one :class:`~fempdl.core.nonlinear_problem.NonlinearProblem`
+for one :class:`~fempdl.solve.newton_options.NewtonOptions` (Jacobian, residual and solution vectors, a
+PETSc SNES whose KSP is the inner solve, and a :class:`~fempdl.ksp_adjoint.CappedSolver` for transposed
+solves), and works on NumPy arrays of owned DOF values, one row per sample:
 
-* :meth:`solve` — per sample: set the controls, put the boundary values into
-  the initial guess (zero or given) and run SNES (``max_it`` steps, or to the
-  tolerances); optionally keep every iterate u_0 ... u_N (a :class:`NewtonPath`);
-* :meth:`adjoint` — the implicit gradient at the returned states:
-  J(u)^T lam = g (BC entries zeroed, the inner solve's adjoint options), then
-  dJ/dm = -d/dm F(u, lam; m) by assembling the problem's gradient forms;
-* :meth:`unrolled_adjoint` — the exact reverse pass of the plain Newton map
-  that was run: per step, backwards, mu = J(u_k)^{-T} u_bar, then
-  u_bar <- u_bar + a dQ/du and m_bar += a dQ/dm
+* :meth:`solve` — per sample: set the controls, put the boundary values into the initial guess (zero or
+  given) and run SNES (``max_it`` steps, or to the tolerances); optionally keep every iterate
+  u_0 ... u_N (a :class:`NewtonPath`);
+* :meth:`adjoint` — the implicit gradient at the returned states: J(u)^T lam = g (BC entries zeroed,
+  the inner solve's adjoint options), then dJ/dm = -d/dm F(u, lam; m) by assembling the problem's
+  gradient forms;
+* :meth:`unrolled_adjoint` — the exact reverse pass of the plain Newton map that was run: per step,
+  backwards, mu = J(u_k)^{-T} u_bar, then u_bar <- u_bar + a dQ/du and m_bar += a dQ/dm
   (:class:`~fempdl.core.nonlinear_problem.NonlinearProblem`'s step forms).
 
-Shapes: ``controls[name]`` is (B, n_m) (broadcast views are fine); solutions,
-incoming gradients and adjoints are (B, n), n = ``problem.output_size``.
+Shapes: ``controls[name]`` is (B, n_m) (broadcast views are fine); solutions, incoming gradients and
+adjoints are (B, n), n = ``problem.output_size``.
 """
 from __future__ import annotations
 
@@ -36,7 +33,8 @@ from petsc4py import PETSc
 from fempdl.core import _dolfinx
 from fempdl.core.nonlinear_problem import NonlinearProblem
 from fempdl.ksp_adjoint import CappedSolver
-from fempdl.solve.assembly import ControlValues, Timer, attach_nullspace, check_operator, check_symmetric_factor, set_owned
+from fempdl.solve.assembly import (ControlValues, Timer, attach_nullspace, check_operator, check_symmetric_factor,
+                                   operator_defect, set_owned)
 from fempdl.solve.control_forms import ControlForms
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.newton_stats import (SNES_REASON_NAMES, NewtonCumulativeStats, NewtonSolveStats,
@@ -55,6 +53,11 @@ _LAND = MPI.LAND
 # SNES's stops of a line search or trust region that cannot decrease ||F|| any further.
 _STALLED = frozenset(getattr(PETSc.SNES.ConvergedReason, name) for name in ("DIVERGED_LINE_SEARCH", "DIVERGED_TR_DELTA"))
 _CONVERGED_EARLY = PETSc.SNES.ConvergedReason.CONVERGED_FNORM_RELATIVE
+_SINGULAR_JACOBIAN = PETSc.SNES.ConvergedReason.DIVERGED_JACOBIAN_DOMAIN
+
+
+class _SingularJacobian(Exception):
+    """Raised from the Jacobian callback to stop SNES at a J it cannot solve with."""
 
 
 @dataclass
@@ -97,7 +100,8 @@ class NonlinearSystem:
         self._step_vectors: dict = {}
         self._force_step = force_step
         self._stopped_on_error = False
-        self._jacobian_controls: list = []       # named when an assembled Jacobian is singular
+        self._called_controls: frozenset = frozenset()     # named when an assembled Jacobian is singular
+        self._jacobian_defect: str | None = None
         self._snes = self._ksp = self._adjoint_solver = None
         self._options = options
         self._build(options)
@@ -172,16 +176,12 @@ class NonlinearSystem:
             _dolfinx.assemble_matrix_into(J, self.problem.J_form, self.problem.bcs)
             if P.handle != J.handle:
                 _dolfinx.assemble_matrix_into(P, self.problem.J_form, self.problem.bcs)
-        # A singular J (an empty row: a zero coefficient) would give MUMPS a tiny or huge finite step.
-        check_operator(J, self._jacobian_controls)
+            # A singular J (an empty row) would give MUMPS a tiny or huge finite step: a failed solve.
+            self._jacobian_defect = operator_defect(J)
+        if self._jacobian_defect is not None:
+            raise _SingularJacobian(self._jacobian_defect)
 
     def _monitor(self, snes, its, fnorm) -> None:
-        if its < len(self._residual_norms):
-            # Called again for the same step (a trust region's rejected step): keep its last value only.
-            self._residual_norms[its] = float(fnorm)
-            if self._recording is not None:
-                self._recording[its] = snes.getSolution().getArray(readonly=True).copy()
-            return
         self._residual_norms.append(float(fnorm))
         if its > 0:
             ksp = snes.getKSP()
@@ -207,7 +207,7 @@ class NonlinearSystem:
         n = p.output_size
         U = np.empty((batch, n))
         paths = [] if record else None
-        self._jacobian_controls = sorted(frozenset(controls) & p.jacobian_controls)
+        self._called_controls = frozenset(controls)
         with ControlValues(p, controls) as ctl:
             for i in range(batch):
                 ctl.set_sample(i)
@@ -224,33 +224,35 @@ class NonlinearSystem:
         else:
             sol.setArray(guess)
         _dolfinx.set_bc_values(sol, p.bcs)
-        self._residual_norms = []
-        self._nonfinite_residual = False
+        self._residual_norms, self._nonfinite_residual, self._jacobian_defect = [], False, None
         self._recording = [] if paths is not None else None
-        inner_before = self.stats.forward_iterations
-        solves_before = self.stats.forward_solves
-        assembly_before = self.stats.assembly_time
+        s = self.stats
+        inner_before, solves_before, assembly_before = s.forward_iterations, s.forward_solves, s.assembly_time
         t0 = time.perf_counter()
         try:
             self._snes.solve(None, sol)
-        except PETSc.Error as err:
-            self._stopped_on_error = True        # renewed by the next solve, on every rank together
-            if err.__cause__ is not None and not isinstance(err.__cause__, PETSc.Error):
-                raise err.__cause__ from None      # a callback's own error (a check, Ctrl-C), not PETSc's
-            raise
+        except BaseException as err:            # a callback's error comes bare or as a PETSc.Error's cause
+            self._stopped_on_error = True        # renewed by the next solve (collective: not in this error path)
+            cause = err.__cause__ if isinstance(err, PETSc.Error) else err
+            if not isinstance(cause, _SingularJacobian):   # that one is a Newton failure, reported below
+                if cause is not None and cause is not err and not isinstance(cause, PETSc.Error):
+                    raise cause from None      # a callback's own error (Ctrl-C), not PETSc's
+                raise
         elapsed = time.perf_counter() - t0
         # The inner solves' time: the SNES time less its assemblies, shared by its steps.
         steps_done = self.stats.forward_solves - solves_before
         if steps_done:
             self.stats.forward_time += elapsed - (self.stats.assembly_time - assembly_before)
-        reason = int(self._snes.getConvergedReason())
+        reason = _SINGULAR_JACOBIAN if self._jacobian_defect else int(self._snes.getConvergedReason())
         steps = int(self._snes.getIterationNumber())
         del self._residual_norms[steps + 1:]       # a trust region's last, rejected step is no step
+        if self._recording is not None:
+            del self._recording[steps + 1:]
         x = sol.getArray(readonly=True).copy()
         finite = bool(np.isfinite(x).all()) and all(np.isfinite(self._residual_norms))
         finite = self._comm.allreduce(finite, op=_LAND) if self._comm.size > 1 else finite
         capped = self._options.capped and reason == _SNES_MAX_IT and steps == self._options.max_it
-        if self._options.capped and reason in _STALLED and self._at_round_off():
+        if self._options.capped and reason in _STALLED and self._options.tolerances_met(self._residual_norms):
             # A capped line search or trust region cannot improve a residual at round-off and stops
             # before the cap: the iterate is the solution (plain Newton's extra steps stay there too).
             reason = _CONVERGED_EARLY
@@ -263,7 +265,10 @@ class NonlinearSystem:
         if paths is not None:
             paths.append(np.array(self._recording))
             self._recording = None
-        if not stats.ok:
+        if not stats.ok and self._jacobian_defect:
+            named = sorted(self._called_controls & p.jacobian_controls)
+            report_newton_failure(self._options, stats, f"{self._jacobian_defect}, controls {named}")
+        elif not stats.ok:
             ksp = self._snes.getKSP()      # the step that failed is not in the stats (no monitor call)
             reason = int(ksp.getConvergedReason())
             inner = f"{REASON_NAMES.get(reason, str(reason))} after {ksp.getIterationNumber()} iterations"
@@ -272,19 +277,13 @@ class NonlinearSystem:
 
     def _renew(self) -> None:
         """Fresh solvers and iterate after a solve that stopped on an error: PETSc leaves the vectors a
-        callback was reading locked (newer versions then refuse to write them). Collective: it runs at
-        the next solve, not where the error surfaced (Ctrl-C may reach one rank only)."""
+        callback was reading locked (newer versions then refuse to write them). Collective, so it runs
+        at the next solve, which every rank calls, not in the error path."""
         self._stopped_on_error = False
         self._free_solvers()
         self._sol.destroy()
         self._sol = _dolfinx.create_vector(self.problem.F_form)
         self._build(self._options)
-
-    def _at_round_off(self) -> bool:
-        """Whether the last residual norm meets the uncapped tolerances (``rtol`` relative to the first, or ``atol``)."""
-        norms = self._residual_norms
-        return bool(norms) and math.isfinite(norms[-1]) and (
-            norms[-1] <= self._options.rtol * norms[0] or norms[-1] <= self._options.atol)
 
     # --------------------------------------------------------------- adjoint
     def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
@@ -299,7 +298,7 @@ class NonlinearSystem:
         if initial_guess:
             grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
         G = self._zero_bc(G)
-        self._jacobian_controls = sorted(frozenset(controls) & p.jacobian_controls)
+        self._called_controls = frozenset(controls)
         with ControlValues(p, controls) as ctl:
             for i in range(batch):
                 ctl.set_sample(i)
@@ -345,7 +344,8 @@ class NonlinearSystem:
                            else (self._J, p.J_form, self._adjoint_solver))
         with Timer(self.stats, "assembly_time"):
             _dolfinx.assemble_matrix_into(A, form, p.bcs)
-            check_operator(A, self._jacobian_controls)
+            check_operator(A, sorted(self._called_controls & (p.exact_jacobian_controls if exact
+                                                              else p.jacobian_controls)))
         self._rhs.setArray(g)
         solver.solve_transpose(self._rhs, self._lam)
         set_owned(p.lam, self._lam.getArray(readonly=True), p.output_size)

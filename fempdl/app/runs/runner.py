@@ -35,7 +35,8 @@ from fempdl.app.tasks.base import cap_target, set_cap
 from fempdl.bridge_torch import SolveLayer
 from fempdl.solve.options import KSPOptions
 from fempdl.core.parallel import shard
-from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps, converged_caps
+from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps
+from fempdl.methods.newton_caps import converged_caps as measure_converged_caps     # run() takes converged_caps=
 from fempdl.methods.prdp import PRDP
 
 __all__ = ["build_task", "check_parallel", "k_eps", "layer_options", "newton_caps_eps", "run", "run_method",
@@ -144,11 +145,11 @@ def layer_options(scene: Scene, k: int | None):
 
 def newton_caps_eps(task, rtol: float, shard_over: MPI.Comm = MPI.COMM_SELF) -> int:
     """K_eps of a Newton task under its caps' rule, as :func:`~fempdl.methods.newton_caps.newton_k_eps`
-    measures it: the :func:`converged_caps` of the task's reference inputs (spread over ``shard_over``'s
-    ranks, the maximum theirs), recorded as ``task.caps.converged``."""
+    measures it: the converged caps of the task's reference inputs (spread over ``shard_over``'s ranks,
+    the maximum theirs), recorded as ``task.caps.converged``."""
     inputs = {name: torch.atleast_2d(value) for name, value in task.k_eps_rhs().items()}
     idx = shard(torch.arange(next(iter(inputs.values())).shape[0]), shard_over)
-    local = (converged_caps(task.caps.layers[0], rtol=rtol, **{name: value[idx] for name, value in inputs.items()})
+    local = (measure_converged_caps(task.caps.layers[0], rtol=rtol, **{name: value[idx] for name, value in inputs.items()})
              if len(idx) else ConvergedCaps(1, 1))
     task.caps.converged = ConvergedCaps(*(shard_over.allreduce(count, op=MPI.MAX)
                                           for count in (local.newton_steps, local.inner_iterations)))
