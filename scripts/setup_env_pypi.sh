@@ -38,8 +38,25 @@ if [ ! -x "$venv/bin/python" ]; then
 fi
 
 stamp="$venv/.fempdl-installed"
+# PyPI's torch for Python 3.12 is the CUDA build: pip unpacks its wheels beside
+# the venv while installing, so a nearly full disk fails midway with pip's
+# "No space left on device". Say so before starting instead.
+need_gb=12
+require_free_space() {
+    local dir free_gb
+    for dir in "$venv" "${TMPDIR:-/tmp}"; do
+        free_gb=$(( $(df -Pk "$dir" | awk 'NR==2 {print $4}') / 1048576 ))
+        if [ "$free_gb" -lt "$need_gb" ]; then
+            echo "[setup] $dir has ${free_gb} GB free; installing torch's CUDA build for Python 3.12" \
+                 "needs about ${need_gb} GB while pip unpacks it. Free some space and rerun." >&2
+            exit 1
+        fi
+    done
+}
+
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ "$0" -nt "$stamp" ] \
    || ! "$venv/bin/python" -c "from mpi4py import MPI; import dolfinx, gmsh, torch, fempdl, pytest, tensorboard" >/dev/null 2>&1; then
+    "$venv/bin/python" -c "import torch" >/dev/null 2>&1 || require_free_space
     echo "[setup] installing ${pkgs[*]} and fempdl into $venv"
     "$venv/bin/python" -m pip install -q --disable-pip-version-check "${pkgs[@]}"
     "$venv/bin/python" -m pip install -q --disable-pip-version-check -e ".[test,tensorboard]"
