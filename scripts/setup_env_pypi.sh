@@ -4,7 +4,7 @@
 #   2. DOLFINx 0.11 with PETSc 3.25 (dolfinx-solver-real: also brings mpi4py and
 #      MPICH, whose mpiexec lands in the venv), gmsh and torch,
 #   3. fempdl itself in editable mode with its test extra (numpy 2, scipy, matplotlib).
-# torch==2.13.0 on Python 3.12 is PyPI's CUDA build (about 5 GB with its CUDA
+# torch==2.13.0 on Python 3.12 is PyPI's CUDA build (5.3 GiB with its CUDA
 # libraries); it runs on the CPU.
 # Usage: scripts/setup_env_pypi.sh [VENV_DIR]   (default: .venv-pypi)
 #        PYTHON312=/path/to/python3.12 scripts/setup_env_pypi.sh   to choose the interpreter
@@ -38,17 +38,17 @@ if [ ! -x "$venv/bin/python" ]; then
 fi
 
 stamp="$venv/.fempdl-installed"
-# PyPI's torch for Python 3.12 is the CUDA build: pip unpacks its wheels beside
-# the venv while installing, so a nearly full disk fails midway with pip's
-# "No space left on device". Say so before starting instead.
-need_gb=12
+# PyPI's torch for Python 3.12 is the CUDA build: a fresh install grows the disk's
+# use by about 6.3 GiB at its peak (5.3 GiB stay), so a nearly full disk fails
+# midway with pip's "No space left on device". Say so before starting instead.
+need_gb=8
 require_free_space() {
     local dir free_gb
     for dir in "$venv" "${TMPDIR:-/tmp}"; do
         free_gb=$(( $(df -Pk "$dir" | awk 'NR==2 {print $4}') / 1048576 ))
         if [ "$free_gb" -lt "$need_gb" ]; then
-            echo "[setup] $dir has ${free_gb} GB free; installing torch's CUDA build for Python 3.12" \
-                 "needs about ${need_gb} GB while pip unpacks it. Free some space and rerun." >&2
+            echo "[setup] $dir has ${free_gb} GiB free; installing torch's CUDA build for Python 3.12" \
+                 "needs ${need_gb} GiB while pip unpacks it. Free some space and rerun." >&2
             exit 1
         fi
     done
