@@ -259,6 +259,24 @@ def test_the_marker_network_standardizes_its_inputs_by_the_first_training_draw(t
     task.close()
 
 
+def test_drawing_new_marker_data_counts_no_training_solve(tiny_flow_scene):
+    """[data] resample rolls every epoch's truths out through the training layers: those solves are the
+    data's, so the counters a run reports (iterations, solves, times) stay where training left them."""
+    resampled = dataclasses.replace(tiny_flow_scene, data=dataclasses.replace(tiny_flow_scene.data, resample=True))
+    task = MarkerInversionTask(resampled, "backprop")
+    counters = lambda: [dataclasses.asdict(layer.stats) for layer in task.layers]
+    task.train_step(torch.arange(4))
+    trained, y = counters(), task.train["y"]
+    assert all(c["forward_solves"] > 0 and c["backward_solves"] > 0 for c in trained)
+    task.start_epoch(1)
+    assert not torch.equal(task.train["y"], y)                           # new truths were rolled out
+    task.marker_errors(torch.arange(3))
+    assert counters() == trained
+    task.train_step(torch.arange(4))                                     # training still counts
+    assert all(after["forward_solves"] == 2 * before["forward_solves"] for after, before in zip(counters(), trained))
+    task.close()
+
+
 def test_compare_runs_sip_flow_against_adam(tiny_flow_scene, tmp_path):
     runs = compare.compare(tiny_flow_scene, tmp_path, max_factor=3)
     split = compare.summary(tiny_flow_scene, runs)

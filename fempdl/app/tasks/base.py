@@ -1,11 +1,15 @@
 """The task protocol the trainer runs, and what every task shares: its optimizer and its step."""
 from __future__ import annotations
 
+import contextlib
+import copy
+import dataclasses
+
 import torch
 
 from fempdl.solve.assembly import assemble_scipy
 
-__all__ = ["Task", "make_optimizer", "optimisation_step", "operator_pattern", "cap_target", "set_cap"]
+__all__ = ["Task", "make_optimizer", "optimisation_step", "operator_pattern", "cap_target", "set_cap", "uncounted"]
 
 
 def optimisation_step(optimizer, loss: torch.Tensor) -> float:
@@ -59,6 +63,20 @@ class Task:
         """The validation metric: the mean error over every validation sample."""
         with torch.no_grad():
             return float(self.validation_errors(torch.arange(self.val_size)).double().mean())
+
+
+@contextlib.contextmanager
+def uncounted(layers):
+    """Leave the solves run inside out of ``layers``' counters: a task's data drawn through its training
+    layers is not training. Each layer's stats are restored on exit in place (its system holds the same
+    object); the wall clock still sees the time."""
+    saved = [copy.deepcopy(layer.stats) for layer in layers]
+    try:
+        yield
+    finally:
+        for layer, before in zip(layers, saved):
+            for f in dataclasses.fields(before):
+                setattr(layer.stats, f.name, getattr(before, f.name))
 
 
 def operator_pattern(problem) -> "sp.csr_matrix":

@@ -42,7 +42,7 @@ from scipy.spatial import cKDTree
 from fempdl.core import _dolfinx, mesh
 from fempdl.app.tasks.networks import Standardize, mlp
 from fempdl.app.schema import Scene
-from fempdl.app.tasks.base import Task, make_optimizer
+from fempdl.app.tasks.base import Task, make_optimizer, uncounted
 from fempdl.app.tasks.data import smooth_fields
 from fempdl.app.tasks.inversion import SIP_SPEC
 from fempdl.forms._common import make_function
@@ -137,7 +137,7 @@ class MarkerInversionTask(Task):
             angle = rng.uniform(0.0, np.pi)
             m0.append(shape(coords, centre, np.array([np.cos(angle), np.sin(angle)]), marker.width))
         m0 = torch.as_tensor(np.array(m0))
-        with torch.no_grad():
+        with torch.no_grad(), uncounted(P.layers):        # the data's rollouts are not training's solves
             y = P(g, m0)
         return {"g": g, "v0": v0, "m0": m0, "y": y, "inputs": torch.cat([m0, y], dim=-1)}
 
@@ -163,7 +163,7 @@ class MarkerInversionTask(Task):
 
     def marker_errors(self, idx) -> torch.Tensor:
         """Relative L2 error of the marker the inferred velocity moves, per held-out sample (y space)."""
-        with torch.no_grad():
+        with torch.no_grad(), uncounted(self.layers):
             m_T = self.physics(self.model(self.val["inputs"][idx]), self.val["m0"][idx])
         return self.physics.relative_error("marker", m_T, self.val["y"][idx])
 
