@@ -159,6 +159,8 @@ def test_fempdl_run_parallel_data_under_mpirun(tmp_path):
     (["compare", "sip-nonlinear"], "scene 'sip-nonlinear': sip scenes train on one process"),
     (["tradeoff", "poisson-inverse"], "`fempdl tradeoff` trains its runs on one process; run it without mpirun "
                                       "(one run on 2 ranks: `fempdl run poisson-inverse --parallel mesh`)"),
+    (["run", "no-such-scene"], "fempdl: unknown scene 'no-such-scene'; bundled scenes are"),
+    (["run", "poisson-inverse", "--set", "optimizer.epochs=zero"], "fempdl: "),
 ])
 def test_fempdl_refuses_parallel_modes_that_do_not_fit(args, message, tmp_path):
     # A fresh --out: a run left in ./runs by `make run` would be refused first.

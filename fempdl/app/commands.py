@@ -79,7 +79,20 @@ def _scenes(args) -> int:
 
 
 def _load_and_run(args) -> int:
-    sc = scene.load(args.scene, args.set)
+    comm = MPI.COMM_WORLD
+    try:
+        sc = scene.load(args.scene, args.set)
+        error = None
+    except scene.SceneError as err:
+        error = err
+    # Every rank loads the scene first: a name or key wrong on all of them is said once, by rank 0;
+    # a file one rank alone cannot read is that rank's error (and ends the job).
+    if comm.size > 1 and comm.allreduce(error is not None, op=MPI.LAND):
+        if comm.rank == 0:
+            print(f"fempdl: {' '.join(str(error).split())}", file=sys.stderr, flush=True)
+        return 2
+    if error is not None:
+        raise error
     refusal = _ranks_refusal(args, sc, MPI.COMM_WORLD.size)
     if refusal is not None:
         if MPI.COMM_WORLD.rank == 0:
