@@ -102,7 +102,8 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, help="torch threads (default: torch's)")
     parser.add_argument("--out", type=Path, default=Path("bench-results/bench_scenes.json"))
     parser.add_argument("--merge", action="store_true",
-                        help="keep the other scenes already in --out (rerun some scenes only)")
+                        help="keep the other scenes already in --out (rerun some scenes only) and its other "
+                             "records (such as a sweep run by another command)")
     args = parser.parse_args(argv)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -110,7 +111,10 @@ def main(argv=None) -> int:
     if args.merge and args.out.exists():
         previous = json.loads(args.out.read_text())
         results["scenes"] = {n: r for n, r in previous["scenes"].items() if n not in args.scenes}
-        results["machine_of_kept_scenes"] = previous.get("machine_of_kept_scenes", previous["machine"])
+        if results["scenes"]:
+            results["machine_of_kept_scenes"] = previous.get("machine_of_kept_scenes", previous["machine"])
+        results.update({k: v for k, v in previous.items()
+                        if k not in ("machine", "scenes", "summary", "machine_of_kept_scenes")})
     for name in args.scenes:
         results["scenes"][name] = r = bench_scene(name, args.seeds, name in args.sweep)
         ratio = r["ratios"]
