@@ -75,6 +75,7 @@ class CappedSolver:
             self._ksp_adjoint = create_ksp(A, options.adjoint, self._prefix + "adj_", fields)
         self.stats = CumulativeStats()
         self.reuse_preconditioner = False
+        self._failed: set[str] = set()      # "forward" / "adjoint": KSPs renewed at the next solve
 
     @property
     def reuse_preconditioner(self) -> bool:
@@ -123,6 +124,7 @@ class CappedSolver:
                 options say ``on_failure="warn"``). The solve is counted in
                 :attr:`stats` either way.
         """
+        self._renew_failed()
         warm = warm and not self._options.direct   # PCLU under preonly refuses a nonzero guess
         if warm:
             self._ksp.setInitialGuessNonzero(True)
@@ -141,6 +143,7 @@ class CappedSolver:
         if not self._options.direct or self._A.getComm().getSize() > 1:
             raise ValueError("solve_many needs a direct solve (ksp_type='preonly' with a factorising pc_type) "
                              "on one process")
+        self._renew_failed()
         batch, n = R.shape
         t0 = time.perf_counter()
         set_up(self._ksp, self._reuse)
@@ -153,9 +156,14 @@ class CappedSolver:
         try:
             self._ksp.getPC().getFactorMatrix().matSolve(rhs, sol)
             X = np.array(sol.getDenseArray().T)
+        except PETSc.Error:
+            self._failed.add("forward")
+            raise
         finally:
             rhs.destroy()
             sol.destroy()
+        if not np.isfinite(X).all():
+            self._failed.add("forward")
         elapsed = time.perf_counter() - t1
         reason = PETSc.KSP.ConvergedReason.CONVERGED_ITS
         for ok in np.isfinite(X).all(axis=1):
@@ -168,6 +176,7 @@ class CappedSolver:
     def solve_transpose(self, b: PETSc.Vec, x: PETSc.Vec) -> SolveStats:
         """Solve A^T x = b with the adjoint options (the forward ones by default),
         by KSPSolveTranspose or on an assembled A^T (``options.assembled_adjoint``)."""
+        self._renew_failed()
         if self._options.assembled_adjoint:
             return self._run(self._assembled_adjoint_ksp(), self._options.adjoint_options, b, x,
                              direction="backward", transpose=False)
@@ -199,6 +208,24 @@ class CappedSolver:
         self.stats.adjoint_operator_time += time.perf_counter() - t0
         return self._ksp_adjoint
 
+    def _renew_failed(self) -> None:
+        """Fresh KSPs, same operator and options, for those whose last solve failed: PETSc keeps a
+        preconditioner whose set-up failed (MUMPS on a matrix with NaN entries) failed, and every later
+        solve on that KSP stops with PETSc error 76, however sane the matrix has become. Done at the next
+        solve, which every rank calls (the failure may have been one rank's exception)."""
+        if not self._failed:
+            return
+        failed, self._failed = self._failed, set()
+        if "forward" in failed:
+            destroy_ksp(self._ksp)
+            self._ksp = create_ksp(self._A, self._options, self._prefix, self._fields)
+        if "adjoint" in failed and self._ksp_adjoint is not None:
+            assembled = self._options.assembled_adjoint
+            operator = self._At if assembled else self._A
+            options = self._options.adjoint_options if assembled else self._options.adjoint
+            destroy_ksp(self._ksp_adjoint)
+            self._ksp_adjoint = create_ksp(operator, options, self._prefix + "adj_", self._fields)
+
     def destroy(self) -> None:
         for ksp in (self._ksp, self._ksp_adjoint):
             if ksp is not None:
@@ -228,9 +255,11 @@ class CappedSolver:
         t0 = time.perf_counter()
         set_up(ksp, self._reuse)      # the preconditioner's set-up, timed apart from the iterations
         t1 = time.perf_counter()
+        failed_kind = "forward" if ksp is self._ksp else "adjoint"
         try:
             (ksp.solveTranspose if transpose else ksp.solve)(b, x)
         except PETSc.Error as err:
+            self._failed.add(failed_kind)
             # petsc4py >= 3.19 wraps an exception raised in a Python monitor
             # (Ctrl-C's KeyboardInterrupt) in a PETSc.Error; 3.18 lets it through.
             if isinstance(err.__cause__, KeyboardInterrupt):
@@ -249,6 +278,8 @@ class CappedSolver:
                                          and iterations >= options.max_it))
         exact = (reason == _DIVERGED_BREAKDOWN and rnorm is not None and rnorm <= _HAPPY_BREAKDOWN * b_norm)
         ok = finite and (reason > 0 or capped or exact)
+        if not ok:
+            self._failed.add(failed_kind)
         stats = SolveStats(iterations=iterations, reason=reason,
                            reason_name=REASON_NAMES.get(reason, str(reason)),
                            residual_norm=rnorm, time=elapsed, capped=capped, ok=ok, setup_time=t1 - t0)

@@ -4,13 +4,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.sparse as sp
+import scipy.sparse.linalg  # noqa: F401  (sp.linalg)
 import ufl
 from petsc4py import PETSc
 
 import dolfinx.fem
 import dolfinx.fem.petsc
 from fempdl.core import _dolfinx
-from fempdl.ksp_adjoint import CappedSolver, KSPOptions
+from fempdl.ksp_adjoint import CappedSolver, KSPOptions, SolverFailedError, SolverWarning
 
 from helpers import CAPPED
 
@@ -174,3 +175,59 @@ def test_presets():
     opts = KSPOptions(max_it=3)
     assert opts.adjoint_options is opts
     assert opts.with_max_it(8).max_it == 8 and opts.max_it == 3
+
+
+@pytest.mark.parametrize("adjoint_operator", ["auto", "assembled"])
+@pytest.mark.parametrize("on_failure", ["raise", "warn"])
+def test_a_failed_factorisation_does_not_outlive_its_matrix(lshape, adjoint_operator, on_failure):
+    """MUMPS fails on a matrix with a NaN diagonal entry, and PETSc keeps that preconditioner failed:
+    the next solve on the KSP failed too (or stopped with PETSc error 76), however sane the matrix
+    reassembled in place had become. The solver renews a failed KSP at its next solve, forward and
+    transposed, so a training loop outlives one bad sample."""
+    V = _dolfinx.function_space(lshape.mesh, "Lagrange", 1)
+    u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+    form = _dolfinx.compile_form((0.1 * ufl.inner(ufl.grad(u), ufl.grad(v))
+                                  + ufl.inner(ufl.as_vector((3.0, -2.0)), ufl.grad(u)) * v + 20.0 * u * v) * ufl.dx)
+    A = dolfinx.fem.petsc.assemble_matrix(form)
+    A.assemble()
+    b, x = vectors(A)
+    M = as_scipy(A).tocsc()
+    expected = {"forward": sp.linalg.spsolve(M, b.getArray()), "backward": sp.linalg.spsolve(M.T.tocsc(), b.getArray())}
+    options = KSPOptions.preset("lu", petsc_options={"pc_factor_mat_solver_type": "mumps"}, on_failure=on_failure,
+                                adjoint_operator=adjoint_operator)
+    with CappedSolver(A, options) as s:
+        for direction, solve in (("forward", s.solve), ("backward", s.solve_transpose)):
+            assert solve(b, x).ok
+            A.setValue(5, 5, np.nan)
+            A.assemble()
+            if on_failure == "raise":
+                with pytest.raises(SolverFailedError, match="NaN or inf"):
+                    solve(b, x)
+            else:
+                with pytest.warns(SolverWarning):
+                    assert not solve(b, x).ok           # DIVERGED_PC(SETUP)_FAILED
+            for _ in range(2):              # reassembled as a Newton step or a new sample would
+                A.zeroEntries()
+                dolfinx.fem.petsc.assemble_matrix(A, form)
+                A.assemble()
+                assert solve(b, x).ok
+                np.testing.assert_allclose(x.getArray(), expected[direction], rtol=1e-10, atol=1e-14)
+    A.destroy()
+
+
+@pytest.mark.parametrize("entry, defect", [
+    (np.nan, "NaN or inf entries"), (np.inf, "NaN or inf entries"), (-np.inf, "NaN or inf entries"),
+    (1e200, None),                       # finite, though its square overflows the Frobenius norm
+])
+def test_operator_defect_sees_every_non_finite_entry(advection_matrix, entry, defect):
+    """A NaN in a row escaped the infinity norm (a NaN row sum never exceeds the largest one), so a
+    Jacobian with NaN entries reached MUMPS; an entry past 1e154 is finite and no defect."""
+    from fempdl.solve.assembly import operator_defect
+    A = advection_matrix.duplicate(copy=True)
+    assert operator_defect(A) is None
+    indptr, indices, _ = A.getValuesCSR()
+    row = 7
+    A.setValue(row, [c for c in indices[indptr[row]:indptr[row + 1]] if c != row][0], entry)
+    A.assemble()
+    assert operator_defect(A) == defect
+    A.destroy()

@@ -224,7 +224,14 @@ def operator_defect(A: PETSc.Mat) -> str | None:
     a tiny or huge finite vector, PCJACOBI takes 1 for the zero diagonal and iterates on. It is what
     a zero coefficient gives (kappa = 0 on a node's support); Dirichlet rows hold 1. Costs a pass
     over the entries."""
-    finite = np.isfinite(A.norm(PETSc.NormType.INFINITY))   # the largest row sum: inf or NaN iff an entry is
+    # The Frobenius norm, a sum over every entry, carries a NaN through (the largest row sum of the
+    # infinity norm drops a NaN row: NaN > max is false). Past 1e154 it overflows: look at the entries then.
+    finite = np.isfinite(A.norm(PETSc.NormType.FROBENIUS))
+    if not finite:
+        finite = bool(np.isfinite(A.getValuesCSR()[2]).all())
+        comm = A.getComm()
+        if comm.getSize() > 1:
+            finite = comm.tompi4py().allreduce(finite, op=MPI.LAND)
     diagonal = A.getDiagonal()
     suspects = np.flatnonzero(diagonal.getArray(readonly=True) == 0.0)
     diagonal.destroy()
