@@ -191,3 +191,53 @@ def test_an_unrolled_forward_counts_its_time_once(prob):
     layer(f=f.expand(8, -1), kappa=kappa)
     wall = time.perf_counter() - t0
     assert 0 < layer.stats.layer_time - before <= wall
+
+
+@pytest.fixture(scope="module")
+def beam():
+    """A neo-Hookean beam [0, 4] x [0, 1] clamped at x = 0, pulled by a traction T; controls T and E."""
+    msh = dolfinx.mesh.create_rectangle(MPI.COMM_WORLD, [np.array([0.0, 0.0]), np.array([4.0, 1.0])], [12, 3])
+    return forms.hyperelasticity.problem(msh, controls=("T", "E"))
+
+
+def pull(beam, down: float) -> torch.Tensor:
+    T = torch.zeros(beam.control_size("T"), dtype=F64)
+    T[1::2] = down
+    return T
+
+
+@pytest.mark.parametrize("diff", ["implicit", "unrolled"])
+def test_a_warned_newton_failure_returns_its_last_finite_iterate_and_the_layer_recovers(beam, diff):
+    """A traction that inverts elements in Newton's first step makes F NaN there. Warned, the layer
+    returns the last iterate whose residual was finite (the start), on every PETSc (3.18 returned the
+    step that made F NaN); its backward names the state; and the next sane call gives what a fresh
+    layer gives, forward and backward."""
+    E = torch.ones(beam.control_size("E"), dtype=F64)
+
+    def forward_backward(layer, T):
+        e = E.clone().requires_grad_(True)
+        u = layer(T=T, E=e)
+        (u * torch.linspace(-1.0, 1.0, u.shape[-1], dtype=F64)).sum().backward()
+        return u.detach(), e.grad
+
+    options = NewtonOptions(ksp="lu", on_failure="warn", max_it=None if diff == "implicit" else 8)
+    layer = NonlinearSolveLayer(beam, options, diff=diff)
+    with pytest.warns(SolverWarning, match="Newton"):
+        u = layer(T=pull(beam, -5.0), E=E)
+    last = layer.stats.last_newton
+    assert not last.ok and len(last.residual_norms) == 1 and np.isfinite(last.residual_norms[0])
+    assert torch.equal(u, torch.zeros_like(u))                  # the start: its residual is the last finite one
+    with pytest.warns(SolverWarning):
+        bad = layer(T=pull(beam, -5.0), E=E.clone().requires_grad_(True))
+    bad.sum().backward()                           # at the start F is defined: a gradient, no error
+    sane = pull(beam, -0.01)
+    fresh = NonlinearSolveLayer(beam, NewtonOptions(ksp="lu", max_it=options.max_it), diff=diff)
+    for got, want in zip(forward_backward(layer, sane), forward_backward(fresh, sane)):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-14)
+    layer.close()
+    fresh.close()
+
+
+def test_a_symmetric_factorisation_of_a_newton_jacobian_is_refused_with_the_preset_to_use(prob):
+    with pytest.raises(ValueError, match="a NonlinearProblem's Jacobian is solved as a general matrix; use the 'lu'"):
+        NonlinearSolveLayer(prob, NewtonOptions(ksp="cholesky"))

@@ -6,7 +6,8 @@ moves one number; :class:`NewtonCaps` is the PRDP target that says which cap it 
 
 * ``"newton"``: N = K, the inner solve as configured (a direct or converged inner
   solve: the PRDP paper's Newton-Raphson reading, where K = 1 is one Picard-like step);
-* ``"inner"``: K Krylov iterations per step, the Newton cap as configured;
+* ``"inner"``: K Krylov iterations per step, the Newton cap as configured (capped too, as a rule:
+  a converged Newton with K = 1 inner iteration per step seldom reaches its tolerance, and fails);
 * ``"both"``: N = K and ``inner_per_k`` * K Krylov iterations per step: both
   refinements move together, the inner solve staying ``inner_per_k`` times finer
   than the Newton count. Once :func:`newton_k_eps` has measured what converged solves

@@ -204,16 +204,26 @@ def assemble_scipy(form) -> sp.csr_matrix:
         A.destroy()
 
 
-def check_operator(A: PETSc.Mat, controls: list[str]) -> None:
+def without_bc_entries(G: np.ndarray, problem) -> np.ndarray:
+    """A float64 copy of G (B, n) with the Dirichlet DOFs' entries zeroed: u = g on the boundary does not
+    depend on the controls, so no gradient comes back through those entries."""
+    G = np.array(G, dtype=np.float64)
+    if len(problem.bc_dofs):
+        G[:, problem.bc_dofs] = 0.0
+    return G
+
+
+def check_operator(A: PETSc.Mat, controls: list[str], also: str = "") -> None:
     """Raise ValueError on every rank when the assembled ``A`` has a NaN/inf entry or an empty row
-    (:func:`operator_defect`). The message names ``controls``, the matrix controls set for this assembly."""
+    (:func:`operator_defect`). The message names ``controls``, the matrix controls set for this assembly,
+    and ``also``, another cause to check."""
     what = operator_defect(A)
     if what is None:
         return
     source = (f"control(s) {controls}" if controls else
               "the problem's coefficients (no matrix control was passed: check its fixed Functions and Constants)")
     raise ValueError(f"the assembled matrix has {what} with {source}; check for a zero or non-finite "
-                     "coefficient (e.g. kappa = 0 somewhere) or a missing Dirichlet condition")
+                     f"coefficient (e.g. kappa = 0 somewhere){also} or a missing Dirichlet condition")
 
 
 def operator_defect(A: PETSc.Mat) -> str | None:
@@ -256,7 +266,10 @@ def check_symmetric_factor(options, problem) -> None:
     """Refuse a Cholesky (or ICC) solve, forward or adjoint, of a problem not declared symmetric: it reads
     one triangle of A and would silently solve another system."""
     used = {o.pc_type for o in (options, options.adjoint_options)} & SYMMETRIC_PC_TYPES
-    if used and not getattr(problem, "symmetric", False):
+    if used and not hasattr(problem, "symmetric"):        # a NonlinearProblem: J(u) of a residual
+        raise ValueError(f"pc_type={sorted(used)[0]!r} factorises A as symmetric, and a NonlinearProblem's "
+                         "Jacobian is solved as a general matrix; use the 'lu' preset")
+    if used and not problem.symmetric:
         raise ValueError(f"pc_type={sorted(used)[0]!r} factorises A as symmetric, but this problem is not declared "
                          "symmetric; use the 'lu' preset, or build the Problem with symmetric=True if a(u, v) = "
                          "a(v, u) for every control value")

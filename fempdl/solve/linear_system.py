@@ -32,7 +32,7 @@ from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import CappedSolver
 from fempdl.solve.assembly import (SYMMETRIC_PC_TYPES, ControlValues, KeptMatrices, Timer, attach_nullspace,
                                     check_operator, check_symmetric, check_symmetric_factor, fingerprint,
-                                    fingerprint_matches, set_owned)
+                                    fingerprint_matches, set_owned, without_bc_entries)
 from fempdl.solve.petsc import petsc_to_scipy
 from fempdl.solve.control_forms import ControlForms
 from fempdl.solve.options import KSPOptions
@@ -184,10 +184,7 @@ class LinearSystem:
         residual = initial_guess and not self.options.adjoint_options.direct
         if initial_guess:
             grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
-        G = np.array(G, dtype=np.float64)  # private copy: BC entries are zeroed in place
-        if len(p.bc_dofs):
-            # u = g on the boundary does not depend on the controls.
-            G[:, p.bc_dofs] = 0.0
+        G = without_bc_entries(G, p)
         n_owned = p.output_size
         kept = self._kept_matrices.find(controls, batch) if per_sample_matrix else None
         with ControlValues(p, controls) as ctl:

@@ -34,7 +34,7 @@ from fempdl.core import _dolfinx
 from fempdl.core.nonlinear_problem import NonlinearProblem
 from fempdl.ksp_adjoint import CappedSolver
 from fempdl.solve.assembly import (ControlValues, Timer, attach_nullspace, check_operator, check_symmetric_factor,
-                                   operator_defect, set_owned)
+                                   operator_defect, set_owned, without_bc_entries)
 from fempdl.solve.control_forms import ControlForms
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.newton_stats import (SNES_REASON_NAMES, NewtonCumulativeStats, NewtonSolveStats,
@@ -49,11 +49,12 @@ __all__ = ["NonlinearSystem", "NewtonPath", "INITIAL_GUESS"]
 INITIAL_GUESS = "initial_guess"
 _SNES_MAX_IT = PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
 _INSERT, _FORWARD = PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD
-_LAND = MPI.LAND
 # SNES's stops of a line search or trust region that cannot decrease ||F|| any further.
 _STALLED = frozenset(getattr(PETSc.SNES.ConvergedReason, name) for name in ("DIVERGED_LINE_SEARCH", "DIVERGED_TR_DELTA"))
 _CONVERGED_EARLY = PETSc.SNES.ConvergedReason.CONVERGED_FNORM_RELATIVE
 _SINGULAR_JACOBIAN = PETSc.SNES.ConvergedReason.DIVERGED_JACOBIAN_DOMAIN
+_AT_STATE = (", a state where F is undefined (the iterate of a failed Newton solve, returned with a warning "
+             "under on_failure='warn': e.g. inverted elements)")
 
 
 class _SingularJacobian(Exception):
@@ -88,6 +89,7 @@ class NonlinearSystem:
         self._J = _dolfinx.create_matrix(problem.J_form)
         self._b = _dolfinx.create_vector(problem.F_form)        # residual
         self._sol = _dolfinx.create_vector(problem.F_form)      # SNES's iterate
+        self._accepted = self._sol.duplicate()                   # the monitor's last: a failure's result
         self._u_vec = _dolfinx.function_vector(problem.u)
         # dF/du for the implicit adjoint: the iteration's J unless the problem's J is another one.
         self._dFdu = self._J if problem.exact_J_form is problem.J_form else _dolfinx.create_matrix(problem.exact_J_form)
@@ -191,6 +193,7 @@ class NonlinearSystem:
             self.stats.record("forward", SolveStats(
                 iterations=iterations, reason=reason, reason_name=REASON_NAMES.get(reason, str(reason)),
                 residual_norm=None, time=0.0, capped=capped, ok=reason > 0 or capped))
+        snes.getSolution().copy(self._accepted)
         if self._recording is not None:
             self._recording.append(snes.getSolution().getArray(readonly=True).copy())
 
@@ -248,10 +251,12 @@ class NonlinearSystem:
         del self._residual_norms[steps + 1:]       # a trust region's last, rejected step is no step
         if self._recording is not None:
             del self._recording[steps + 1:]
-        x = sol.getArray(readonly=True).copy()
-        finite = bool(np.isfinite(x).all()) and all(np.isfinite(self._residual_norms))
-        finite = self._comm.allreduce(finite, op=_LAND) if self._comm.size > 1 else finite
         capped = self._options.capped and reason == _SNES_MAX_IT and steps == self._options.max_it
+        # A failure returns the last iterate the monitor accepted (its residual finite) on every PETSc:
+        # 3.18 leaves the step that made F NaN in the solution, 3.25 the iterate before it.
+        x = (self._accepted if reason < 0 and not capped else sol).getArray(readonly=True).copy()
+        finite = bool(np.isfinite(x).all()) and all(np.isfinite(self._residual_norms))
+        finite = self._comm.allreduce(finite, op=MPI.LAND) if self._comm.size > 1 else finite
         if self._options.capped and reason in _STALLED and self._options.tolerances_met(self._residual_norms):
             # A capped line search or trust region cannot improve a residual at round-off and stops
             # before the cap: the iterate is the solution (plain Newton's extra steps stay there too).
@@ -265,6 +270,8 @@ class NonlinearSystem:
         if paths is not None:
             paths.append(np.array(self._recording))
             self._recording = None
+        # PETSc keeps a failed factorisation failed (a later solve errors): fresh solvers next time.
+        self._stopped_on_error |= not stats.ok
         if not stats.ok and self._jacobian_defect:
             named = sorted(self._called_controls & p.jacobian_controls)
             report_newton_failure(self._options, stats, f"{self._jacobian_defect}, controls {named}")
@@ -297,7 +304,7 @@ class NonlinearSystem:
         grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
         if initial_guess:
             grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
-        G = self._zero_bc(G)
+        G = without_bc_entries(G, p)
         self._called_controls = frozenset(controls)
         with ControlValues(p, controls) as ctl:
             for i in range(batch):
@@ -316,7 +323,7 @@ class NonlinearSystem:
         wanted = [n for n in p.control_names if n in set(wanted)]
         grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
         a = path.damping
-        G = self._zero_bc(G)
+        G = without_bc_entries(G, p)
         with ControlValues(p, controls) as ctl:
             for i in range(batch):
                 ctl.set_sample(i)
@@ -345,7 +352,7 @@ class NonlinearSystem:
         with Timer(self.stats, "assembly_time"):
             _dolfinx.assemble_matrix_into(A, form, p.bcs)
             check_operator(A, sorted(self._called_controls & (p.exact_jacobian_controls if exact
-                                                              else p.jacobian_controls)))
+                                                              else p.jacobian_controls)), _AT_STATE)
         self._rhs.setArray(g)
         solver.solve_transpose(self._rhs, self._lam)
         set_owned(p.lam, self._lam.getArray(readonly=True), p.output_size)
@@ -363,12 +370,6 @@ class NonlinearSystem:
             _dolfinx.assemble_vector_into(vec, form)
         return vec.getArray(readonly=True)[:n].copy()
 
-    def _zero_bc(self, G: np.ndarray) -> np.ndarray:
-        G = np.array(G, dtype=np.float64)
-        if len(self.problem.bc_dofs):
-            G[:, self.problem.bc_dofs] = 0.0     # u = g on the boundary does not depend on the controls
-        return G
-
     # --------------------------------------------------------------- cleanup
     def _free_solvers(self) -> None:
         if self._snes is not None:
@@ -384,7 +385,7 @@ class NonlinearSystem:
             return
         self._destroyed = True
         self._free_solvers()
-        objs = [self._J, self._b, self._sol, self._rhs, self._lam, *self._step_vectors.values(), *self._nullspaces]
+        objs = [self._J, self._b, self._sol, self._accepted, self._rhs, self._lam, *self._step_vectors.values(), *self._nullspaces]
         if self._dFdu is not self._J:
             objs.append(self._dFdu)
         for obj in objs:
