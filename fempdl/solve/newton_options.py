@@ -61,7 +61,8 @@ class NewtonOptions:
             or converged. ``None`` lets the layer choose (LU where it fits).
         converged_max_it: the most steps an uncapped solve may take.
         on_failure: ``"raise"`` (:class:`~fempdl.solve.stats.SolverFailedError`)
-            or ``"warn"`` (the iterate, with a warning).
+            or ``"warn"`` (the last iterate with a finite residual, with a warning) when
+            Newton fails. The adjoint's transposed solve follows ``ksp.on_failure``.
     """
 
     max_it: int | None = None
