@@ -30,6 +30,8 @@ __all__ = ["CappedSolver", "KSPOptions", "PRESETS", "SolveStats", "CumulativeSta
            "SolverWarning"]
 
 _DIVERGED_BREAKDOWN = PETSc.KSP.ConvergedReason.DIVERGED_BREAKDOWN
+#: A preconditioner whose set-up failed: PETSc keeps it failed (:meth:`CappedSolver._renew_failed`).
+PC_FAILED = PETSc.KSP.ConvergedReason.DIVERGED_PCSETUP_FAILED
 # A breakdown with the residual below this fraction of ||b|| is GMRES's happy
 # breakdown under a pure cap (tolerance 0): the Krylov space holds the solution.
 _HAPPY_BREAKDOWN = 1e-12
@@ -75,7 +77,7 @@ class CappedSolver:
             self._ksp_adjoint = create_ksp(A, options.adjoint, self._prefix + "adj_", fields)
         self.stats = CumulativeStats()
         self.reuse_preconditioner = False
-        self._failed: set[str] = set()      # "forward" / "adjoint": KSPs renewed at the next solve
+        self._failed: set[str] = set()      # "forward" / "adjoint": KSPs to renew at the next solve
 
     @property
     def reuse_preconditioner(self) -> bool:
@@ -162,7 +164,7 @@ class CappedSolver:
         finally:
             rhs.destroy()
             sol.destroy()
-        if not np.isfinite(X).all():
+        if not np.isfinite(X).all():          # petsc4py 3.18 cannot ask the PC whether its set-up failed
             self._failed.add("forward")
         elapsed = time.perf_counter() - t1
         reason = PETSc.KSP.ConvergedReason.CONVERGED_ITS
@@ -209,10 +211,10 @@ class CappedSolver:
         return self._ksp_adjoint
 
     def _renew_failed(self) -> None:
-        """Fresh KSPs, same operator and options, for those whose last solve failed: PETSc keeps a
-        preconditioner whose set-up failed (MUMPS on a matrix with NaN entries) failed, and every later
-        solve on that KSP stops with PETSc error 76, however sane the matrix has become. Done at the next
-        solve, which every rank calls (the failure may have been one rank's exception)."""
+        """Fresh KSPs, same operator and options, for those whose preconditioner set-up failed or whose
+        solve raised: PETSc keeps a failed set-up (MUMPS on a matrix with NaN entries) failed, and every
+        later solve on that KSP fails or stops with PETSc error 76, however sane the matrix has become.
+        Done at the next solve, which every rank calls (an exception may have been one rank's)."""
         if not self._failed:
             return
         failed, self._failed = self._failed, set()
@@ -278,7 +280,7 @@ class CappedSolver:
                                          and iterations >= options.max_it))
         exact = (reason == _DIVERGED_BREAKDOWN and rnorm is not None and rnorm <= _HAPPY_BREAKDOWN * b_norm)
         ok = finite and (reason > 0 or capped or exact)
-        if not ok:
+        if reason == PC_FAILED:
             self._failed.add(failed_kind)
         stats = SolveStats(iterations=iterations, reason=reason,
                            reason_name=REASON_NAMES.get(reason, str(reason)),

@@ -32,7 +32,7 @@ from petsc4py import PETSc
 
 from fempdl.core import _dolfinx
 from fempdl.core.nonlinear_problem import NonlinearProblem
-from fempdl.ksp_adjoint import CappedSolver
+from fempdl.ksp_adjoint import PC_FAILED, CappedSolver
 from fempdl.solve.assembly import (ControlValues, Timer, attach_nullspace, check_operator, check_symmetric_factor,
                                    operator_defect, set_owned, without_bc_entries)
 from fempdl.solve.control_forms import ControlForms
@@ -271,7 +271,7 @@ class NonlinearSystem:
             paths.append(np.array(self._recording))
             self._recording = None
         # PETSc keeps a failed factorisation failed (a later solve errors): fresh solvers next time.
-        self._stopped_on_error |= not stats.ok
+        self._stopped_on_error |= not stats.ok and int(self._ksp.getConvergedReason()) == PC_FAILED
         if not stats.ok and self._jacobian_defect:
             named = sorted(self._called_controls & p.jacobian_controls)
             report_newton_failure(self._options, stats, f"{self._jacobian_defect}, controls {named}")
