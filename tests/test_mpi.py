@@ -198,15 +198,19 @@ def test_the_data_parallel_example_script_trains_a_scene(tmp_path):
 
 
 def test_ranks_that_disagree_get_an_error_not_a_hang(tmp_path):
-    """A distributed layer called with other caps or batches on the ranks, and PRDP stepped with per-rank
-    metrics, used to hang (one rank in KSPSolve, one in VecNorm); now every rank raises."""
+    """A distributed layer called with other caps, batches, dtypes or grad modes on the ranks (both layer
+    types), and PRDP stepped with per-rank metrics, used to hang (one rank in KSPSolve, one in VecNorm);
+    now every rank raises."""
     out = tmp_path / "guards"
     done = mpirun(2, "guards.py", str(out), timeout=120)
     assert done.returncode == 0, done.stderr[-3000:]
     caught = [json.loads(Path(f"{out}.rank{r}.json").read_text()) for r in range(2)]
     for rank in caught:
-        assert "called this distributed-mesh SolveLayer differently" in rank["cap"] and "[(5, 1, ('f',))" in rank["cap"]
-        assert "(5, 1, ('f',)), (5, 2, ('f',))" in rank["batch"]
+        assert "called this distributed-mesh SolveLayer differently (caps: [5, 6], by rank)" in rank["cap"]
+        assert "(batch: [1, 2]; shared (n,) or batched (B, n): [('shared',), ('batched',)], by rank)" in rank["batch"]
+        assert "(dtypes: [('float64',), ('float32',)], by rank)" in rank["dtype"]
+        assert "(requires_grad: [(True,), (False,)], by rank)" in rank["grad"]
+        assert "NonlinearSolveLayer differently (dtypes: [('float64',), ('float32',)], by rank)" in rank["newton_dtype"]
         assert "PRDP.step got different metrics on the 2 ranks ([0.5, 1.5])" in rank["prdp"]
         assert rank["k"] == 2 and rank["agreed"] > 0
 

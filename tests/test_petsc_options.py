@@ -21,6 +21,7 @@ from petsc4py import PETSc
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import CappedSolver, KSPOptions
+from fempdl.solve.newton_options import NewtonOptions
 
 
 @pytest.fixture(scope="module")
@@ -69,6 +70,34 @@ def test_dict_errors_name_the_key():
     with pytest.raises(ValueError, match=r"petsc_options\['ksp_rtol'\] conflicts with a KSPOptions field; set "
                                          r"rtol instead, or .* KSPOptions.from_petsc_options"):
         KSPOptions(petsc_options={"ksp_rtol": 1e-6})
+
+
+def test_reserved_keys_are_refused_in_any_letter_case(coarse_lshape):
+    """PETSc reads KSP_MAX_IT as ksp_max_it: it ran 200 iterations under a layer that reported max_it=5,
+    and Ksp_Type: preonly turned capped CG into one Jacobi application, both silently."""
+    for key, value in (("KSP_MAX_IT", 200), ("Ksp_Type", "preonly"), ("PC_TYPE", "none"), ("Ksp_Rtol", 1e-3)):
+        with pytest.raises(ValueError, match=rf"petsc_options\['{key}'\] conflicts with a KSPOptions field"):
+            KSPOptions.preset("cg", max_it=5, petsc_options={key: value})
+    with pytest.raises(ValueError, match=r"petsc_options\['KSP_Initial_Guess_Nonzero'\] is not supported"):
+        KSPOptions(petsc_options={"KSP_Initial_Guess_Nonzero": True})
+    with pytest.raises(ValueError, match=r"\['ksp_view'\] and petsc_options\['KSP_VIEW'\] name the same PETSc option"):
+        KSPOptions(petsc_options={"ksp_view": None, "KSP_VIEW": None})
+    # Other keys keep working, stored in lower case (the name PETSc matches anyway).
+    assert dict(KSPOptions.preset("jacobi", max_it=5, petsc_options={"KSP_Richardson_Scale": 0.5}).petsc_options) \
+        == {"ksp_richardson_scale": 0.5}
+    # DOLFINx-style dicts map reserved keys in any case onto fields, once.
+    assert KSPOptions.from_petsc_options({"KSP_TYPE": "cg", "Pc_Type": "jacobi", "KSP_MAX_IT": "5"}) \
+        == KSPOptions(ksp_type="cg", pc_type="jacobi", max_it=5)
+    with pytest.raises(ValueError, match=r"options\['ksp_max_it'\] and options\['KSP_MAX_IT'\] both set max_it"):
+        KSPOptions.from_petsc_options({"ksp_max_it": 5, "KSP_MAX_IT": 200})
+    # A Newton layer's inner solve is a KSPOptions: the same checks.
+    with pytest.raises(ValueError, match=r"petsc_options\['KSP_MAX_IT'\] conflicts"):
+        NewtonOptions(ksp=KSPOptions.preset("jacobi", max_it=3, petsc_options={"KSP_MAX_IT": 200}))
+    # The cap holds: a capped layer runs exactly max_it iterations.
+    layer = SolveLayer(forms.poisson.problem(coarse_lshape, controls=("f",)),
+                       KSPOptions.preset("jacobi", max_it=5, petsc_options={"KSP_Richardson_Scale": 0.9}))
+    layer(f=torch.ones(layer.problem.control_size("f"), dtype=torch.float64))
+    assert layer.stats.forward_iterations == 5
 
 
 def test_dict_options_solve_to_rtol(laplacian):

@@ -1,7 +1,8 @@
 """``SolveLayer(diff="implicit")``: the capped solve in PETSc, differentiated by the adjoint solve.
 
 Forward: A(m) u = b(m) by the layer's capped solver (K = ``max_it``). Backward:
-A(m)^T lam = dJ/du (BC entries zeroed, same solver and cap), then
+A(m)^T lam = dJ/du (BC entries zeroed, same solver and cap, and the Constants,
+fixed Functions and cap that the forward read: :class:`~fempdl.solve.call_state.CallState`), then
 dJ/dm = -lam^T dF/dm for every control that requires grad, and, for a warm
 start x0, the adjoint residual dJ/du - A^T lam (:meth:`LinearSystem.adjoint`).
 
@@ -55,9 +56,12 @@ def nonfinite_control_message(name: str, bad: int) -> str:
 # ------------------------------------------------------------------ operators
 @torch.library.custom_op("fempdl::implicit_solve", mutates_args=())
 def implicit_solve(handle: int, names: str, batch: int, keep_matrices: bool, float32: bool,
-                   tensors: list[Tensor]) -> Tensor:
-    """U (batch, n) in float64 on the CPU; ``names`` comma-separated, one per tensor."""
+                   tensors: list[Tensor]) -> tuple[Tensor, Tensor]:
+    """U (batch, n) in float64 on the CPU, and the packed state the solve read (the layer's
+    ``call_state``: a copy of its Constants and fixed Functions, small beside a solve);
+    ``names`` comma-separated, one per tensor."""
     layer = _layer(handle)
+    state = layer.call_state.pack(layer.system)
     t0 = time.perf_counter()
     names = _split(names)
     values = _float64_values(names, tensors)
@@ -72,19 +76,22 @@ def implicit_solve(handle: int, names: str, batch: int, keep_matrices: bool, flo
     if float32 and count_nonfinite(U.astype(np.float32), layer.problem):
         layer._report_overflow(torch.float32)
     layer.stats.layer_time += time.perf_counter() - t0
-    return torch.from_numpy(np.ascontiguousarray(U, dtype=np.float64))  # the layout register_fake promises
+    # The layout register_fake promises.
+    return torch.from_numpy(np.ascontiguousarray(U, dtype=np.float64)), torch.from_numpy(state)
 
 
 @implicit_solve.register_fake
 def _(handle, names, batch, keep_matrices, float32, tensors):
-    n = _layer(handle).problem.output_size
-    return torch.empty((batch, n), dtype=torch.float64, device="cpu")
+    layer = _layer(handle)
+    return (torch.empty((batch, layer.problem.output_size), dtype=torch.float64, device="cpu"),
+            torch.empty((layer.call_state.size,), dtype=torch.float64, device="cpu"))
 
 
 @torch.library.custom_op("fempdl::implicit_adjoint", mutates_args=())
 def implicit_adjoint(handle: int, names: str, wanted: str, tensors: list[Tensor], u: Tensor,
-                     du: Tensor) -> list[Tensor]:
-    """dJ/dm (batch, n_m) float64 for each name in ``wanted`` (in ``names`` order), given u and du = dJ/du (batch, n)."""
+                     du: Tensor, state: Tensor) -> list[Tensor]:
+    """dJ/dm (batch, n_m) float64 for each name in ``wanted`` (in ``names`` order), given u and du = dJ/du
+    (batch, n), with the Constants, fixed Functions and cap the forward read (``state``) put back."""
     layer = _layer(handle)
     t0 = time.perf_counter()
     names, wanted = _split(names), _split(wanted)
@@ -97,14 +104,15 @@ def implicit_adjoint(handle: int, names: str, wanted: str, tensors: list[Tensor]
     shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
     arrays = _batched(_float64_values(names, tensors), batch)
     arrays.pop(INITIAL_GUESS, None)
-    grads = layer.system.adjoint(arrays, _to_numpy(u), G, [n for n in wanted if n != INITIAL_GUESS],
-                                 shared, initial_guess=INITIAL_GUESS in wanted)
+    with layer.call_state.restored(layer.system, state.numpy()):
+        grads = layer.system.adjoint(arrays, _to_numpy(u), G, [n for n in wanted if n != INITIAL_GUESS],
+                                     shared, initial_guess=INITIAL_GUESS in wanted)
     layer.stats.layer_time += time.perf_counter() - t0
     return [torch.from_numpy(np.ascontiguousarray(grads[n], dtype=np.float64)) for n in wanted]
 
 
 @implicit_adjoint.register_fake
-def _(handle, names, wanted, tensors, u, du):
+def _(handle, names, wanted, tensors, u, du, state):
     sizes = {n: t.shape[-1] for n, t in zip(_split(names), tensors)}
     return [torch.empty((du.shape[0], sizes[n]), dtype=torch.float64, device="cpu") for n in _split(wanted)]
 
@@ -112,19 +120,21 @@ def _(handle, names, wanted, tensors, u, du):
 def _solve_vmap(info, in_dims, handle, names, batch, keep_matrices, float32, tensors):
     V, dims = info.batch_size, in_dims[5]
     if all(d is None for d in dims):
-        return implicit_solve(handle, names, batch, keep_matrices, float32, tensors), None
+        return implicit_solve(handle, names, batch, keep_matrices, float32, tensors), (None, None)
     folded = [_fold(t, d, V, batch) for t, d in zip(tensors, dims)]
-    U = implicit_solve(handle, names, V * batch, keep_matrices, float32, folded)
-    return U.reshape(V, batch, U.shape[-1]), 0
+    U, state = implicit_solve(handle, names, V * batch, keep_matrices, float32, folded)
+    return (U.reshape(V, batch, U.shape[-1]), state), (0, None)
 
 
-def _adjoint_vmap(info, in_dims, handle, names, wanted, tensors, u, du):
+def _adjoint_vmap(info, in_dims, handle, names, wanted, tensors, u, du, state):
     V = info.batch_size
     out_v, grad_v = _fold3(u, in_dims[4], V), _fold3(du, in_dims[5], V)
     batch = grad_v.shape[1]
     folded = [_fold(t, d, V, batch) for t, d in zip(tensors, in_dims[3])]
+    if in_dims[6] is not None:       # one forward's state, seen by every vmapped sample
+        state = state.select(in_dims[6], 0)
     grads = implicit_adjoint(handle, names, wanted, folded, out_v.reshape(V * batch, -1),
-                             grad_v.reshape(V * batch, -1))
+                             grad_v.reshape(V * batch, -1), state)
     return [g.reshape(V, batch, g.shape[-1]) for g in grads], [0] * len(grads)
 
 
@@ -157,8 +167,9 @@ class ImplicitSolve(torch.autograd.Function):
     """The forward solve with the adjoint solve as its backward (setup_context style, so
     torch.func transforms apply; vmap goes through the operators' vmap rules).
 
-    ``ImplicitSolve.apply(handle, names, batch, keep_matrices, float32, *tensors)``:
-    ``names`` a tuple with one control name per tensor, ``batch`` the native batch B."""
+    ``ImplicitSolve.apply(handle, names, batch, keep_matrices, float32, *tensors)`` -> (U, state):
+    ``names`` a tuple with one control name per tensor, ``batch`` the native batch B; ``state`` the
+    packed values the solve read, not differentiable."""
 
     generate_vmap_rule = True
 
@@ -169,10 +180,12 @@ class ImplicitSolve(torch.autograd.Function):
     @staticmethod
     def setup_context(ctx, inputs, output):
         handle, names, batch, _, _, *tensors = inputs
+        out, state = output
+        ctx.mark_non_differentiable(state)
         # Saved through autograd so that an in-place change of an input or of the
         # output before backward raises autograd's error instead of corrupting
         # the gradient (backward re-assembles with the controls and u).
-        ctx.save_for_backward(*tensors, output)
+        ctx.save_for_backward(*tensors, out, state)
         ctx.handle, ctx.names = handle, names
         # The graph holds the layer alive until backward: the operators see only the
         # handle, and a layer built inline (SolveLayer(p)(f=f)) has no other owner.
@@ -180,16 +193,16 @@ class ImplicitSolve(torch.autograd.Function):
         ctx.inputs = [(t.dim(), t.dtype, t.device) for t in tensors]
 
     @staticmethod
-    def backward(ctx, grad_out):
+    def backward(ctx, grad_out, _grad_state):
         # First order: the adjoint operator gets detached operands, so under torch.func
         # it sees plain or vmapped tensors (a second derivative raises, below).
         needs = ctx.needs_input_grad[5:]
         wanted = [n for n, need in zip(ctx.names, needs) if need]
         if not wanted:
             return (None,) * (5 + len(ctx.names))
-        *tensors, out = ctx.saved_tensors
+        *tensors, out, state = ctx.saved_tensors
         grads = implicit_adjoint(ctx.handle, ",".join(ctx.names), ",".join(wanted),
-                                 [t.detach() for t in tensors], out.detach(), grad_out.detach())
+                                 [t.detach() for t in tensors], out.detach(), grad_out.detach(), state)
         grads = dict(zip(wanted, grads))
         result = []
         for name, (dim, dtype, device) in zip(ctx.names, ctx.inputs):

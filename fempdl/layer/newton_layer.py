@@ -89,7 +89,8 @@ class NonlinearSolveLayer(SystemLayer):
         self.diff = diff
         self.max_unrolled_values = max_unrolled_values
         # Unrolled: at least one step even from a solution, where the map is not the identity nearby.
-        self._init_system(problem, NonlinearSystem(problem, options, force_step=diff == "unrolled"))
+        self._init_system(problem, NonlinearSystem(problem, options, force_step=diff == "unrolled"),
+                          backward_caps=("inner_max_it",))
 
     second_derivative_message = (
         "second derivatives through NonlinearSolveLayer are not implemented: both its implicit and its unrolled "

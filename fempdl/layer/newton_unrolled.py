@@ -57,6 +57,7 @@ class UnrolledNewton(torch.autograd.Function):
                 raise ValueError(nonfinite_control_message(name, bad))
         arrays = {n: np.broadcast_to(t.numpy(), (batch, t.shape[-1])) for n, t in zip(names, tensors)}
         guess = arrays.pop(INITIAL_GUESS, None)
+        ctx.state = layer.call_state.pack(layer.system)
         U, path = layer.system.solve(arrays, batch, initial_guess=guess, record=True)
         ctx.layer, ctx.names, ctx.path = layer, names, path
         ctx.shared = [t.dim() == 1 for t in tensors]
@@ -81,8 +82,9 @@ class UnrolledNewton(torch.autograd.Function):
         batch = G.shape[0]
         arrays = {n: np.broadcast_to(t.detach().numpy(), (batch, t.shape[-1]))
                   for n, t in zip(ctx.names, tensors) if n != INITIAL_GUESS}
-        grads = layer.system.unrolled_adjoint(arrays, ctx.path, G, [n for n in wanted if n != INITIAL_GUESS],
-                                              initial_guess=INITIAL_GUESS in wanted)
+        with layer.call_state.restored(layer.system, ctx.state):   # the Constants the forward read
+            grads = layer.system.unrolled_adjoint(arrays, ctx.path, G, [n for n in wanted if n != INITIAL_GUESS],
+                                                  initial_guess=INITIAL_GUESS in wanted)
         result = []
         for name, shared in zip(ctx.names, ctx.shared):
             g = grads.get(name)

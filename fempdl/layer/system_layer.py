@@ -14,6 +14,7 @@ from __future__ import annotations
 import torch
 
 from fempdl.layer.implicit_diff import ImplicitSolve, count_on_all_ranks, nonfinite_control_message, register_layer
+from fempdl.solve.call_state import CallState
 from fempdl.solve.linear_system import INITIAL_GUESS
 from fempdl.solve.stats import CumulativeStats, warn_at_caller
 
@@ -25,9 +26,11 @@ _FLOAT_DTYPES = (torch.float32, torch.float64)
 class SystemLayer(torch.nn.Module):
     """The common part of the solve layers (module docstring)."""
 
-    def _init_system(self, problem, system) -> None:
+    def _init_system(self, problem, system, backward_caps: tuple = ("max_it",)) -> None:
+        """``backward_caps``: the system's caps its backward solves use (put back as the forward read them)."""
         self.problem = problem
         self._system = system
+        self.call_state = CallState(problem, backward_caps)
         # Plain values for forward, so torch.compile traces it without entering the Problem.
         self._distributed = problem.V.mesh.comm.size > 1
         self._sizes = {**{n: problem.control_size(n) for n in problem.control_names},
@@ -71,7 +74,7 @@ class SystemLayer(torch.nn.Module):
             controls = {**controls, INITIAL_GUESS: initial_guess}
         names, tensors, batch, batched = self._validate(controls)
         if self._distributed:
-            self._check_ranks_agree(names, batch)
+            self._check_ranks_agree(names, tensors, batch)
         dtype = tensors[0].dtype if tensors else torch.float64
         if any(t.dtype != dtype for t in tensors):
             dtype = torch.float64
@@ -82,20 +85,27 @@ class SystemLayer(torch.nn.Module):
         """The solve as one opaque operator whose backward is the system's adjoint."""
         # The operator checks the controls for NaN/inf and the float32 range of the solution.
         keep = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
-        return ImplicitSolve.apply(self._handle, names, batch, keep, dtype != torch.float64, *tensors)
+        return ImplicitSolve.apply(self._handle, names, batch, keep, dtype != torch.float64, *tensors)[0]
 
-    def _check_ranks_agree(self, names, batch: int) -> None:
-        """On a distributed mesh every rank must make the same call (the solves are collective): one
-        allgather of (cap, batch, controls), and a ValueError on every rank if they differ, instead of
-        ranks waiting in different collectives (a hang)."""
+    def _check_ranks_agree(self, names, tensors, batch: int) -> None:
+        """On a distributed mesh every rank must make the same call (the solves are collective, and the
+        dtype, a control's sharing and the grad mode choose which collectives run): one allgather of
+        the call's signature, and a ValueError on every rank if they differ, instead of ranks waiting in
+        different collectives (a hang)."""
         comm = self.problem.V.mesh.comm
-        mine = (self._caps(), batch, tuple(names))
+        mine = {"caps": self._caps(), "batch": batch, "controls": tuple(names),
+                "dtypes": tuple(str(t.dtype).removeprefix("torch.") for t in tensors),
+                "shared (n,) or batched (B, n)": tuple("shared" if t.dim() == 1 else "batched" for t in tensors),
+                "requires_grad": tuple(t.requires_grad for t in tensors) if torch.is_grad_enabled() else "no_grad"}
         every = comm.allgather(mine)
-        if any(call != mine for call in every):
+        differ = [key for key in mine if any(call[key] != mine[key] for call in every)]
+        if differ:
+            by_rank = "; ".join(f"{key}: {[call[key] for call in every]}" for key in differ)
             raise ValueError(
-                f"the ranks called this distributed-mesh {type(self).__name__} differently (caps, batch, controls by "
-                f"rank: {every}); every rank must call it with the same caps, batch size and controls. A PRDP step "
-                "on per-rank metrics moves the caps apart: step PRDP with the same (reduced) metric on every rank")
+                f"the ranks called this distributed-mesh {type(self).__name__} differently ({by_rank}, by rank); "
+                "every rank must call it with the same caps, batch size, controls, dtypes, tensor shapes and "
+                "grad mode. A PRDP step on per-rank metrics moves the caps apart: step PRDP with the same "
+                "(reduced) metric on every rank")
 
     def _caps(self):
         """The caps every rank's call must share (a Newton layer adds its inner cap)."""

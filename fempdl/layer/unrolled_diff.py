@@ -20,6 +20,7 @@ import torch
 from fempdl.core import _dolfinx
 from fempdl.iterative import unrolled
 from fempdl.iterative.sparse import SparseOperator
+from fempdl.solve.assembly import fingerprint, fingerprint_matches
 from fempdl.solve.options import KSPOptions
 from fempdl.solve.stats import capped_solve_stats
 from fempdl.solve.linear_system import INITIAL_GUESS, LinearSystem
@@ -53,8 +54,8 @@ class UnrolledPath:
 
     def __init__(self, max_values: int | None, memory_budget: int | None):
         self.max_values, self.memory_budget = max_values, memory_budget
-        self._operators = None          # (key, (A, D^-1, b_base, {name: C_m}))
-        self._jacobians: dict = {}      # name -> (rows, cols, diagonal, v0, J)
+        self._operators = None          # ((names, fingerprint), (A, D^-1, b_base, {name: C_m}))
+        self._jacobians: dict = {}      # name -> (fingerprint of a's other inputs, rows, cols, diagonal, v0, J)
 
     def solve(self, system: LinearSystem, given: dict, batch: int) -> torch.Tensor:
         """u (B, n) = X_K^T for the controls ``given`` (name -> float64 (B, n_m) or (n_m,); the
@@ -87,7 +88,13 @@ class UnrolledPath:
 
     def _affine_operators(self, system: LinearSystem, names: frozenset):
         """Torch A, D^-1 (as PCJACOBI), b_base and C_m, rebuilt when the matrix or the names change."""
-        if self._operators is None or self._operators[0] != (names, system.matrix_version):
+        # Keyed by the values of everything else a and L read (a time step, a fixed Function, a control
+        # left out of the call), not by the assembled matrix, which only a solve reassembles.
+        p = system.problem
+        inputs = [obj for obj in (*p.matrix_inputs(), *p.rhs_inputs())
+                  if all(obj is not p.control(n) for n in names)]
+        if (self._operators is None or self._operators[0][0] != names
+                or not fingerprint_matches(self._operators[0][1], inputs, p.V.mesh.comm)):
             try:
                 b_base, mats = system.affine_rhs(names)
             except NotImplementedError as err:
@@ -96,7 +103,7 @@ class UnrolledPath:
             A = system.constant_matrix()
             d = A.diagonal()
             P = torch.from_numpy(1.0 / np.where(d != 0.0, d, 1.0))[:, None]
-            self._operators = ((names, system.matrix_version),
+            self._operators = ((names, fingerprint(inputs)),
                                (SparseOperator.from_scipy(A), P, torch.from_numpy(b_base)[:, None],
                                 {n: SparseOperator.from_scipy(C) for n, C in mats.items()}))
         return self._operators[1]
@@ -111,14 +118,17 @@ class UnrolledPath:
             raise NotImplementedError(
                 f"diff='unrolled' with respect to {name!r} needs zero Dirichlet values and {name!r} absent "
                 "from the right-hand side (else b depends on it); use diff='implicit'")
-        if name not in self._jacobians:
+        # A Constant or fixed Function of a(u, v) (a time step) changes v0 and J: rebuild them then.
+        fixed = [obj for obj in problem.matrix_inputs() if obj is not problem.control(name)]
+        cached = self._jacobians.get(name)
+        if cached is None or not fingerprint_matches(cached[0], fixed, problem.V.mesh.comm):
             pattern, v0, J = matrix_jacobian(system, name)
             rows = torch.from_numpy(np.repeat(np.arange(pattern.shape[0]), np.diff(pattern.indptr)))
             cols = torch.from_numpy(pattern.indices.astype(np.int64))
             diagonal = torch.from_numpy(np.flatnonzero(pattern.indices == rows.numpy()))
-            self._jacobians[name] = (rows, cols, diagonal, torch.from_numpy(v0)[:, None],
+            self._jacobians[name] = (fingerprint(fixed), rows, cols, diagonal, torch.from_numpy(v0)[:, None],
                                      SparseOperator.from_scipy(J))
-        rows, cols, diagonal, v0, J = self._jacobians[name]
+        _, rows, cols, diagonal, v0, J = self._jacobians[name]
         values = v0 + J @ _columns(given[name])                               # (nnz, B or 1)
         d = values[diagonal]
         P = 1.0 / torch.where(d == 0, torch.ones_like(d), d)                  # PCJACOBI: zero -> 1

@@ -35,20 +35,27 @@ FORBIDDEN_OPTIONS = {
 
 
 def frozen_petsc_options(options) -> Mapping[str, Any]:
+    """The checked ``petsc_options``, keys in lower case: PETSc reads option names case-insensitively,
+    so ``KSP_MAX_IT`` would set the cap as ``ksp_max_it`` does, and only the lower-case name can be checked."""
     if not isinstance(options, Mapping):
         raise TypeError(f"petsc_options must be a mapping of option name to value, got {type(options).__name__}")
-    clean = {}
-    for key, value in options.items():
-        if not isinstance(key, str) or not key or key.startswith("-"):
-            raise ValueError(f"petsc_options keys are option names without the leading '-', got {key!r}")
+    clean, given = {}, {}
+    for given_key, value in options.items():
+        if not isinstance(given_key, str) or not given_key or given_key.startswith("-"):
+            raise ValueError(f"petsc_options keys are option names without the leading '-', got {given_key!r}")
+        key = given_key.lower()
+        if key in given:
+            raise ValueError(f"petsc_options[{given[key]!r}] and petsc_options[{given_key!r}] name the same PETSc "
+                             "option (PETSc ignores the letter case of option names); give it once")
+        given[key] = given_key
         if key in FORBIDDEN_OPTIONS:
-            raise ValueError(f"petsc_options[{key!r}] is not supported: {FORBIDDEN_OPTIONS[key]}")
+            raise ValueError(f"petsc_options[{given_key!r}] is not supported: {FORBIDDEN_OPTIONS[key]}")
         if key in RESERVED_OPTIONS:
-            raise ValueError(f"petsc_options[{key!r}] conflicts with a KSPOptions field; "
+            raise ValueError(f"petsc_options[{given_key!r}] conflicts with a KSPOptions field; "
                              f"set {RESERVED_OPTIONS[key]} instead, or build the options from a DOLFINx-style "
                              "dict with KSPOptions.from_petsc_options")
         if value is not None and not isinstance(value, (str, bool, int, float, np.integer, np.floating)):
-            raise TypeError(f"petsc_options[{key!r}] must be str, number, bool or None, got {value!r}")
+            raise TypeError(f"petsc_options[{given_key!r}] must be str, number, bool or None, got {value!r}")
         clean[key] = value
     return types.MappingProxyType(clean)
 

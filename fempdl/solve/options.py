@@ -245,14 +245,18 @@ class KSPOptions:
             raise TypeError(f"options must be a mapping of PETSc option name to value, got {type(options).__name__}")
         # PETSc's defaults: GMRES, block Jacobi with ILU(0) blocks (one block, i.e. ILU(0), on one process)
         values = {"ksp_type": "gmres", "pc_type": "bjacobi", "max_it": None}
-        rest = {}
+        rest, given = {}, {}
         for key, value in options.items():
             name = key[1:] if isinstance(key, str) and key.startswith("-") else key
-            if name in RESERVED_OPTIONS:
-                field_name = RESERVED_OPTIONS[name]
+            if isinstance(name, str) and name.lower() in RESERVED_OPTIONS:
+                field_name = RESERVED_OPTIONS[name.lower()]   # PETSc reads option names case-insensitively
                 if field_name in fields:
                     raise ValueError(f"options[{key!r}] and the keyword {field_name}= both set {field_name}; "
                                      "give one of them")
+                if field_name in given:
+                    raise ValueError(f"options[{given[field_name]!r}] and options[{key!r}] both set {field_name} "
+                                     "(PETSc ignores the letter case of option names); give one of them")
+                given[field_name] = key
                 values[field_name] = parse_option(key, value, OPTION_TYPES.get(field_name, str))
             else:
                 rest[name] = value

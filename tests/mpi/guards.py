@@ -7,7 +7,7 @@ import sys
 import torch
 from mpi4py import MPI
 
-from fempdl import PRDP, KSPOptions, SolveLayer, forms, mesh
+from fempdl import PRDP, KSPOptions, NonlinearSolveLayer, SolveLayer, forms, mesh
 
 comm = MPI.COMM_WORLD
 problem = forms.poisson.problem(mesh.load("lshape", comm, h=0.2), controls=("f",))
@@ -24,7 +24,21 @@ try:
     layer(f=f if comm.rank == 0 else torch.stack([f, f]))                          # batches differ by rank
 except ValueError as err:
     caught["batch"] = str(err)
+try:
+    layer(f=f if comm.rank == 0 else f.float())                                    # dtypes differ by rank
+except ValueError as err:
+    caught["dtype"] = str(err)
+try:
+    layer(f=f.clone().requires_grad_(comm.rank == 0))                              # a backward on one rank
+except ValueError as err:
+    caught["grad"] = str(err)
 caught["agreed"] = float(layer(f=f).abs().max())                                   # the same call works
+
+newton = NonlinearSolveLayer(forms.nonlinear_diffusion.problem(problem.V.mesh, controls=("f",)))
+try:
+    newton(f=f if comm.rank == 0 else f.float())
+except ValueError as err:
+    caught["newton_dtype"] = str(err)
 
 ctrl = PRDP(layer, k0=2, delta=2, ema_window=1)
 assert ctrl.comm.size == comm.size            # the mesh's communicator, taken from the layer
