@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import torch
 
+from fempdl.core.ranks import torch_group_initialised, training_ranks
 from fempdl.layer.implicit_diff import ImplicitSolve, count_on_all_ranks, nonfinite_control_message, register_layer
 from fempdl.solve.call_state import CallState
 from fempdl.solve.linear_system import INITIAL_GUESS
@@ -75,6 +76,8 @@ class SystemLayer(torch.nn.Module):
         names, tensors, batch, batched = self._validate(controls)
         if self._distributed:
             self._check_ranks_agree(names, tensors, batch)
+        elif torch_group_initialised() and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+            self._check_caps_over_torch_group()
         dtype = tensors[0].dtype if tensors else torch.float64
         if any(t.dtype != dtype for t in tensors):
             dtype = torch.float64
@@ -106,6 +109,22 @@ class SystemLayer(torch.nn.Module):
                 "every rank must call it with the same caps, batch size, controls, dtypes, tensor shapes and "
                 "grad mode. A PRDP step on per-rank metrics moves the caps apart: step PRDP with the same "
                 "(reduced) metric on every rank")
+
+    def _check_caps_over_torch_group(self) -> None:
+        """Under torch.distributed (torchrun + DDP) each process holds the whole mesh, so no solve is
+        collective and ranks whose caps drift apart would train on different physics with equal
+        parameters, silently. A training call (gradients enabled) is collective under DDP anyway, so one
+        all_gather of the caps there cannot hang a loop that validates on rank 0 alone."""
+        ranks = training_ranks()
+        if ranks is None:
+            return
+        mine = self._caps()
+        every = ranks.allgather(mine)
+        if any(caps != mine for caps in every):
+            raise ValueError(
+                f"the ranks of the torch.distributed group train this {type(self).__name__} at different caps "
+                f"({every}, by rank); every rank must train at the same caps: step PRDP on every rank with the "
+                "same (all-reduced) metric, or set max_it on every rank")
 
     def _caps(self):
         """The caps every rank's call must share (a Newton layer adds its inner cap)."""

@@ -21,6 +21,7 @@ import torch
 
 from fempdl.bridge_torch import SolveLayer
 from fempdl.core.checks import check_int
+from fempdl.core.ranks import Ranks, training_ranks
 
 __all__ = ["PRDP", "PRDPRecord", "PRDPSettings", "k_eps"]
 _log = logging.getLogger(__name__)
@@ -119,10 +120,14 @@ class PRDP:
         guard: refine at once when the metric exceeds ``guard`` (> 1) times the
             best metric so far and the previous one (``None``: off).
         growth: a refinement sets K = max(K + dk, ceil(growth * K)) (>= 1; 1: K + dk).
-        comm: the ranks that train together (an ``mpi4py`` communicator); default:
-            the communicator of the target layers' mesh. With more than one rank,
+        comm: the ranks that train together: an ``mpi4py`` communicator or a
+            torch.distributed ``ProcessGroup``. Default: the communicator of the
+            target layers' mesh when it is distributed, else torch.distributed's
+            default group when one is initialised (torchrun + DDP), else none
+            (:func:`fempdl.core.ranks.training_ranks`). With more than one rank,
             :meth:`step` checks that every rank passes the same metric (else a
-            rank would refine alone and the collective solves hang).
+            rank would refine alone: the collective solves of a distributed mesh
+            hang, and data-parallel ranks train on different physics).
 
     The settings read as attributes too (``ctrl.k_cap``, ``ctrl.tau_step``, ...).
     """
@@ -137,6 +142,7 @@ class PRDP:
             raise TypeError(f"settings must be PRDPSettings, got {type(settings).__name__}")
         self.settings = settings
         self._apply = _setter(target)
+        self._given_comm = comm
         self.comm = comm if comm is not None else _layers_comm(target)
         self.alpha = 2.0 / (settings.ema_window + 1.0)
         self.k = settings.k0
@@ -158,13 +164,7 @@ class PRDP:
         if isinstance(metric, bool) or not isinstance(metric, (int, float)) and not hasattr(metric, "__float__"):
             raise TypeError(f"metric must be a number, got {type(metric).__name__}")
         metric = float(metric)
-        if self.comm is not None and self.comm.size > 1:
-            every = self.comm.allgather(metric)
-            if any(m != metric for m in every):
-                raise ValueError(
-                    f"PRDP.step got different metrics on the {self.comm.size} ranks ({every}); every rank must "
-                    "step with the same metric, or one rank refines K alone and the collective solves hang: "
-                    "reduce it first, e.g. comm.allreduce(error_sum) / comm.allreduce(count)")
+        self._check_ranks_agree(metric)
         if not math.isfinite(metric) or metric <= 0.0:
             raise ValueError(f"metric must be finite and > 0 (a validation error), got {metric!r}")
         ema = metric if not self.history else self.alpha * metric + (1.0 - self.alpha) * self.history[-1].ema
@@ -195,6 +195,26 @@ class PRDP:
             _log.info("PRDP: K %d -> %d (%s) at step %d, metric %.3e", k_used, self.k, cause,
                       len(self.history) - 1, metric)
         return refine
+
+    @property
+    def ranks(self) -> Ranks | None:
+        """The ranks whose metrics must agree (looked up at each step: a torch.distributed group may
+        be initialised after the controller was built)."""
+        return training_ranks(self._given_comm, self.comm)
+
+    def _check_ranks_agree(self, metric: float) -> None:
+        ranks = self.ranks
+        if ranks is None or ranks.size == 1:
+            return
+        every = ranks.allgather(metric)
+        if any(m != metric for m in every):
+            reduce = ("torch.distributed.all_reduce(total) on the sums and counts the metric is made of"
+                      if ranks.kind.startswith("torch") else "comm.allreduce(error_sum) / comm.allreduce(count)")
+            raise ValueError(
+                f"PRDP.step got different metrics on the {ranks.size} ranks ({every}) of its {ranks.kind}; every "
+                "rank must step with the same metric, or one rank refines K alone (the collective solves of a "
+                f"distributed mesh hang; data-parallel ranks train on different physics): reduce it first, e.g. "
+                f"{reduce}")
 
     def state_dict(self) -> dict:
         """Everything needed to continue: K, the checkpoint, the history and the settings."""

@@ -1,0 +1,59 @@
+"""PRDP under torchrun + DistributedDataParallel: each process trains on its shard of the data.
+
+    torchrun --standalone --nproc_per_node 2 examples/ddp_prdp_loop.py [--epochs 30] [--local-metric]
+
+Every process holds the whole problem (MPI.COMM_SELF), DDP averages the gradients, the validation metric is
+all-reduced before PRDP sees it, and PRDP (which finds the torch.distributed group itself) checks that every
+rank steps with the same metric, so the ranks refine K together. ``--local-metric`` steps PRDP on each
+rank's own metric, as a first DDP loop often does: PRDP refuses it on every rank instead of letting the
+caps drift apart. Prints one line of JSON per rank.
+"""
+import argparse
+import json
+import numpy as np
+import torch
+import torch.distributed as dist
+from mpi4py import MPI
+from torch.nn.parallel import DistributedDataParallel
+from fempdl import PRDP, KSPOptions, SolveLayer, forms, mesh
+
+parser = argparse.ArgumentParser()
+parser.add_argument("--epochs", type=int, default=30)
+parser.add_argument("--local-metric", action="store_true")
+args = parser.parse_args()
+dist.init_process_group("gloo")
+rank, size = dist.get_rank(), dist.get_world_size()
+torch.set_num_threads(1)
+problem = forms.heat.problem(mesh.load("lshape", MPI.COMM_SELF, h=0.2), controls=("u0",), dt=0.01)
+x = problem.dof_coordinates()
+modes = torch.from_numpy(np.stack([np.sin(i * x[:, 0] + 1.0) * np.cos(j * x[:, 1])
+                                   for i in range(1, 4) for j in range(1, 4)], axis=1))   # (n, 9)
+data = torch.Generator().manual_seed(0)                 # one data set; each rank trains on its shard
+a_train, a_val = (torch.randn(m, 9, dtype=torch.float64, generator=data) for m in (32, 8))
+with torch.no_grad():
+    u_train, u_val = SolveLayer(problem)(u0=a_train @ modes.T), SolveLayer(problem)(u0=a_val @ modes.T)
+layer = SolveLayer(problem, KSPOptions.preset("jacobi", max_it=1))
+ctrl = PRDP(layer, k0=1, dk=2, delta=2, ema_window=2, k_cap=40)
+torch.manual_seed(0)
+net = DistributedDataParallel(torch.nn.Sequential(
+    torch.nn.Linear(9, 32), torch.nn.Tanh(), torch.nn.Linear(32, problem.output_size)).double())
+optimizer, order = torch.optim.Adam(net.parameters(), lr=3e-2), torch.Generator().manual_seed(1)
+error_sum = lambda u, ref: (((u - ref) ** 2).sum(1) / (ref ** 2).sum(1)).sum()   # noqa: E731
+try:
+    for epoch in range(args.epochs):
+        for batch in torch.randperm(32, generator=order).split(8):
+            mine = batch[rank::size]                    # this rank's samples of the batch
+            optimizer.zero_grad()
+            error_sum(layer(u0=net(a_train[mine])), u_train[mine]).div(len(mine)).backward()   # DDP averages
+            optimizer.step()
+        with torch.no_grad():
+            mine = torch.arange(8)[rank::size]
+            total = error_sum(layer(u0=net.module(a_val[mine])), u_val[mine])
+        if not args.local_metric:
+            dist.all_reduce(total)                      # the whole validation set's sum, on every rank
+        ctrl.step(total.item() / (len(mine) if args.local_metric else 8))
+    print(json.dumps({"rank": rank, "k": layer.max_it, "ks": [r.k for r in ctrl.history],
+                      "metric": ctrl.history[-1].metric}), flush=True)
+except ValueError as err:
+    print(json.dumps({"rank": rank, "error": str(err)}), flush=True)
+dist.destroy_process_group()

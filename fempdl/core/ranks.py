@@ -1,0 +1,72 @@
+"""The processes that train together and must agree: an MPI communicator or a torch.distributed group.
+
+fempdl checks that every rank makes the same decisions (the caps a layer is
+called with, the metric PRDP steps on). Those checks run over whichever group
+trains together:
+
+* the mesh's MPI communicator when the mesh is distributed (``mpirun``: the
+  solves themselves are collective there);
+* an initialised torch.distributed process group otherwise (``torchrun`` with
+  DistributedDataParallel: every process holds the whole mesh on a
+  communicator of its own, so the mesh alone sees one process, and ranks whose
+  caps drift apart train on different physics while DDP keeps their
+  parameters equal: nothing else would show it);
+* nothing on one process.
+"""
+from __future__ import annotations
+
+import torch.distributed as dist
+
+__all__ = ["Ranks", "training_ranks", "torch_group_initialised"]
+
+
+def torch_group_initialised() -> bool:
+    """Whether torch.distributed's default process group exists (``init_process_group`` was called)."""
+    return dist.is_available() and dist.is_initialized()
+
+
+class Ranks:
+    """``size`` and ``allgather(value)`` (every rank's picklable ``value``, in rank order) over an
+    ``mpi4py`` communicator or a torch.distributed ``ProcessGroup`` (``None``: the default group)."""
+
+    def __init__(self, group, *, torch_group: bool):
+        self.group, self._torch = group, torch_group
+
+    @property
+    def size(self) -> int:
+        return dist.get_world_size(self.group) if self._torch else self.group.size
+
+    @property
+    def kind(self) -> str:
+        return "torch.distributed process group" if self._torch else "MPI communicator"
+
+    def allgather(self, value) -> list:
+        if not self._torch:
+            return self.group.allgather(value)
+        every = [None] * self.size
+        dist.all_gather_object(every, value, group=self.group)
+        return every
+
+
+def training_ranks(comm=None, mesh_comm=None) -> Ranks | None:
+    """The ranks that must agree, or ``None`` for one process.
+
+    ``comm`` (an mpi4py communicator or a torch.distributed ProcessGroup) wins when given; else
+    ``mesh_comm`` when it spans several processes; else the default torch.distributed group when
+    one is initialised."""
+    if comm is not None:
+        if _is_torch_group(comm):
+            return Ranks(comm, torch_group=True)
+        if not hasattr(comm, "allgather") or not hasattr(comm, "size"):
+            raise TypeError(f"comm must be an mpi4py communicator or a torch.distributed ProcessGroup, "
+                            f"got {type(comm).__name__}")
+        return Ranks(comm, torch_group=False)
+    if mesh_comm is not None and mesh_comm.size > 1:
+        return Ranks(mesh_comm, torch_group=False)
+    if torch_group_initialised() and dist.get_world_size() > 1:
+        return Ranks(None, torch_group=True)
+    return None
+
+
+def _is_torch_group(comm) -> bool:
+    return dist.is_available() and isinstance(comm, dist.ProcessGroup)

@@ -1,0 +1,37 @@
+"""Under torchrun --nproc_per_node 2 (gloo): data-parallel processes, each with the whole mesh, whose layer
+caps drift apart. A training call (gradients on) refuses on every rank; a no-grad call on rank 0 alone (a
+validation only rank 0 runs) does not wait for the other rank. Writes what each rank saw to OUT.rank<r>.json."""
+import json
+import sys
+
+import torch
+import torch.distributed as dist
+from mpi4py import MPI
+
+from fempdl import KSPOptions, NonlinearSolveLayer, SolveLayer, forms, mesh
+
+dist.init_process_group("gloo")
+rank = dist.get_rank()
+msh = mesh.load("lshape", MPI.COMM_SELF, h=0.25)
+problem = forms.poisson.problem(msh, controls=("f",))
+f = torch.ones(problem.control_size("f"), dtype=torch.float64, requires_grad=True)
+seen = {}
+layer = SolveLayer(problem, KSPOptions.preset("jacobi", max_it=5 + rank))          # caps differ by rank
+if rank == 0:
+    with torch.no_grad():
+        seen["rank0_alone"] = float(layer(f=f).abs().max())                          # no collective: returns
+try:
+    layer(f=f)
+except ValueError as err:
+    seen["layer"] = str(err)
+layer.max_it = 5
+seen["agreed"] = float(layer(f=f).sum().item())                                      # the same caps work
+newton = NonlinearSolveLayer(forms.nonlinear_diffusion.problem(msh, controls=("f",)))
+newton.max_it = 4 + rank
+try:
+    newton(f=f)
+except ValueError as err:
+    seen["newton"] = str(err)
+with open(f"{sys.argv[1]}.rank{rank}.json", "w") as fh:
+    json.dump(seen, fh)
+dist.destroy_process_group()
