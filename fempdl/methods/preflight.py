@@ -1,0 +1,116 @@
+"""Before training: what PRDP can save in a user's own loop, and the caps to give it.
+
+PRDP saves solver work; the wall clock sees the saving only as far as the
+solver holds the loop's time. :func:`preflight` measures, on the loop's own
+inputs and starts (its ``initial_guess`` too):
+
+* K_eps, the cap converged solves need (``k_cap``): :func:`~fempdl.methods.prdp.k_eps`,
+  or :func:`~fempdl.methods.newton_caps.newton_k_eps` for a Newton layer;
+* k0, the first cap whose solves are not garbage: :func:`~fempdl.methods.k_start.k_start`;
+* the time split of a few of the loop's own steps run at K_eps (real training
+  steps): the parts that shrink with the cap (the iterations; where K moves the
+  Newton cap, also each Newton step's assembly and set-up) hold a share s of
+  the step time.
+
+PRDP never runs below k0, and everything else costs what it did, so it can
+save at most s (1 - k0 / K_eps) of the wall time (:attr:`Preflight.max_saving`).
+Where that is below ``worthwhile``, PRDP cannot pay in this loop and the
+report says so: train at K_eps.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable
+
+from fempdl.bridge_torch import SolveLayer
+from fempdl.core.checks import check_int
+from fempdl.layer.newton_layer import NonlinearSolveLayer
+from fempdl.methods.k_start import k_start
+from fempdl.methods.newton_caps import NewtonCaps, newton_k_eps
+from fempdl.methods.prdp import k_eps
+
+__all__ = ["Preflight", "preflight"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Preflight:
+    """What :func:`preflight` measured (module docstring); seconds are per step of the loop."""
+
+    k0: int
+    k_cap: int
+    step_time: float
+    capped_time: float
+    capped_parts: tuple
+
+    @property
+    def solver_share(self) -> float:
+        """s: the share of a step at K_eps that shrinks with the cap."""
+        return self.capped_time / self.step_time if self.step_time > 0 else 0.0
+
+    @property
+    def max_saving(self) -> float:
+        """The most of the wall time PRDP can save: s (1 - k0 / K_eps)."""
+        return self.solver_share * (1.0 - self.k0 / self.k_cap)
+
+    def pays(self, worthwhile: float = 0.1) -> bool:
+        return self.max_saving >= worthwhile
+
+    def summary(self, worthwhile: float = 0.1) -> str:
+        head = (f"K_eps {self.k_cap}, k0 {self.k0}; at K_eps the solver ({'+'.join(self.capped_parts)}) holds "
+                f"{100 * self.solver_share:.0f}% of a {self.step_time * 1e3:.1f} ms step: PRDP can save at most "
+                f"{100 * self.max_saving:.0f}% of the wall time")
+        if self.pays(worthwhile):
+            return f"{head}; use PRDP(..., k0={self.k0}, k_cap={self.k_cap})"
+        return (f"{head}, below {100 * worthwhile:.0f}%: PRDP cannot pay in this loop; train at K_eps "
+                f"(max_it={self.k_cap}) or with converged solves")
+
+
+def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: float = 0.5, rtol: float = 1e-8,
+              **inputs) -> Preflight:
+    """Measure k0, K_eps and the solver's share of the loop's step (module docstring).
+
+    Args:
+        step: runs one training step of the loop (forward, backward, optimizer step) through the
+            target's layers; called ``steps + 1`` times at K_eps (the first call warms caches up and is
+            not timed). These are real steps: the model trains.
+        target: what PRDP will move: a :class:`~fempdl.bridge_torch.SolveLayer`, a
+            :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (its Newton cap) or a
+            :class:`~fempdl.methods.newton_caps.NewtonCaps`. Its layers' caps are put back afterwards.
+        steps: timed steps (>= 1).
+        tolerance: k0's relative error (:func:`~fempdl.methods.k_start.k_start`).
+        rtol: the converged solves' tolerance for K_eps.
+        inputs: the layer's keyword inputs as the loop passes them (``initial_guess`` included).
+    """
+    check_int("steps", steps, minimum=1)
+    if not callable(step):
+        raise TypeError(f"step must be a callable running one training step, got {type(step).__name__}")
+    if isinstance(target, NonlinearSolveLayer):
+        target = NewtonCaps(target, "newton")
+    if isinstance(target, NewtonCaps):
+        layers, k_cap = target.layers, newton_k_eps(target, rtol=rtol, **inputs)
+        parts = ("iterations", "setup", "assembly") if target.refine in ("newton", "both") else ("iterations",)
+    elif isinstance(target, SolveLayer):
+        layers, k_cap, parts = [target], k_eps(target, rtol=rtol, **inputs), ("iterations",)
+    else:
+        raise TypeError(f"target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps, got {type(target).__name__}")
+    k0 = min(k_start(target, tolerance=tolerance, rtol=rtol, k_max=k_cap, **inputs), k_cap)
+    saved = [layer.get_extra_state() for layer in layers]      # every cap, as state_dict carries them
+    target.max_it = k_cap
+    try:
+        step()
+        before = [_capped_seconds(layer.stats, parts) for layer in layers]
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            step()
+        elapsed = time.perf_counter() - t0
+        capped = sum(_capped_seconds(layer.stats, parts) - b for layer, b in zip(layers, before))
+    finally:
+        for layer, state in zip(layers, saved):
+            layer.set_extra_state(state)
+    return Preflight(k0=k0, k_cap=k_cap, step_time=elapsed / steps, capped_time=capped / steps, capped_parts=parts)
+
+
+def _capped_seconds(stats, parts: tuple) -> float:
+    seconds = {"iterations": stats.solve_time, "setup": stats.setup_time, "assembly": stats.assembly_time}
+    return sum(seconds[part] for part in parts)
