@@ -4,7 +4,8 @@
 
 Every rank builds the whole problem (COMM_SELF) and takes its shard of each batch and of the validation
 set; gradients are summed over the ranks before each step, the validation metric is reduced before PRDP
-sees it, and PRDP (told the ranks) checks they step with the same metric. One process gives the same numbers.
+sees it, and PRDP (told the ranks) checks they step with the same metric; every epoch the ranks are checked to
+hold the same parameters (parallel.check_same_parameters). One process gives the same numbers.
 """
 import argparse
 import json
@@ -51,6 +52,7 @@ for epoch in range(args.epochs):
         mine = parallel.shard(torch.arange(8), comm)
         metric = comm.allreduce(error_sum(layer(u0=net(a_val[mine])), u_val[mine]).item()) / 8
     ctrl.step(metric)
+    parallel.check_same_parameters(net, comm)      # a loop without sum_gradients would drift apart here
 iterations = comm.allreduce(layer.stats.total_iterations)
 if comm.rank == 0:                                 # one line of JSON: metric, final K, K per epoch, iterations
     print(json.dumps({"metric": metric, "k": layer.max_it, "ks": [r.k for r in ctrl.history],

@@ -45,6 +45,7 @@ for step in range(1, args.steps + 1):
     loss.backward()
     parallel.sum_gradients([theta], comm)
     optimizer.step()
+    parallel.check_same_parameters([theta], comm)   # without sum_gradients each rank would fit its own theta
 error = float((theta - theta_ref).norm() / theta_ref.norm())
 dofs = comm.allreduce(problem.output_size)      # collective: every rank calls it
 if comm.rank == 0:

@@ -46,7 +46,7 @@ _PUBLIC = {
     "PointObservation": "fempdl.layer.observation",
     "MassInner": "fempdl.layer.observation",
 }
-_SUBMODULES = {"forms": "fempdl.forms", "mesh": "fempdl.core.mesh", "io": "fempdl.core.io"}
+_SUBMODULES = {"forms": "fempdl.forms", "mesh": "fempdl.mesh", "io": "fempdl.io"}
 
 __all__ = sorted(_PUBLIC) + sorted(_SUBMODULES) + ["__version__"]
 

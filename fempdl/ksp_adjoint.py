@@ -37,6 +37,28 @@ PC_FAILED = PETSc.KSP.ConvergedReason.DIVERGED_PCSETUP_FAILED
 _HAPPY_BREAKDOWN = 1e-12
 
 
+def set_interrupt_checks(ksp: PETSc.KSP, options: KSPOptions) -> None:
+    """Give ``ksp`` a monitor that lets a pending KeyboardInterrupt stop a long solve (see
+    :data:`fempdl.core.tuning.INTERRUPT_CHECK_MIN_WORK`), or take it away when the cap has moved below that.
+
+    ``ksp`` may be a SNES's inner KSP: the interrupt then ends the SNES solve too."""
+    cap = DEFAULT_CONVERGED_MAX_IT if options.max_it is None else options.max_it
+    wanted = not options.direct and cap * ksp.getOperators()[0].getSize()[0] >= tuning.INTERRUPT_CHECK_MIN_WORK
+    has = ksp.getAttr("fempdl_interruptible") is not None
+    if wanted and not has:
+        # Calling into Python runs the pending signal handlers: Ctrl-C raises
+        # KeyboardInterrupt inside the monitor, and KSPSolve returns with it.
+        ksp.setMonitor(_interrupt_point)
+        ksp.setAttr("fempdl_interruptible", True)
+    elif has and not wanted:
+        ksp.cancelMonitor()
+        ksp.setAttr("fempdl_interruptible", None)
+
+
+def _interrupt_point(ksp, iteration, residual_norm) -> None:
+    """A KSP monitor that does nothing: being Python, it lets signal handlers run (:func:`set_interrupt_checks`)."""
+
+
 class CappedSolver:
     """A PETSc KSP on one operator, with a forward and a transposed solve.
 
@@ -287,20 +309,7 @@ class CappedSolver:
                            residual_norm=rnorm, time=elapsed, capped=capped, ok=ok, setup_time=t1 - t0)
         return self.record(direction, stats, finite=finite)
 
-    def _set_interrupt_checks(self, ksp: PETSc.KSP, options: KSPOptions) -> None:
-        """Give ``ksp`` a monitor that lets a pending KeyboardInterrupt stop a long solve (see
-        :data:`fempdl.core.tuning.INTERRUPT_CHECK_MIN_WORK`), or take it away when the cap has moved below that."""
-        cap = DEFAULT_CONVERGED_MAX_IT if options.max_it is None else options.max_it
-        wanted = not options.direct and cap * ksp.getOperators()[0].getSize()[0] >= tuning.INTERRUPT_CHECK_MIN_WORK
-        has = ksp.getAttr("fempdl_interruptible") is not None
-        if wanted and not has:
-            # Calling into Python runs the pending signal handlers: Ctrl-C raises
-            # KeyboardInterrupt inside the monitor, and KSPSolve returns with it.
-            ksp.setMonitor(_interrupt_point)
-            ksp.setAttr("fempdl_interruptible", True)
-        elif has and not wanted:
-            ksp.cancelMonitor()
-            ksp.setAttr("fempdl_interruptible", None)
+    _set_interrupt_checks = staticmethod(set_interrupt_checks)     # the rule NonlinearSystem applies to its inner KSP too
 
     def record(self, direction: str, stats: SolveStats, *, finite: bool = True) -> SolveStats:
         """Count a solve (also one run outside this KSP, e.g. by the batched
@@ -314,8 +323,3 @@ class CappedSolver:
         """Raise :class:`SolverFailedError` or warn (per ``on_failure``) for a failed solve."""
         options = self._options if direction == "forward" else self._options.adjoint_options
         report_failure(options, stats, finite, direction == "backward", samples)
-
-
-def _interrupt_point(ksp, iteration, residual_norm) -> None:
-    """A KSP monitor that does nothing: being Python, it lets signal handlers run (module docstring)."""
-

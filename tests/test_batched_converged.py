@@ -116,6 +116,7 @@ def test_a_failing_column_fails_as_petsc_and_leaves_the_others(lshape):
     A column whose residual stays interior (zero warm start) converges; one whose warm start puts
     a residual on the boundary rows meets p.Ap of both signs: DIVERGED_INDEFINITE_MAT, in both engines."""
     prob = build("poisson", lshape, controls=("f", "kappa"))
+    prob.positive = ()          # kappa = -1 on purpose
     f = control_values(prob, "f", batch=3)
     kappa = -torch.ones(prob.control_size("kappa"), dtype=torch.float64)
     x0 = torch.zeros(3, prob.output_size, dtype=torch.float64)

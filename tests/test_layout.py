@@ -2,8 +2,9 @@
 
 A module's floor and room come from its package path (:data:`FLOORS`): ``fempdl/core/`` is the
 bottom floor, ``fempdl/app/`` the top one; the design card's named files (``ksp_adjoint.py``,
-``bridge_torch.py``, the ``prdp.py`` import path) are placed by name. Every ``import`` of a fempdl
-module, at module level or inside a function, is an edge; the test reads the sources' ASTs, so it
+``bridge_torch.py``, the ``prdp.py``, ``mesh.py`` and ``io.py`` import paths) are placed by name.
+Every ``import`` of a fempdl module, at module level or inside a function, is an edge; the test
+reads the sources' ASTs, so it
 sees imports that never run. A module may import its own room (no cycle), the earlier rooms of its
 floor, and every floor below. ``fempdl/iterative/`` is torch-only: nothing it imports, directly or
 through other fempdl modules, imports DOLFINx, UFL or basix.
@@ -23,13 +24,15 @@ PACKAGE = Path(__file__).resolve().parent.parent / "fempdl"
 # Floors bottom to top, each a list of rooms in order; a room is a list of module prefixes.
 FLOORS = [
     ("core", [["fempdl.core._dolfinx", "fempdl.core.checks", "fempdl.core.resources", "fempdl.core.parallel",
-               "fempdl.core.meshgen", "fempdl.core.nullspaces", "fempdl.core.locks"], ["fempdl.core.mesh", "fempdl.core.problem_base"], ["fempdl.core.problem", "fempdl.core.nonlinear_problem", "fempdl.core.io"],
-              ["fempdl.forms"], ["fempdl.core"]]),
+               "fempdl.core.meshgen", "fempdl.core.nullspaces", "fempdl.core.locks", "fempdl.core.ranks"], ["fempdl.core.mesh", "fempdl.core.problem_base"], ["fempdl.core.problem", "fempdl.core.nonlinear_problem", "fempdl.core.io"],
+              ["fempdl.forms"], ["fempdl.core"], ["fempdl.mesh", "fempdl.io"]]),
     ("solve", [["fempdl.solve.options", "fempdl.solve.option_checks", "fempdl.solve.newton_options"],
-               ["fempdl.solve.stats", "fempdl.solve.petsc", "fempdl.solve.newton_stats", "fempdl.solve.snes"],
+               ["fempdl.solve.stats", "fempdl.solve.petsc", "fempdl.solve.newton_stats", "fempdl.solve.snes",
+                "fempdl.solve.newton_stop"],
                ["fempdl.ksp_adjoint"],
-               ["fempdl.solve.assembly", "fempdl.solve.control_forms"],
-               ["fempdl.solve.linear_system", "fempdl.solve.nonlinear_system"], ["fempdl.solve"]]),
+               ["fempdl.solve.assembly", "fempdl.solve.control_forms", "fempdl.solve.call_state"],
+               ["fempdl.solve.linear_system", "fempdl.solve.newton_reverse", "fempdl.solve.nonlinear_system"],
+               ["fempdl.solve"]]),
     ("iterative", [["fempdl.iterative"]]),
     ("layer", [["fempdl.layer.implicit_diff", "fempdl.layer.unrolled_diff", "fempdl.layer.observation"],
                ["fempdl.layer.system_layer", "fempdl.layer.newton_unrolled"], ["fempdl.layer.newton_layer"],

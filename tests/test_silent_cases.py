@@ -16,7 +16,9 @@ F64 = torch.float64
 
 @pytest.fixture(scope="module")
 def prob(coarse_lshape):
-    return forms.poisson.problem(coarse_lshape, controls=("f", "kappa"))
+    prob = forms.poisson.problem(coarse_lshape, controls=("f", "kappa"))
+    prob.positive = ()          # kappa <= 0 on purpose: the matrix checks behind the positivity check
+    return prob
 
 
 def inputs(prob, kappa: float = 1.0, batch: int = 2):

@@ -20,19 +20,24 @@ predictions, references and errors (``fields.xdmf``, ``fields.png``).
 A command locks its output directory while it runs (a second command on it
 is refused) and refuses a directory that holds an earlier run unless told
 ``--resume`` (continue it; a changed scene or setting is refused, naming
-what changed) or ``--overwrite`` (replace it).
+what changed) or ``--overwrite`` (replace it), and a directory holding
+other files unless told ``--overwrite`` (files of the names fempdl writes
+are replaced, nothing else is deleted).
 """
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
 from fempdl import __version__
 
-__all__ = ["main", "build_parser", "positive_int", "DEFAULT_SCENE"]
+__all__ = ["main", "build_parser", "positive_int", "thread_count", "DEFAULT_SCENE"]
 
 DEFAULT_SCENE = "heat-emulator-2d"
+OVERWRITE_HELP = ("replace the runs already in --out, or write into a directory holding other files "
+                  "(files of the names fempdl writes are replaced; nothing else is deleted)")
 
 
 def positive_int(text: str) -> int:
@@ -43,6 +48,23 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
+
+
+def thread_count(text: str) -> int:
+    """Torch threads: 1 up to the cores this process may run on. More only take turns on the same
+    cores, and torch's OpenMP threads spin while they wait, so a run slows down instead of speeding
+    up; far more (--threads 100000) exhaust the process limit and fail deep inside MPI or gmsh."""
+    value = positive_int(text)
+    cores = usable_cores()
+    if value > cores:
+        raise argparse.ArgumentTypeError(f"must be at most {cores}, the cores this process may run on, got "
+                                         f"{value}; more threads than cores slow torch down")
+    return value
+
+
+def usable_cores() -> int:
+    """The CPUs this process may run on (its affinity: under mpirun's binding, its rank's share)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def seed_int(text: str) -> int:
@@ -76,7 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     mode.add_argument("--converged", action="store_true", help="train with the converged cap K_eps only")
     run.add_argument("--out", type=Path, help="output directory (default runs/SCENE)")
     run.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
-    run.add_argument("--overwrite", action="store_true", help="replace the runs already in --out")
+    run.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     run.add_argument("--epochs", type=positive_int, help="override the scene's number of epochs")
     run.add_argument("--no-baseline", action="store_true", help="skip the converged baseline run")
     run.add_argument("--no-progress", action="store_true", help="hide progress bars")
@@ -97,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     trade.add_argument("--ks", type=_k_list, help="fixed caps to sweep (default 1, 2, 4, ... below K_eps)")
     trade.add_argument("--out", type=Path, help="output directory (default runs/SCENE/tradeoff)")
     trade.add_argument("--epochs", type=positive_int, help="override the scene's number of epochs")
-    trade.add_argument("--overwrite", action="store_true", help="replace the runs already in --out")
+    trade.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     trade.add_argument("--no-progress", action="store_true")
 
     comp = sub.add_parser("compare", help="a sip or hig scene's method against Adam + backprop; ratios and plots")
@@ -107,13 +129,13 @@ def build_parser() -> argparse.ArgumentParser:
     comp.add_argument("--equal-iterations-only", action="store_true",
                       help="do not extend the baseline to the method's training time")
     comp.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
-    comp.add_argument("--overwrite", action="store_true", help="replace the runs already in --out")
+    comp.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     comp.add_argument("--no-progress", action="store_true")
 
     for command in (run, trade, comp):
-        command.add_argument("--threads", type=positive_int,
-                             help="torch threads per process (default: torch's; under mpirun the node's "
-                                  "cores shared among its ranks)")
+        command.add_argument("--threads", type=thread_count,
+                             help="torch threads per process, at most the cores it may run on (default: "
+                                  "torch's; under mpirun the node's cores shared among its ranks)")
         command.add_argument("--log-every", type=positive_int, metavar="N",
                              help="log a line every N epochs to stderr (default: every epoch when stderr "
                                   "is not a terminal, none on a terminal, where the progress bar shows)")

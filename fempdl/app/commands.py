@@ -100,6 +100,7 @@ def _load_and_run(args) -> int:
         return 2
     if args.epochs is not None:
         sc = dataclasses.replace(sc, optimizer=dataclasses.replace(sc.optimizer, epochs=args.epochs))
+    _check_caps(args, sc)
     out = _output_directory(args, sc)
     # The whole command holds the lock: a second command on the same --out is refused,
     # not only a second run in one of its subdirectories.
@@ -154,17 +155,30 @@ def _ranks_refusal(args, sc, ranks: int) -> str | None:
             f"{ranks} ranks: {one_run})")
 
 
+def _check_caps(args, sc) -> None:
+    """Refuse the caps of the command's runs (--k, --ks, [prdp] k0 and k_cap) that no solve could take
+    before anything is written or trained: such a cap used to be refused only when its own run began,
+    after the baseline had trained."""
+    if spec_of(sc.task).trains != "cap" or args.command not in ("run", "tradeoff"):
+        return          # `fempdl compare` on such a scene is refused as it is
+    fixed = [("--k", args.k)] if args.command == "run" and args.k else [("--ks", k) for k in
+                                                                       getattr(args, "ks", None) or ()]
+    for name, k in fixed:
+        runner.check_caps(sc, "fixed", k, name)
+    if args.command == "tradeoff" or not (args.k or args.converged):
+        runner.check_caps(sc, "prdp")
+
+
 def _output_directory(args, sc) -> Path:
     """--out, or runs/<scene name>[/tradeoff|/compare]; refused (RunDirectoryError) when it holds a run
-    that neither --resume nor --overwrite says what to do with."""
+    that neither --resume nor --overwrite says what to do with, or files of the user's without --overwrite
+    (:func:`fempdl.app.runs.rundir.check_output_directory`)."""
     default = rundir.child(Path("runs"), sc.name, "scene name")
     out = args.out or {"run": default, "tradeoff": default / "tradeoff", "compare": default / "compare"}[args.command]
     resume = getattr(args, "resume", False)
     if resume and args.overwrite:
         raise rundir.RunDirectoryError("--resume and --overwrite contradict each other: give one")
-    if not (resume or args.overwrite) and rundir.holds_run(out):
-        raise rundir.RunDirectoryError(f"{str(out)!r} holds the files of an earlier run; pass --resume to continue "
-                                       "it, --overwrite to replace it, or choose another --out")
+    rundir.check_output_directory(out, resume=resume, overwrite=args.overwrite)
     return out
 
 

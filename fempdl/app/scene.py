@@ -64,10 +64,15 @@ def _describe(spec: Spec) -> str:
     if spec.choices is not None:
         parts.append("one of " + " | ".join(f'"{c}"' for c in spec.choices))
     if spec.minimum is not None:
-        parts.append("> 0" if spec.minimum == POSITIVE else f">= {spec.minimum:g}")
+        parts.append("> 0" if spec.minimum == POSITIVE else f">= {_bound(spec.minimum)}")
     if spec.maximum is not None:
-        parts.append(f"<= {spec.maximum:g}")
+        parts.append(f"<= {_bound(spec.maximum)}")
     return ", ".join(parts) + f": {spec.doc}"
+
+
+def _bound(value) -> str:
+    """A key's bound as written: an int in full (a seed's 2^63 - 1 in %g would read 9.22337e+18)."""
+    return str(value) if isinstance(value, int) else f"{value:g}"
 
 
 def _toml(value) -> str:
@@ -351,10 +356,10 @@ def _checked(value, spec: Spec, where: str):
     if spec.choices is not None and value not in spec.choices:
         raise SceneError(f"{where} must be one of {list(spec.choices)}, got {value!r}")
     if spec.minimum is not None and value < spec.minimum:
-        bound = "> 0" if spec.minimum == POSITIVE else f">= {spec.minimum:g}"
+        bound = "> 0" if spec.minimum == POSITIVE else f">= {_bound(spec.minimum)}"
         raise SceneError(f"{where} must be {bound}, got {value!r}")
     if spec.maximum is not None and value > spec.maximum:
-        raise SceneError(f"{where} must be <= {spec.maximum:g}, got {value!r}")
+        raise SceneError(f"{where} must be <= {_bound(spec.maximum)}, got {value!r}")
     return value
 
 

@@ -17,7 +17,7 @@ from fempdl.methods.newton_caps import REFINE
 from fempdl.methods.prdp import PRDPSettings
 
 __all__ = ["Scene", "SceneError", "Spec", "TaskSpec", "SECTIONS", "PDE_UNUSED", "NONLINEAR_PDES", "REQUIRED",
-           "POSITIVE", "specs", "check_slug",
+           "SEED_MAX", "POSITIVE", "specs", "check_slug",
            "SceneSection", "MeshConfig", "PdeConfig", "DataConfig", "NetworkConfig", "InverseConfig", "SipConfig",
            "MarkerConfig", "HigConfig", "BaselineConfig", "HybridConfig", "OptimizerConfig", "SolverConfig",
            "PRDPSettings"]
@@ -25,6 +25,9 @@ __all__ = ["Scene", "SceneError", "Spec", "TaskSpec", "SECTIONS", "PDE_UNUSED", 
 #: The PDE types solved by Newton (a NonlinearSolveLayer): [pde] alpha and [solver] refine apply to them.
 NONLINEAR_PDES = ("nonlinear-heat", "nonlinear-poisson")
 
+#: The largest seed of a scene or run, as of the command's --seed: TOML's largest integer (a signed
+#: 64-bit one); torch's generators fail beyond 2^64 - 1 ("Overflow when unpacking long long").
+SEED_MAX = 2 ** 63 - 1
 REQUIRED = object()
 POSITIVE = 1e-300      # a minimum of "> 0"
 _SLUG = re.compile(r"[A-Za-z0-9._-]{1,128}")
@@ -121,7 +124,8 @@ class DataConfig:
     validation: int | None = _key(int, 16, doc="validation samples (not inverse)", minimum=1)
     modes: int | None = _key(int, 4, doc="sine modes (or boxes) per axis of the random fields (not inverse)",
                              minimum=1)
-    seed: int = _key(int, 0, doc="seed of the data (and of the network, unless a run sets its own)", minimum=0)
+    seed: int = _key(int, 0, doc="seed of the data (and of the network, unless a run sets its own); at most "
+                                 "2^63 - 1, what torch's and numpy's generators take", minimum=0, maximum=SEED_MAX)
     k_eps_rtol: float | None = _key(float, 1e-5, doc="rtol whose iteration count is the converged cap K_eps "
                                                      "(not sip, hig)", minimum=POSITIVE, maximum=0.5)
     rollout: int | None = _key(int, 1, doc="steps of the validation rollout (emulator, hybrid)", minimum=1)

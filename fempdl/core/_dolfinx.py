@@ -75,15 +75,25 @@ def mpi_launcher() -> list[str]:
     return [launcher, *flags]
 
 
-# DOLFINx 0.10 moved gmshio to dolfinx.io.gmsh. Importing it imports gmsh, which
-# resets SIGINT to the OS default, so Ctrl-C would kill the process without
-# unwinding (no cleanup, no final checkpoint). Put back whatever handler was in
-# place (Python's KeyboardInterrupt by default).
-_sigint = signal.getsignal(signal.SIGINT)
-_gmsh_io = importlib.import_module("dolfinx.io.gmsh" if importlib.util.find_spec("dolfinx.io.gmsh")
-                                   else "dolfinx.io.gmshio")
-if threading.current_thread() is threading.main_thread() and _sigint is not None:
-    signal.signal(signal.SIGINT, _sigint)
+def _import_keeping_sigint(name: str):
+    """Import module ``name`` and put back the SIGINT handler that was in place (Python's KeyboardInterrupt,
+    or the user's): gmsh's module sets the OS default when imported (later releases again in
+    ``gmsh.initialize``: :func:`fempdl.core.meshgen.gmsh_session`), and Ctrl-C would then kill the
+    process without unwinding (no KeyboardInterrupt, no ``finally``, no final checkpoint)."""
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        return importlib.import_module(name)
+    finally:
+        # Only the main thread may set a handler; None: one installed outside Python, not restorable.
+        if before is not None and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, before)
+
+
+#: The gmsh module, imported here and nowhere else in fempdl (see :func:`_import_keeping_sigint`).
+gmsh = _import_keeping_sigint("gmsh")
+# DOLFINx 0.10 moved gmshio to dolfinx.io.gmsh.
+_gmsh_io = _import_keeping_sigint("dolfinx.io.gmsh" if importlib.util.find_spec("dolfinx.io.gmsh")
+                                  else "dolfinx.io.gmshio")
 
 _NEW_SPACES = hasattr(dolfinx.fem, "functionspace")       # 0.7+: functionspace and basix.ufl elements
 if _NEW_SPACES:

@@ -40,11 +40,11 @@ from types import MappingProxyType
 from typing import Any, Callable, Iterator, Mapping, TypeVar
 
 import dolfinx.mesh
-import gmsh
 import numpy as np
 from mpi4py import MPI
 
 from fempdl.core import _dolfinx, meshgen
+from fempdl.core._dolfinx import gmsh      # imported there with Python's SIGINT handler kept
 from fempdl.core.resources import DEFAULT_MAX_CELLS, GEOMETRIES, bundled_meshes, estimated_cells
 
 __all__ = ["TaggedMesh", "as_tagged", "available", "load"]

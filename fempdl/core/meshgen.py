@@ -37,10 +37,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
-import gmsh
 from mpi4py import MPI
 
 from fempdl.core import _dolfinx
+from fempdl.core._dolfinx import gmsh      # imported there with Python's SIGINT handler kept
 
 CELL_TAG = 1
 #: The gmsh release (major, minor) that wrote the committed files: Debian

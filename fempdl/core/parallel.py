@@ -22,8 +22,11 @@ Parallel training (:class:`fempdl.app.runs.training.Trainer`) has two modes:
   only through its own DOFs, and :func:`sum_gradients` adds those parts.
 
 :func:`check_identical` is the guard of both: values every rank must agree on
-(the iteration cap K, the validation metric, a fingerprint of the parameters)
-are compared after every epoch, and a mismatch is an error, not a silent drift.
+(the iteration cap K, the validation metric) are compared after every epoch,
+and a mismatch is an error, not a silent drift. :func:`check_same_parameters`
+does the same for the model's parameters (the Trainer calls it every epoch; a
+loop of your own calls it too): a loop that forgets :func:`sum_gradients`
+trains a different model on each rank, and nothing else would notice.
 """
 from __future__ import annotations
 
@@ -35,7 +38,8 @@ import numpy as np
 import torch
 from mpi4py import MPI
 
-__all__ = ["abort_on_error", "allreduce_sum", "check_identical", "fit_threads", "shard", "sum_gradients"]
+__all__ = ["abort_on_error", "allreduce_sum", "check_identical", "check_same_parameters", "fit_threads",
+           "parameter_fingerprint", "shard", "sum_gradients"]
 
 
 def fit_threads(threads: int | None = None, comm: MPI.Comm = MPI.COMM_WORLD) -> int:
@@ -142,3 +146,68 @@ def check_identical(comm: MPI.Comm, **values) -> None:
         listing = "; ".join(f"{name}: " + ", ".join(f"rank {r}: {g[name]!r}" for r, g in enumerate(gathered))
                             for name in differing)
         raise RuntimeError(f"parallel training went out of step ({listing}); the ranks must agree on these")
+
+
+def parameter_fingerprint(parameters) -> np.ndarray:
+    """(T, 3) float64 for T parameter tensors: each one's sum, sum of squares and size, the sums by
+    numpy's pairwise summation, whose result depends only on the values (not on torch's threads)."""
+    rows = []
+    for p in parameters:
+        values = p.detach().cpu().double().numpy().reshape(-1)
+        rows.append((values.sum(), np.dot(values, values), values.size))
+    return np.array(rows, dtype=np.float64).reshape(-1, 3)
+
+
+def check_same_parameters(model, comm: MPI.Comm = MPI.COMM_WORLD, *, rtol: float = 0.0) -> None:
+    """Raise ValueError on every rank of ``comm`` unless the ranks hold the same parameters.
+
+    Call it in a parallel training loop (every epoch, say): a loop that forgets
+    :func:`sum_gradients` after ``backward`` trains a different model on each rank,
+    silently. One allgather of a fingerprint (:func:`parameter_fingerprint`) per call.
+
+    Ranks that start from the same parameters and apply the summed gradients hold the same
+    bits: :func:`sum_gradients` hands every rank the same float64 sums (an MPI sum of the same
+    numbers in the same order on every rank), and the optimizer's step is the same elementwise
+    arithmetic on each. So the default compares exactly; ``rtol`` > 0 allows that relative gap
+    (of each tensor's sum and sum of squares) for an MPI whose sums differ by rank in the last bits.
+
+    Args:
+        model: a ``torch.nn.Module`` (its parameters are named in the error) or an iterable of tensors.
+    """
+    if isinstance(rtol, bool) or not isinstance(rtol, (int, float)) or not 0.0 <= rtol < 1.0:
+        raise ValueError(f"rtol must be a number in [0, 1), got {rtol!r}")
+    if isinstance(model, torch.nn.Module):
+        named = list(model.named_parameters())
+        names, parameters = [name for name, _ in named], [p for _, p in named]
+    else:
+        parameters = tuple(model)
+        names = tuple(f"parameter {i}" for i in range(len(parameters)))
+    if comm.size == 1:
+        return
+    every = comm.allgather(parameter_fingerprint(parameters))
+    if any(f.shape != every[0].shape for f in every):
+        raise ValueError(f"the ranks hold models of different sizes ({[len(f) for f in every]} parameter tensors, "
+                         "by rank); build the same model on every rank")
+    differ, gap = _differing(np.stack(every), rtol)
+    if len(differ):
+        first = differ[0]
+        sums = ", ".join(f"rank {r}: {f[first, 0]!r}" for r, f in enumerate(every))
+        raise ValueError(
+            f"the ranks hold different parameters: {len(differ)} of {len(parameters)} tensors differ, e.g. "
+            f"{names[first]!r} sums to {sums} (relative gap {gap[first]:.3g}); every rank must apply the same "
+            "update: call parallel.sum_gradients(model.parameters(), comm) after loss.backward() and before "
+            "optimizer.step(), and start every rank from the same parameters (the same torch.manual_seed)")
+
+
+def _differing(stacked: np.ndarray, rtol: float) -> tuple:
+    """Indices of the tensors whose fingerprints (ranks, T, 3) differ by more than ``rtol`` over the
+    ranks (NaN on every rank is agreement, as in :func:`check_identical`), and each tensor's relative gap."""
+    nan = np.isnan(stacked)
+    equal = (stacked == stacked[0]).all(axis=0) | nan.all(axis=0)
+    with np.errstate(invalid="ignore"):
+        gap = stacked.max(axis=0) - stacked.min(axis=0)
+        scale = np.abs(stacked).max(axis=0)
+        relative = np.where(scale > 0, gap / np.where(scale > 0, scale, 1.0), 0.0)
+        close = ~nan.any(axis=0) & (relative <= rtol)
+    differ = np.flatnonzero(~(equal | close).all(axis=1))
+    return differ, np.nan_to_num(relative, nan=np.inf).max(axis=1)

@@ -13,6 +13,7 @@ The module knows DOLFINx and UFL but nothing of torch or of solvers.
 from __future__ import annotations
 
 import keyword
+import math
 from types import MappingProxyType
 from typing import Callable, Mapping
 
@@ -25,7 +26,8 @@ from mpi4py import MPI
 from fempdl.core import _dolfinx
 from fempdl.core.nullspaces import orthonormal
 
-__all__ = ["ProblemBase", "validated_controls", "validated_constants", "owned_size", "as_array", "describe_form"]
+__all__ = ["ProblemBase", "validated_controls", "validated_constants", "owned_size", "as_array", "describe_form",
+           "count_nonpositive", "nonpositive_control_message"]
 
 
 class ProblemBase:
@@ -34,9 +36,11 @@ class ProblemBase:
     Subclasses call :meth:`_init_spaces` from their constructor.
     """
 
-    def _init_spaces(self, V, bcs, controls: dict, *, fields, nullspace, near_nullspace, constants) -> None:
+    def _init_spaces(self, V, bcs, controls: dict, *, fields, nullspace, near_nullspace, constants,
+                     positive=()) -> None:
         """Set V, bcs (checked to be Dirichlet conditions on V), the validated ``controls``,
-        the work Functions ``u`` and ``lam``, BC DOFs, fields, null spaces and constants."""
+        the work Functions ``u`` and ``lam``, BC DOFs, fields, null spaces, constants and the
+        controls that must be positive."""
         self.V = V
         if bcs is None:
             bcs = ()
@@ -66,11 +70,51 @@ class ProblemBase:
         self.nullspace = orthonormal(nullspace, "nullspace", self._n_owned, self.V.mesh.comm)
         self.near_nullspace = orthonormal(near_nullspace, "near_nullspace", self._n_owned, self.V.mesh.comm)
         self.constants = MappingProxyType(validated_constants(constants or {}))
+        self.positive = positive
 
     @property
     def enclosed(self) -> bool:
         """Whether A has a null space (an enclosed flow's pressure constant) that solves project out."""
         return len(self.nullspace) > 0
+
+    # --------------------------------------------------------- control values
+    @property
+    def positive(self) -> frozenset:
+        """Names of the controls whose values must be > 0 (a diffusivity, a Young's modulus, a
+        viscosity): a layer refuses a call that passes a value <= 0 for one of them, before any
+        solve (:meth:`check_control_values`). Assign ``()`` to solve with such values on purpose."""
+        return self._positive
+
+    @positive.setter
+    def positive(self, names) -> None:
+        if isinstance(names, str):
+            names = (names,)
+        try:
+            names = frozenset(names)
+        except TypeError:
+            raise TypeError(f"positive must be a collection of control names, got {type(names).__name__}") from None
+        unknown = sorted(str(n) for n in names - set(self.control_names))
+        if unknown:
+            raise ValueError(f"positive names {unknown}, which are not controls of this problem; name controls "
+                             f"among {list(self.control_names)}")
+        self._positive = names
+
+    def check_control_values(self, name: str, values) -> None:
+        """Refuse the values a call passes for control ``name`` (a numpy array or a tensor, any shape:
+        this rank's owned DOFs) with a ValueError naming the control, the count of values <= 0 and the
+        fix, if ``name`` is in :attr:`positive` and any rank's values have one. O(n); collective on a
+        distributed mesh (one allreduce; every rank calls it with the same names); nothing to do for
+        other names. NaN values are left to the non-finite check."""
+        if name not in self._positive:
+            return
+        comm = self.V.mesh.comm
+        bad, lowest = count_nonpositive(values)
+        if comm.size > 1:
+            bad = comm.allreduce(bad)
+            if bad:             # the count is the same on every rank, so every rank takes this branch
+                lowest = comm.allreduce(lowest, op=MPI.MIN)
+        if bad:
+            raise ValueError(nonpositive_control_message(name, bad, lowest))
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -226,6 +270,32 @@ def validated_controls(controls: Mapping, forms: Mapping[str, ufl.Form], msh) ->
                              "Function object when building the forms")
         out[name] = fn
     return out
+
+
+def count_nonpositive(values) -> tuple[int, float]:
+    """(entries <= 0, lowest entry) of ``values`` on this rank: a numpy array or a tensor (read
+    through its own ``min`` and comparison, so no conversion), any shape. NaN entries are not
+    counted (the non-finite check names them). One pass when every entry is > 0."""
+    if hasattr(values, "detach"):
+        values = values.detach()
+        size = values.numel()
+    else:
+        values = np.asarray(values)
+        size = values.size
+    if size == 0:
+        return 0, math.inf
+    lowest = float(values.min())
+    if not lowest <= 0:         # the usual case (a NaN minimum too): no second pass
+        return 0, lowest
+    return int((values <= 0).sum()), lowest
+
+
+def nonpositive_control_message(name: str, bad: int, lowest: float) -> str:
+    return (f"control {name!r} must be > 0 everywhere (it is in problem.positive: zero or negative values make the "
+            f"operator singular or indefinite, and a solve can return garbage without an error), got {bad} "
+            f"value(s) <= 0, the lowest {lowest:.6g}; pass a positive map of the network output, e.g. "
+            "torch.exp(out) or torch.nn.functional.softplus(out) + a floor, or set problem.positive = () to "
+            "solve with such values on purpose")
 
 
 def owned_size(space) -> int:

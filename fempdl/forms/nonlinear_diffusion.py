@@ -78,4 +78,5 @@ def problem(msh, controls=("f",), *, degree: int = 1, q=None, kappa=1.0, kappa_s
         fns["u0"] = make_function(V, u0, "u0")
         F = F + (u - fns["u0"]) * v / dt_c * ufl.dx
         constants["dt"] = dt_c
-    return NonlinearProblem(F, u, bcs, controls={name: fns[name] for name in controls}, constants=constants)
+    return NonlinearProblem(F, u, bcs, controls={name: fns[name] for name in controls}, constants=constants,
+                            positive={"kappa"} & set(controls))

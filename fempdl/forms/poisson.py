@@ -54,4 +54,5 @@ def problem(msh, controls=("f",), *, degree: int = 1, kappa_space: str = "P1",
     a = kappa_fn * ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx
     L = f_fn * v * ufl.dx
     fns = {"f": f_fn, "kappa": kappa_fn}
-    return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, symmetric=True)
+    return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, symmetric=True,
+                   positive={"kappa"} & set(controls))

@@ -69,6 +69,7 @@ def implicit_solve(handle: int, names: str, batch: int, keep_matrices: bool, flo
         bad = count_nonfinite(a, layer.problem)
         if bad:
             raise ValueError(nonfinite_control_message(name, bad))
+        layer.problem.check_control_values(name, a)          # a coefficient declared positive
     shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
     arrays = _batched(values, batch)
     guess = arrays.pop(INITIAL_GUESS, None)

@@ -33,8 +33,10 @@ from __future__ import annotations
 import dataclasses
 
 import torch
+from mpi4py import MPI
 
 from fempdl.core.nonlinear_problem import NonlinearProblem
+from fempdl.core.resources import format_bytes, memory_budget
 from fempdl.layer.implicit_diff import count_on_all_ranks
 from fempdl.layer.newton_unrolled import UnrolledNewton, check_unrolled_newton, stored_values
 from fempdl.layer.system_layer import SystemLayer
@@ -59,7 +61,9 @@ class NonlinearSolveLayer(SystemLayer):
         diff: ``"implicit"`` or ``"unrolled"`` (module docstring).
         max_unrolled_values: in unrolled mode, the floats the kept iterates may
             take ((N + 1) * B * n per call); a call that needs more is refused
-            with a MemoryError before it starts. ``None``: no bound.
+            with a MemoryError before it starts. ``None``: no bound but the
+            memory's: a call whose iterates would exceed half the memory
+            available at the call is refused likewise.
 
     Attributes:
         max_it: the Newton cap N (``None``: converged); assign to move it (PRDP does).
@@ -88,8 +92,10 @@ class NonlinearSolveLayer(SystemLayer):
             raise ValueError("max_unrolled_values applies to diff='unrolled' layers")
         self.diff = diff
         self.max_unrolled_values = max_unrolled_values
-        # Unrolled: at least one step even from a solution, where the map is not the identity nearby.
-        self._init_system(problem, NonlinearSystem(problem, options, force_step=diff == "unrolled"),
+        # Implicit: the cap is a budget (a solve stops at its tolerances before it); unrolled: exactly N steps,
+        # and at least one even from a solution, where the map is not the identity nearby.
+        self._init_system(problem, NonlinearSystem(problem, options, force_step=diff == "unrolled",
+                                                   budget=diff == "implicit"),
                           backward_caps=("inner_max_it",))
 
     second_derivative_message = (
@@ -131,11 +137,35 @@ class NonlinearSolveLayer(SystemLayer):
         return out if batched else out[0]
 
     def _check_memory(self, batch: int) -> None:
+        """Refuse a call, before its first step and on every rank alike, whose kept iterates would exceed
+        ``max_unrolled_values`` on a rank or half the memory available on a machine (the sum of the
+        iterates of that machine's ranks): a high Newton cap would otherwise grow until the machine
+        runs out of memory."""
         needed = stored_values(self.options, batch, self.problem.output_size)
-        if self.max_unrolled_values is not None and needed > self.max_unrolled_values:
-            raise MemoryError(f"an unrolled Newton call would keep {needed} values ((steps + 1) * batch * n), more "
-                              f"than max_unrolled_values={self.max_unrolled_values}; cap Newton lower, split the "
-                              "batch, or use diff='implicit'")
+        mine = (MPI.Get_processor_name(), needed, memory_budget())
+        comm = self.problem.V.mesh.comm
+        every = comm.allgather(mine) if comm.size > 1 else [mine]
+        most = max(values for _, values, _ in every)
+        if self.max_unrolled_values is not None and most > self.max_unrolled_values:
+            raise MemoryError(f"an unrolled Newton call would keep {most} values ((steps + 1) * batch * n, "
+                              f"steps = {self.options.step_limit}, batch = {batch}), more than "
+                              f"max_unrolled_values={self.max_unrolled_values}; {self._memory_fix()}")
+        for host in dict.fromkeys(name for name, _, _ in every):
+            kept = 8 * sum(values for name, values, _ in every if name == host)
+            budget = min(limit for name, _, limit in every if name == host)
+            if kept > budget:
+                steps = self.options.step_limit
+                where = f" on the {sum(name == host for name, _, _ in every)} ranks of {host}" if comm.size > 1 else ""
+                raise MemoryError(
+                    f"an unrolled Newton call would keep {format_bytes(kept)} of iterates for backward{where} "
+                    f"((steps + 1) * batch * n float64 values, steps = {steps}, batch = {batch}, "
+                    f"n = {kept // (8 * (steps + 1) * batch)}), more than half the memory available now "
+                    f"({format_bytes(budget)}); {self._memory_fix()}")
+
+    def _memory_fix(self) -> str:
+        cap = (f"cap Newton lower (max_it={self.options.max_it})" if self.options.max_it is not None
+               else f"lower NewtonOptions.converged_max_it={self.options.converged_max_it}")
+        return f"{cap}, pass fewer samples per call, or use diff='implicit' (it keeps one state per sample)"
 
     def get_extra_state(self) -> dict:
         """Both caps travel with ``state_dict()``."""

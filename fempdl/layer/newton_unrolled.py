@@ -55,6 +55,7 @@ class UnrolledNewton(torch.autograd.Function):
             bad = count_on_all_ranks(~torch.isfinite(t), layer.problem)
             if bad:
                 raise ValueError(nonfinite_control_message(name, bad))
+            layer.problem.check_control_values(name, t)
         arrays = {n: np.broadcast_to(t.numpy(), (batch, t.shape[-1])) for n, t in zip(names, tensors)}
         guess = arrays.pop(INITIAL_GUESS, None)
         ctx.state = layer.call_state.pack(layer.system)

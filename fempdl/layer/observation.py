@@ -25,7 +25,7 @@ import ufl
 from mpi4py import MPI
 
 from fempdl.core import _dolfinx, parallel
-from fempdl.core.problem import Problem
+from fempdl.core.problem_base import ProblemBase
 from fempdl.iterative.sparse import sparse_to_torch
 
 __all__ = ["PointObservation", "MassInner"]
@@ -33,9 +33,11 @@ __all__ = ["PointObservation", "MassInner"]
 _REFERENCE_CELLS = {("triangle", 2): basix.CellType.triangle, ("tetrahedron", 3): basix.CellType.tetrahedron}
 
 
-def _space(problem: Problem, name: str | None):
-    if not isinstance(problem, Problem):
-        raise TypeError(f"problem must be a fempdl.Problem, got {type(problem).__name__}")
+def _space(problem: ProblemBase, name: str | None):
+    # Only the space is read, so a linear and a nonlinear problem serve alike.
+    if not isinstance(problem, ProblemBase):
+        raise TypeError(f"problem must be a fempdl.Problem or a fempdl.NonlinearProblem (whose space is observed), "
+                        f"got {type(problem).__name__}")
     if name is None:
         if problem.fields:
             raise ValueError("the solution of a mixed problem has no single space to observe; observe a field's "
@@ -48,7 +50,8 @@ class PointObservation(torch.nn.Module):
     """Values of a layer tensor at ``points``: ``obs(u)`` (B, n) -> (B, N * bs).
 
     Args:
-        problem: the Problem whose solution (``name=None``) or control ``name`` is observed.
+        problem: the Problem or NonlinearProblem whose solution (``name=None``) or control ``name`` is
+            observed.
         points: (N, gdim) or (N, 3) coordinates, the same on every rank. A point outside the mesh is
             an error naming it (a point on a facet is taken in one of its cells).
         name: a control name, or None for the solution.
@@ -57,7 +60,7 @@ class PointObservation(torch.nn.Module):
         matrix: this rank's (N * bs, n) torch CSR matrix of basis values (float64).
     """
 
-    def __init__(self, problem: Problem, points, *, name: str | None = None):
+    def __init__(self, problem: ProblemBase, points, *, name: str | None = None):
         super().__init__()
         space = _space(problem, name)
         msh = space.mesh
@@ -138,7 +141,7 @@ class MassInner(torch.nn.Module):
         kind: ``"L2"`` (∫ u v dx) or ``"H1"`` (∫ u v + ∇u·∇v dx).
     """
 
-    def __init__(self, problem: Problem, *, name: str | None = None, kind: str = "L2"):
+    def __init__(self, problem: ProblemBase, *, name: str | None = None, kind: str = "L2"):
         super().__init__()
         if kind not in ("L2", "H1"):
             raise ValueError(f"kind must be 'L2' or 'H1', got {kind!r}")

@@ -135,6 +135,7 @@ class SystemLayer(torch.nn.Module):
             bad = count_on_all_ranks(~torch.isfinite(t.detach()), self.problem)
             if bad:
                 raise ValueError(nonfinite_control_message(name, bad))
+            self.problem.check_control_values(name, t)
 
     def _report_overflow(self, dtype) -> None:
         message = (f"the solution is finite in float64 but overflows {dtype}; pass float64 controls "

@@ -2,7 +2,9 @@
 
 Two caps, as for a linear solve (:class:`~fempdl.solve.options.KSPOptions`):
 
-* the Newton cap ``max_it=N``: exactly N Newton steps from the initial guess
+* the Newton cap ``max_it=N``: a budget of N Newton steps where the system is built as one (a layer
+  with implicit gradients: it stops at ``rtol``/``atol`` or the round-off floor first,
+  :mod:`fempdl.solve.newton_stop`); otherwise exactly N Newton steps from the initial guess
   (the step's tolerances are off: rtol = atol = 0, no step-length test); it
   stops earlier only if the residual vanishes exactly, or if a line search or
   trust region cannot decrease a residual that already meets ``rtol``/``atol``

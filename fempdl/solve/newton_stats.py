@@ -1,6 +1,7 @@
 """What Newton solves did: per-solve :class:`NewtonSolveStats`, a nonlinear layer's
 :class:`NewtonCumulativeStats` (Newton steps and inner Krylov iterations counted apart), and the
-failure message that names SNES's reason."""
+failure message that names SNES's reason, the cause it points to and the fixes that apply to the options
+in use (:class:`NewtonFailure` holds what the message needs besides the stats)."""
 from __future__ import annotations
 
 import math
@@ -10,7 +11,8 @@ from petsc4py import PETSc
 
 from fempdl.solve.stats import CumulativeStats, SolverFailedError, SolverWarning, warn_at_caller
 
-__all__ = ["NewtonSolveStats", "NewtonCumulativeStats", "SNES_REASON_NAMES", "NONFINITE_REASONS", "report_newton_failure"]
+__all__ = ["NewtonSolveStats", "NewtonCumulativeStats", "NewtonFailure", "SNES_REASON_NAMES", "NONFINITE_REASONS",
+           "report_newton_failure", "explain", "ended_nonfinite"]
 
 SNES_REASON_NAMES = {
     getattr(PETSc.SNES.ConvergedReason, n): n
@@ -76,30 +78,39 @@ class NewtonCumulativeStats(CumulativeStats):
         self.last_newton = stats
 
 
-def report_newton_failure(options, stats: NewtonSolveStats, inner_reason: str | None) -> None:
-    """Raise :class:`SolverFailedError` (or warn, per ``options.on_failure``) for a failed Newton solve."""
+@dataclass(frozen=True)
+class NewtonFailure:
+    """What a failed Newton solve's message names besides its stats: values at hand when it stopped and,
+    after a NaN or inf residual, J and F assembled once more at the state that gave it (the failure path
+    only: a solve that succeeds pays nothing for this).
+
+    Attributes:
+        inner_reason, inner_iterations: the last inner KSP's reason name and iterations.
+        jacobian_defect: what is wrong with J(u) where Newton stopped (``"NaN or inf entries"``,
+            ``"N empty rows (it is singular)"``), or None.
+        jacobian_controls: the controls passed to this solve that J depends on.
+        residual_alone_finite: after a NaN or inf residual, whether F(u) without the lifting of the
+            Dirichlet values (which goes through J) is finite at that state; None when not looked at.
+        dirichlet, nullspace: the problem has Dirichlet conditions / declares a null space.
+        given_jacobian: the problem's J is not dF/du (``NonlinearProblem(..., J=...)``).
+    """
+
+    inner_reason: str = ""
+    inner_iterations: int = 0
+    jacobian_defect: str | None = None
+    jacobian_controls: tuple = ()
+    residual_alone_finite: bool | None = None
+    dirichlet: bool = True
+    nullspace: bool = False
+    given_jacobian: bool = False
+
+
+def report_newton_failure(options, stats: NewtonSolveStats, failure: NewtonFailure) -> None:
+    """Raise :class:`SolverFailedError` (or warn, per ``options.on_failure``) for a failed Newton solve,
+    naming its cause and the fixes that apply (:func:`explain`)."""
+    cause, fix = explain(options, stats, failure)
     norms = stats.residual_norms
     history = f"residual norm {norms[-1]:.3e} from {norms[0]:.3e}" if norms else "no residual evaluated"
-    if stats.reason_name == "DIVERGED_LINEAR_SOLVE":
-        cause = f"its linear solve failed ({inner_reason or 'see the KSP options'})"
-        fix = "use a stronger inner solve (ksp='lu'), or cap the inner solve on purpose with KSPOptions(max_it=K)"
-    elif stats.reason in NONFINITE_REASONS or stats.nonfinite_residual or not math.isfinite(
-            norms[-1] if norms else 0.0):
-        cause = "the residual became NaN or inf"
-        fix = ("the load or the controls may be beyond what the material model allows (e.g. an inverted element); "
-               "reduce the load, start from a better initial_guess, or use snes_type='newtonls' with a line search")
-    elif stats.reason_name == "DIVERGED_JACOBIAN_DOMAIN":
-        cause = f"met a Jacobian it cannot solve with ({inner_reason})"
-        fix = ("J(u) at that iterate is singular: a zero coefficient (e.g. kappa = 0 on a node's support) or a "
-               "degenerate state (a conductivity q(u) that vanishes at the initial guess, such as q = u^2 from "
-               "zero); check the coefficients, or start from another initial_guess")
-    elif stats.reason_name == "DIVERGED_MAX_IT":
-        cause = "did not reach its tolerance"
-        fix = "raise converged_max_it, loosen rtol/atol, start from a better initial_guess, or load in increments"
-    else:
-        cause = "stopped"
-        fix = ("Newton diverged: reduce the load, start from a better initial_guess, or try another snes_type "
-               "('newtonls' with linesearch='bt', or 'newtontr')")
     message = (f"Newton ({options.snes_type}) {cause}: SNES reason {stats.reason_name} after {stats.steps} "
                f"step(s), {history}; {fix}. Pass NewtonOptions(on_failure='warn') to get the iterate with a "
                "warning instead.")
@@ -107,3 +118,211 @@ def report_newton_failure(options, stats: NewtonSolveStats, inner_reason: str | 
         warn_at_caller(message, SolverWarning)
     else:
         raise SolverFailedError(message, stats)
+
+
+# ---------------------------------------------------------------- why it failed, and what to do
+def explain(options, stats: NewtonSolveStats, failure: NewtonFailure) -> tuple[str, str]:
+    """(cause, fix) of a failed Newton solve: the first of :data:`_EXPLANATIONS` that recognises it."""
+    for explanation in _EXPLANATIONS:
+        found = explanation(options, stats, failure)
+        if found is not None:
+            return found
+    return "stopped", ("Newton diverged: reduce the load, start from a better initial_guess, or "
+                       f"{_other_methods(options)}")
+
+
+def ended_nonfinite(stats: NewtonSolveStats) -> bool:
+    """The solve ended on a NaN or inf residual (not one a line search stepped back from)."""
+    norms = stats.residual_norms
+    return stats.reason in NONFINITE_REASONS or not norms or not math.isfinite(norms[-1])
+
+
+def _jacobian(options, stats, failure):
+    """J(u) is singular or not finite where Newton stopped: at an iterate (from the Jacobian's assembly), or at
+    the state whose residual was NaN when F alone is finite there (the NaN came in through J's lifting
+    of the Dirichlet values) or that state is the initial guess."""
+    defect = failure.jacobian_defect
+    if defect is None:
+        return None
+    named = list(failure.jacobian_controls)
+    if stats.reason_name == "DIVERGED_JACOBIAN_DOMAIN":
+        where = "at the initial guess" if stats.steps == 0 else f"at the iterate after {stats.steps} step(s)"
+        if "empty row" in defect:
+            return (f"met a Jacobian it cannot solve with ({defect}, controls {named})",
+                    "J(u) at that iterate is singular: a zero coefficient (e.g. kappa = 0 on a node's support) or a "
+                    "degenerate state (a conductivity q(u) that vanishes at the initial guess, such as q = u^2 from "
+                    "zero); check the coefficients, or start from another initial_guess")
+        return f"its Jacobian J(u) became NaN or inf {where} ({_depends(named)})", _singular_coefficient_fix(named)
+    at_start = not stats.residual_norms
+    if not ended_nonfinite(stats) or "NaN" not in defect or not (failure.residual_alone_finite or at_start):
+        return None
+    where = "at the initial guess" if at_start else f"in Newton step {stats.steps + 1}"
+    residual = ("F(u) itself is finite there: the residual is NaN only through J, which lifts the Dirichlet values"
+                if failure.residual_alone_finite else "F(u) is NaN or inf there too")
+    return (f"its Jacobian J(u) became NaN or inf {where} ({_depends(named)}; {residual})",
+            _singular_coefficient_fix(named))
+
+
+def _depends(named: list) -> str:
+    if named:
+        return f"J depends on the controls {named}"
+    return "J depends on none of the controls passed: a coefficient is undefined at this u"
+
+
+def _singular_coefficient_fix(named: list) -> str:
+    check = f", and check the controls {named} for zeros, NaN or inf" if named else ""
+    return ("a coefficient of J is undefined at that state, e.g. the p-Laplacian's |grad u|^(p-2) (or its "
+            "derivative) where grad u = 0; start away from the singular state with initial_guess=, or regularise "
+            f"the coefficient, e.g. (eps + |grad u|^2)^((p-2)/2) with a small eps > 0{check}")
+
+
+def _residual_nan(options, stats, failure):
+    if not ended_nonfinite(stats):
+        return None
+    if not stats.residual_norms:
+        return ("the residual became NaN or inf at the initial guess",
+                "a coefficient of F is undefined at that state (e.g. a logarithm or a negative power of a quantity "
+                "that vanishes there), or a Constant or fixed Function holds NaN or inf; start from another "
+                "initial_guess, or regularise the coefficient")
+    return (f"the residual became NaN or inf in Newton step {stats.steps + 1}",
+            "the load or the controls may be beyond what the material model allows (e.g. an inverted element); "
+            "reduce the load or apply it in increments (each solve started from the last with initial_guess=), "
+            f"start from a better initial_guess, or {_nan_method(options)}")
+
+
+def _nan_method(options) -> str:
+    """A method that steps back from a NaN residual, other than the one in use."""
+    if options.snes_type == "newton":
+        return "use snes_type='newtonls' with a line search (it cuts back steps that make F NaN)"
+    if options.snes_type == "newtonls" and options.linesearch == "basic":
+        return "use a backtracking line search (linesearch='bt'), which cuts back steps that make F NaN"
+    return "try " + " or ".join(_methods_other_than(options, "newton"))      # full steps would not avoid the NaN
+
+
+def _linear_solve(options, stats, failure):
+    if stats.reason_name != "DIVERGED_LINEAR_SOLVE":
+        return None
+    cause = f"its linear solve failed ({failure.inner_reason} after {failure.inner_iterations} iterations)"
+    singular = f"J(u) may be singular: {_singular_hint(failure)}"
+    if options.ksp.direct:          # a factorisation fails on a singular or non-finite J, not for want of strength
+        return cause, singular
+    fix = "use a stronger inner solve (ksp='lu'), or cap the inner solve on purpose with KSPOptions(max_it=K)"
+    if failure.inner_reason in _SINGULAR_INNER or not failure.dirichlet:
+        fix = f"{singular}; or {fix}"
+    return cause, fix
+
+
+def _line_search(options, stats, failure):
+    if stats.reason_name != "DIVERGED_LINE_SEARCH":
+        return None
+    used = options.linesearch or ("bt" if options.snes_type == "newtonls" else "basic")
+    cut = " (trial steps that made F NaN or inf were cut back)" if stats.nonfinite_residual else ""
+    method = "" if options.snes_type == "newtonls" else "snes_type='newtonls' with "
+    others = [f"{method}linesearch={name!r}{note}" for name, note in _LINE_SEARCH_NOTES.items() if name != used]
+    others += _methods_other_than(options, "newtonls", "newton")      # plain Newton is linesearch="basic"
+    fixes = [f"try {' or '.join(others)}", "start from a better initial_guess, or apply the load in increments "
+             "(each solve started from the last with initial_guess=)", *_direction_hints(options, failure)]
+    return (f"its line search ({used!r}) found no step along the Newton direction that decreases ||F||{cut}",
+            "; ".join(fixes))
+
+
+def _direction_hints(options, failure) -> list[str]:
+    """Why a Newton direction may not decrease ||F||: an inexact step, a J that is not dF/du, a singular J."""
+    hints = []
+    if options.ksp.capped:
+        hints.append("a capped inner solve gives an inexact step that need not decrease ||F||: converge it "
+                     "(KSPOptions max_it=None)")
+    if failure.given_jacobian:
+        hints.append("the problem's J= is not dF/du, so its step need not decrease ||F||: check it")
+    if not failure.dirichlet:
+        hints.append(f"J(u) may be singular: {_singular_hint(failure)}")
+    return hints
+
+
+def _trust_region(options, stats, failure):
+    if stats.reason_name != "DIVERGED_TR_DELTA":
+        return None
+    return ("its trust region shrank to nothing without a step that decreases ||F||",
+            "; ".join(["start from a better initial_guess, or apply the load in increments (initial_guess=)",
+                       f"or {_other_methods(options)}", *_direction_hints(options, failure)]))
+
+
+def _local_minimum(options, stats, failure):
+    if stats.reason_name != "DIVERGED_LOCAL_MIN":
+        return None
+    return ("reached a local minimum of ||F|| that is not a solution (J^T F = 0 with F != 0)",
+            f"J(u) is singular there; likely cause: {_singular_hint(failure)}; or start from another initial_guess")
+
+
+def _max_it(options, stats, failure):
+    if stats.reason_name != "DIVERGED_MAX_IT":
+        return None
+    norms = stats.residual_norms
+    if _stagnant(norms):
+        return ("did not reach its tolerance",
+                f"the residual stopped decreasing at {norms[-1]:.3e} (a Newton step no longer reduces it): J(u) is "
+                f"singular there and more steps will not help; likely cause: {_singular_hint(failure)}")
+    if len(norms) > 10 and norms[-1] >= 0.9 * norms[0]:
+        return "did not reach its tolerance", _no_progress(options, stats, failure)
+    fix = "raise converged_max_it, loosen rtol/atol, start from a better initial_guess, or load in increments"
+    if failure.given_jacobian:
+        fix += "; the problem's J= is not dF/du, which slows Newton down or stops it converging: check it"
+    if not failure.dirichlet:
+        fix += f"; J(u) may be singular: {_singular_hint(failure)}"
+    return "did not reach its tolerance", fix
+
+
+def _no_progress(options, stats, failure) -> str:
+    """The fix when more than ten steps left ||F|| within 10% of where it started: more steps are unlikely
+    to help, whatever converged_max_it says."""
+    hints = [f"J(u) may be singular: {_singular_hint(failure)}"]
+    if options.ksp.capped:
+        hints.insert(0, f"the inner solve, capped at {options.ksp.max_it} iterations, may be too inexact to "
+                        "make progress: raise its cap or converge it (max_it=None)")
+    if failure.given_jacobian:
+        hints.append("the problem's J= is not dF/du: check it")
+    hints.append("or start from a better initial_guess")
+    return f"the residual did not decrease in {stats.steps} steps, and more are unlikely to help; " + "; ".join(hints)
+
+
+def _stagnant(norms) -> bool:
+    """The last three steps left ||F|| unchanged to 1e-9, well above round-off of ||F(u_0)||: F is not in the
+    range of J (J singular). A residual at its round-off floor wanders instead; slow convergence decreases."""
+    last = norms[-4:]
+    if len(last) < 4 or not all(math.isfinite(n) for n in last):
+        return False
+    return max(last) - min(last) <= 1e-9 * max(last) and last[-1] > 1e-8 * norms[0]
+
+
+def _singular_hint(failure: NewtonFailure) -> str:
+    """The likely causes of a singular J that the problem's set-up points to."""
+    if failure.nullspace:
+        return ("the problem declares a null space, and F(u) can vanish only for a load orthogonal to it (e.g. a "
+                "zero-mean source for a pure Neumann problem): check the load, or look for a further null space "
+                "(a missing Dirichlet condition)")
+    if not failure.dirichlet:
+        return ("the problem has no Dirichlet condition, so F may fix u only up to a constant (a pure Neumann "
+                "problem): add a Dirichlet condition (bcs=), or declare the null space (nullspace=) and give a "
+                "load orthogonal to it (e.g. zero mean)")
+    return ("a missing Dirichlet condition (on part of the boundary, or on one field of a mixed space) or a "
+            "null space to declare (nullspace=)")
+
+
+def _other_methods(options) -> str:
+    """The Newton methods other than the one in use, as a suggestion."""
+    return "try " + " or ".join(_methods_other_than(options))
+
+
+def _methods_other_than(options, *excluded: str) -> list[str]:
+    methods = {"newton": "snes_type='newton' (full steps)", "newtonls": "snes_type='newtonls' with linesearch='bt'",
+               "newtontr": "snes_type='newtontr' (trust region)"}
+    return [text for name, text in methods.items() if name != options.snes_type and name not in excluded]
+
+
+# Inner solves that stop this way met a singular (or indefinite) J: a breakdown, a zero pivot.
+_SINGULAR_INNER = frozenset({"DIVERGED_BREAKDOWN", "DIVERGED_BREAKDOWN_BICG", "DIVERGED_INDEFINITE_PC",
+                             "DIVERGED_INDEFINITE_MAT", "DIVERGED_PCSETUP_FAILED", "DIVERGED_PC_FAILED"})
+_LINE_SEARCH_NOTES = {"basic": " (full steps)", "l2": " (a secant step length)", "cp": " (critical point)",
+                      "bt": " (backtracking)"}      # in the order they are suggested
+#: Tried in order; the J check first: a NaN residual that J caused is named as J's.
+_EXPLANATIONS = (_jacobian, _residual_nan, _linear_solve, _line_search, _trust_region, _local_minimum, _max_it)

@@ -11,9 +11,12 @@ solves), and works on NumPy arrays of owned DOF values, one row per sample:
 * :meth:`adjoint` — the implicit gradient at the returned states: J(u)^T lam = g (BC entries zeroed,
   the inner solve's adjoint options), then dJ/dm = -d/dm F(u, lam; m) by assembling the problem's
   gradient forms;
-* :meth:`unrolled_adjoint` — the exact reverse pass of the plain Newton map that was run: per step,
-  backwards, mu = J(u_k)^{-T} u_bar, then u_bar <- u_bar + a dQ/du and m_bar += a dQ/dm
-  (:class:`~fempdl.core.nonlinear_problem.NonlinearProblem`'s step forms).
+* :meth:`unrolled_adjoint` — the exact reverse pass of the plain Newton map that was run
+  (:class:`~fempdl.solve.newton_reverse.NewtonReversePass`).
+
+When a solve stops: uncapped solves, and capped ones whose cap is a ``budget`` (implicit
+differentiation), stop at their tolerances or at the round-off floor
+(:class:`~fempdl.solve.newton_stop.NewtonStop`); other capped solves run exactly ``max_it`` steps.
 
 Shapes: ``controls[name]`` is (B, n_m) (broadcast views are fine); solutions, incoming gradients and
 adjoints are (B, n), n = ``problem.output_size``.
@@ -23,7 +26,6 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import dataclass
 from typing import Mapping
 
 import numpy as np
@@ -32,21 +34,23 @@ from petsc4py import PETSc
 
 from fempdl.core import _dolfinx
 from fempdl.core.nonlinear_problem import NonlinearProblem
-from fempdl.ksp_adjoint import PC_FAILED, CappedSolver
+from fempdl.ksp_adjoint import PC_FAILED, CappedSolver, set_interrupt_checks
 from fempdl.solve.assembly import (ControlValues, Timer, attach_nullspace, check_operator, check_symmetric_factor,
                                    operator_defect, set_owned, without_bc_entries)
 from fempdl.solve.control_forms import ControlForms
+from fempdl.solve.linear_system import INITIAL_GUESS
 from fempdl.solve.newton_options import NewtonOptions
-from fempdl.solve.newton_stats import (SNES_REASON_NAMES, NewtonCumulativeStats, NewtonSolveStats,
-                                       report_newton_failure)
+from fempdl.solve.newton_reverse import NewtonPath, NewtonReversePass
+from fempdl.solve.newton_stop import NewtonStop
+from fempdl.solve.newton_stats import (SNES_REASON_NAMES, NewtonCumulativeStats, NewtonFailure, NewtonSolveStats,
+                                       ended_nonfinite, report_newton_failure)
 from fempdl.solve.options import KSPOptions
-from fempdl.solve.petsc import create_ksp, destroy_ksp, unique_prefix
+from fempdl.solve.petsc import create_ksp, destroy_ksp, rejected_at_set_up, unique_prefix
 from fempdl.solve.snes import create_snes, destroy_snes, weak_callback
 from fempdl.solve.stats import DIVERGED_MAX_IT, REASON_NAMES, SolveStats
 
 __all__ = ["NonlinearSystem", "NewtonPath", "INITIAL_GUESS"]
 
-INITIAL_GUESS = "initial_guess"
 _SNES_MAX_IT = PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
 _INSERT, _FORWARD = PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD
 # SNES's stops of a line search or trust region that cannot decrease ||F|| any further.
@@ -61,26 +65,20 @@ class _SingularJacobian(Exception):
     """Raised from the Jacobian callback to stop SNES at a J it cannot solve with."""
 
 
-@dataclass
-class NewtonPath:
-    """The iterates of one call's Newton solves, for the unrolled reverse pass:
-    ``iterates[i]`` is (steps_i + 1, n) for sample i (u_0 with its boundary values, ..., u_N)."""
-
-    iterates: list
-    damping: float
-
-
-class NonlinearSystem:
+class NonlinearSystem(NewtonReversePass):
     """SNES, Jacobian and vectors of ``problem`` (see the module docstring).
 
     Args:
         problem: the nonlinear problem.
         options: the Newton options; ``options.ksp`` (the inner solve) must be set.
+        budget: a capped solve may stop at its tolerances before the cap (implicit gradients, exact
+            at a converged state); otherwise it runs exactly ``max_it`` steps.
         force_step: take at least one Newton step even from a solution (an unrolled
             derivative needs one: the map is not the identity near a solution).
     """
 
-    def __init__(self, problem: NonlinearProblem, options: NewtonOptions, force_step: bool = False):
+    def __init__(self, problem: NonlinearProblem, options: NewtonOptions, force_step: bool = False,
+                 budget: bool = False):
         if not isinstance(options, NewtonOptions) or options.ksp is None:
             raise ValueError("NonlinearSystem needs NewtonOptions with the inner solve's options (ksp=...)")
         self.problem = problem
@@ -90,6 +88,7 @@ class NonlinearSystem:
         self._b = _dolfinx.create_vector(problem.F_form)        # residual
         self._sol = _dolfinx.create_vector(problem.F_form)      # SNES's iterate
         self._accepted = self._sol.duplicate()                   # the monitor's last: a failure's result
+        self._nonfinite_state = self._sol.duplicate()            # the last state whose residual was NaN or inf
         self._u_vec = _dolfinx.function_vector(problem.u)
         # dF/du for the implicit adjoint: the iteration's J unless the problem's J is another one.
         self._dFdu = self._J if problem.exact_J_form is problem.J_form else _dolfinx.create_matrix(problem.exact_J_form)
@@ -100,7 +99,7 @@ class NonlinearSystem:
         self.stats = NewtonCumulativeStats()
         self._forms = ControlForms(problem, self._b, functools.partial(Timer, self.stats, "assembly_time"))
         self._step_vectors: dict = {}
-        self._force_step = force_step
+        self._force_step, self._budget = force_step, budget
         self._stopped_on_error = False
         self._called_controls: frozenset = frozenset()     # named when an assembled Jacobian is singular
         self._jacobian_defect: str | None = None
@@ -133,8 +132,15 @@ class NonlinearSystem:
 
     @max_it.setter
     def max_it(self, value: int | None) -> None:
-        self._options = self._options.with_max_it(value)     # validates
-        self._snes.setTolerances(**self._options.snes_tolerances())
+        options = self._options.with_max_it(value)     # validates
+        if self._stops_at_tolerances(options) != self._stops_at_tolerances(self._options):
+            self.options = options                      # another convergence test: a new SNES
+            return
+        self._options = options
+        self._snes.setTolerances(**options.snes_tolerances())
+
+    def _stops_at_tolerances(self, options: NewtonOptions) -> bool:
+        return not options.capped or self._budget
 
     @property
     def inner_max_it(self) -> int | None:
@@ -150,7 +156,10 @@ class NonlinearSystem:
         check_symmetric_factor(ksp_options, p)
         self._ksp = create_ksp(self._J, ksp_options, unique_prefix("newton_ksp"), p.fields or None)
         self._snes = create_snes(self._comm, options, self._ksp, *map(weak_callback, (
-            self._residual, self._jacobian, self._monitor)), self._b, self._J, force_step=self._force_step)
+            self._residual, self._jacobian, self._monitor)), self._b, self._J, force_step=self._force_step,
+            stop=NewtonStop(options.rtol, options.atol, force_step=self._force_step)
+            if self._stops_at_tolerances(options) else None)
+        set_interrupt_checks(self._ksp, ksp_options)      # Ctrl-C within a long inner solve
         self._adjoint_solver = CappedSolver(self._J, ksp_options, fields=p.fields or None)
         self._adjoint_solver.stats = self.stats
         self._exact_adjoint_solver = self._adjoint_solver
@@ -171,6 +180,7 @@ class NonlinearSystem:
             _dolfinx.assemble_residual_into(b, p.F_form, p.J_form, p.bcs, self._u_vec)
         if not math.isfinite(b.norm(PETSc.NormType.NORM_INFINITY)):
             self._nonfinite_residual = True      # named in the failure message (PETSc's reason differs by version)
+            x.copy(self._nonfinite_state)        # where J and F are looked at if Newton ends on it
 
     def _jacobian(self, snes, x, J, P) -> None:
         with Timer(self.stats, "assembly_time"):
@@ -240,6 +250,9 @@ class NonlinearSystem:
             if not isinstance(cause, _SingularJacobian):   # that one is a Newton failure, reported below
                 if cause is not None and cause is not err and not isinstance(cause, PETSc.Error):
                     raise cause from None      # a callback's own error (Ctrl-C), not PETSc's
+                blamed = rejected_at_set_up(self._ksp, err) if isinstance(err, PETSc.Error) else None
+                if blamed is not None:         # a petsc_options value the inner solve's set-up refused
+                    raise blamed from None
                 raise
         elapsed = time.perf_counter() - t0
         # The inner solves' time: the SNES time less its assemblies, shared by its steps.
@@ -272,15 +285,26 @@ class NonlinearSystem:
             self._recording = None
         # PETSc keeps a failed factorisation failed (a later solve errors): fresh solvers next time.
         self._stopped_on_error |= not stats.ok and int(self._ksp.getConvergedReason()) == PC_FAILED
-        if not stats.ok and self._jacobian_defect:
-            named = sorted(self._called_controls & p.jacobian_controls)
-            report_newton_failure(self._options, stats, f"{self._jacobian_defect}, controls {named}")
-        elif not stats.ok:
-            ksp = self._snes.getKSP()      # the step that failed is not in the stats (no monitor call)
-            reason = int(ksp.getConvergedReason())
-            inner = f"{REASON_NAMES.get(reason, str(reason))} after {ksp.getIterationNumber()} iterations"
-            report_newton_failure(self._options, stats, inner)
+        if not stats.ok:
+            report_newton_failure(self._options, stats, self._failure(stats))
         return x
+
+    def _failure(self, stats: NewtonSolveStats) -> NewtonFailure:
+        """What the failure message needs besides the stats (failed solves only; collective): values at hand
+        and, after a NaN or inf residual, J and F (without J's lifting of the Dirichlet values) at that state."""
+        p, ksp = self.problem, self._snes.getKSP()     # the failed step's KSP (no monitor call recorded it)
+        inner, defect, alone = int(ksp.getConvergedReason()), self._jacobian_defect, None
+        if defect is None and self._nonfinite_residual and ended_nonfinite(stats):
+            self._set_state(self._nonfinite_state)
+            F = _dolfinx.assemble_vector_into(_dolfinx.create_vector(p.F_form), p.F_form)
+            alone = math.isfinite(F.norm(PETSc.NormType.NORM_INFINITY))
+            F.destroy()
+            defect = operator_defect(_dolfinx.assemble_matrix_into(self._J, p.J_form, p.bcs))
+        named = tuple(sorted(self._called_controls & p.jacobian_controls))
+        return NewtonFailure(inner_reason=REASON_NAMES.get(inner, str(inner)),
+                             inner_iterations=ksp.getIterationNumber(), jacobian_defect=defect,
+                             jacobian_controls=named, residual_alone_finite=alone, dirichlet=bool(p.bcs),
+                             nullspace=len(p.nullspace) > 0, given_jacobian=p.exact_J_form is not p.J_form)
 
     def _renew(self) -> None:
         """Fresh solvers and iterate after a solve that stopped on an error: PETSc leaves the vectors a
@@ -288,6 +312,7 @@ class NonlinearSystem:
         at the next solve, which every rank calls, not in the error path."""
         self._stopped_on_error = False
         self._free_solvers()
+        self._J.assemble()     # Ctrl-C between setting J's values and assembling them: PETSc would refuse to zero J
         self._sol.destroy()
         self._sol = _dolfinx.create_vector(self.problem.F_form)
         self._build(self._options)
@@ -314,34 +339,6 @@ class NonlinearSystem:
                     grads[name][i] = self._forms.gradient(name)
         return grads
 
-    def unrolled_adjoint(self, controls: Mapping[str, np.ndarray], path: NewtonPath, G: np.ndarray,
-                         wanted, initial_guess: bool = False) -> dict[str, np.ndarray]:
-        """The exact vector-Jacobian product of the plain Newton map that produced ``path``:
-        dJ/dm (batch, n_m) for m in ``wanted`` and, with ``initial_guess``, dJ/du_0 (batch, n)."""
-        p = self.problem
-        batch = G.shape[0]
-        wanted = [n for n in p.control_names if n in set(wanted)]
-        grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
-        a = path.damping
-        G = without_bc_entries(G, p)
-        with ControlValues(p, controls) as ctl:
-            for i in range(batch):
-                ctl.set_sample(i)
-                iterates = path.iterates[i]
-                u_bar = G[i]
-                for k in range(len(iterates) - 2, -1, -1):
-                    self._transpose_solve(iterates[k], u_bar)            # lam = mu_k, u = u_k
-                    set_owned(p.step, (iterates[k] - iterates[k + 1]) / a, p.output_size)
-                    for name in wanted:
-                        grads[name][i] += a * self._assembled(p.step_control_form(name), name)
-                    u_bar = u_bar + a * self._assembled(p.step_state_form(), None)
-                    if len(p.bc_dofs):
-                        u_bar[p.bc_dofs] = 0.0        # u_k takes the boundary values whatever came before
-                    self.stats.backward_newton_steps += 1
-                if initial_guess:
-                    grads.setdefault(INITIAL_GUESS, np.zeros((batch, p.output_size)))[i] = u_bar
-        return grads
-
     def _transpose_solve(self, u: np.ndarray, g: np.ndarray, exact: bool = False) -> None:
         """Assemble J(u) (u set as the problem's state; with ``exact`` dF/du, else the iteration's J)
         and solve J^T lam = g into ``problem.lam``."""
@@ -356,19 +353,6 @@ class NonlinearSystem:
         self._rhs.setArray(g)
         solver.solve_transpose(self._rhs, self._lam)
         set_owned(p.lam, self._lam.getArray(readonly=True), p.output_size)
-
-    def _assembled(self, form, name: str | None) -> np.ndarray:
-        """Owned values of a compiled linear form on the space of control ``name`` (None: the solution space)."""
-        p = self.problem
-        n = p.output_size if name is None else p.control_size(name)
-        if form is None:
-            return np.zeros(n)
-        vec = self._step_vectors.get(name)
-        if vec is None:
-            vec = self._step_vectors[name] = _dolfinx.create_vector(form)
-        with Timer(self.stats, "assembly_time"):
-            _dolfinx.assemble_vector_into(vec, form)
-        return vec.getArray(readonly=True)[:n].copy()
 
     # --------------------------------------------------------------- cleanup
     def _free_solvers(self) -> None:
@@ -385,7 +369,8 @@ class NonlinearSystem:
             return
         self._destroyed = True
         self._free_solvers()
-        objs = [self._J, self._b, self._sol, self._accepted, self._rhs, self._lam, *self._step_vectors.values(), *self._nullspaces]
+        objs = [self._J, self._b, self._sol, self._accepted, self._nonfinite_state, self._rhs, self._lam,
+                *self._step_vectors.values(), *self._nullspaces]
         if self._dFdu is not self._J:
             objs.append(self._dFdu)
         for obj in objs:

@@ -4,9 +4,15 @@ as a scipy one (:func:`petsc_to_scipy`).
 
 Options go into the database under a private prefix per solver (all removed on destroy), or under
 a user's ``options_prefix`` (where options already in the database win, and only the keys this
-solver added are removed, once no other live solver under that prefix uses them)."""
+solver added are removed, once no other live solver under that prefix uses them).
+
+A ``petsc_options`` value PETSc refuses is named in a ValueError, whether PETSc refuses it when
+the options are read (:func:`create_ksp`) or only when the preconditioner is set up
+(:func:`set_up`: a factorisation package that does not exist): the option is found by trying
+each on a probe solver, which costs nothing until PETSc has refused something."""
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -15,11 +21,17 @@ from petsc4py import PETSc
 
 from fempdl.solve.options import NORM_FREE_KSP_TYPES, PRIVATE_PREFIX, KSPOptions
 
-__all__ = ["create_ksp", "set_up", "destroy_ksp", "set_norm_type", "unique_prefix", "petsc_to_scipy"]
+__all__ = ["create_ksp", "set_up", "rejected_at_set_up", "destroy_ksp", "set_norm_type", "unique_prefix",
+           "petsc_to_scipy"]
 
 # Options set under users' prefixes by live solvers: {full name: number of solvers}.
 _ADDED_OPTIONS: dict[str, int] = {}
 _ADDED_KEYS = "fempdl_added_options"     # the KSP attribute listing the keys it added
+_CREATED_WITH = "fempdl_created_with"    # the KSP attribute holding its (options, fields), to name a refusal
+# PETSc's error codes for a type or factorisation package it does not know (PETSC_ERR_ARG_UNKNOWN_TYPE,
+# PETSC_ERR_MISSING_FACTOR): an option's value raises them on every rank alike, so all ranks can probe
+# together. Other set-up errors may be one rank's (a zero pivot), which must not wait for the others.
+_EVERY_RANK_ERRORS = (86, 92)
 _counter = itertools.count()
 
 
@@ -83,6 +95,7 @@ def create_ksp(A: PETSc.Mat, options: KSPOptions, prefix: str, fields=None) -> P
     except PETSc.Error as err:
         destroy_ksp(ksp)
         raise _rejected_option(A, options, err) from None
+    ksp.setAttr(_CREATED_WITH, (options, fields))
     return ksp
 
 
@@ -112,9 +125,23 @@ def _rejected_option(A: PETSc.Mat, options: KSPOptions, err: PETSc.Error) -> Val
 
 def set_up(ksp: PETSc.KSP, reuse: bool) -> None:
     """KSPSetUp, and the set-up of a fieldsplit's inner solvers (otherwise done lazily
-    in the first iteration); with ``reuse`` the preconditioner is kept as it is."""
+    in the first iteration); with ``reuse`` the preconditioner is kept as it is.
+
+    Raises:
+        ValueError: PETSc refused the set-up because of a ``petsc_options`` value of the
+            :func:`create_ksp` options (named; other set-up errors pass unchanged)."""
     pc = ksp.getPC()
     pc.setReusePreconditioner(reuse)
+    try:
+        _set_up(ksp, pc, reuse)
+    except PETSc.Error as err:
+        blamed = rejected_at_set_up(ksp, err)
+        if blamed is None:
+            raise
+        raise blamed from None
+
+
+def _set_up(ksp: PETSc.KSP, pc: PETSc.PC, reuse: bool) -> None:
     ksp.setUp()
     pc.setUp()     # KSPSetUp leaves a changed matrix's preconditioner to the solve
     if not reuse and pc.getType() == "fieldsplit":
@@ -122,6 +149,54 @@ def set_up(ksp: PETSc.KSP, reuse: bool) -> None:
         # iteration otherwise: their KSPs see the same submatrix objects, new values.
         for sub in pc.getFieldSplitSubKSP():
             sub.getPC().setUp()
+
+
+def rejected_at_set_up(ksp: PETSc.KSP, err: PETSc.Error) -> ValueError | None:
+    """The error naming the ``petsc_options`` entry that made the set-up of ``ksp`` (made by
+    :func:`create_ksp`; also when a SNES set it up) fail with ``err``, found on probe solvers (the
+    same operator and options without them, then each entry alone); None when they are not to
+    blame (the set-up fails without them too, or succeeds with them all: the matrix or options
+    from elsewhere; the caller re-raises PETSc's error)."""
+    created = ksp.getAttr(_CREATED_WITH)
+    if created is None or not created[0].petsc_options:
+        return None
+    options, fields = created
+    A = ksp.getOperators()[0]
+    if A.getComm().getSize() > 1 and err.ierr not in _EVERY_RANK_ERRORS:     # probes are collective
+        return None
+    if not _sets_up(A, options, {}, fields):
+        return None
+    where = (f"ksp_type={options.ksp_type!r}, pc_type={options.pc_type!r}; PETSc error code {err.ierr}: "
+             f"{_petsc_reason(err)}")
+    for key, value in options.petsc_options.items():
+        if not _sets_up(A, options, {key: value}, fields):
+            return ValueError(f"petsc_options[{key!r}] = {value!r} was rejected by PETSc when the solver was set up "
+                              f"({where}); give a value this PETSc build takes for it, or leave the option out")
+    if _sets_up(A, options, dict(options.petsc_options), fields):
+        return None       # something else: an option given outside petsc_options, under a user's prefix
+    return ValueError(f"petsc_options {dict(options.petsc_options)} were rejected together by PETSc when the "
+                      f"solver was set up ({where}), though each alone is taken; check how they combine")
+
+
+def _sets_up(A: PETSc.Mat, options: KSPOptions, petsc_options: dict, fields) -> bool:
+    """Whether a probe solver with ``options`` but ``petsc_options`` sets up on ``A``."""
+    probe = None
+    try:
+        probe = create_ksp(A, dataclasses.replace(options, petsc_options=petsc_options), unique_prefix("probe"),
+                           fields)
+        _set_up(probe, probe.getPC(), reuse=False)
+        return True
+    except (PETSc.Error, ValueError, TypeError):   # refused by PETSc, or options not valid without the others
+        return False
+    finally:
+        if probe is not None:
+            destroy_ksp(probe)
+
+
+def _petsc_reason(err: PETSc.Error) -> str:
+    """PETSc's own words for ``err``: the last line of its message, without the rank."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    return lines[-1].split("] ", 1)[-1] if lines else f"error code {err.ierr}"
 
 
 def destroy_ksp(ksp: PETSc.KSP) -> None:

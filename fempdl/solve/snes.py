@@ -27,10 +27,12 @@ _OPTION_KEYS = ("snes_linesearch_type", "snes_linesearch_damping", "snes_diverge
 
 
 def create_snes(comm, options: NewtonOptions, ksp: PETSc.KSP, residual, jacobian, monitor,
-                b: PETSc.Vec, J: PETSc.Mat, force_step: bool = False) -> PETSc.SNES:
+                b: PETSc.Vec, J: PETSc.Mat, force_step: bool = False, stop=None) -> PETSc.SNES:
     """A SNES solving F(u) = 0 with ``residual(snes, x, b)`` into ``b``, ``jacobian(snes, x, J, P)``
     into ``J``, each step's linear solve by ``ksp``, and ``monitor(snes, its, fnorm)`` called per
-    step. ``force_step``: take at least one step even from a solution (an unrolled map needs one)."""
+    step. ``force_step``: take at least one step even from a solution (an unrolled map needs one).
+    ``stop``: a convergence test ``stop(snes, its, (xnorm, step_norm, fnorm)) -> reason`` in place of
+    PETSc's (:class:`~fempdl.solve.newton_stop.NewtonStop`); SNES's own ``max_it`` still ends the solve."""
     snes = PETSc.SNES().create(comm)
     prefix = unique_prefix("snes")
     snes.setOptionsPrefix(prefix)
@@ -53,6 +55,8 @@ def create_snes(comm, options: NewtonOptions, ksp: PETSc.KSP, residual, jacobian
     snes.setMaxLinearSolveFailures(MAX_PETSC_INT if options.ksp.capped else 1)
     snes.setForceIteration(force_step)
     snes.setMonitor(monitor)
+    if stop is not None:
+        snes.setConvergenceTest(stop)
     return snes
 
 

@@ -10,9 +10,10 @@ anything else, and the RNG states are stored as lists and ints
 
 :func:`save` keeps the checkpoint it replaces as ``checkpoint.prev.pt`` (a
 hard link, or a copy, so ``checkpoint.pt`` exists at every moment), and :func:`load`
-turns every way a file can be unreadable (truncated, empty, not a zip, not
-written by fempdl, missing keys) into one :class:`CheckpointError` that names
-the file and says what to do.
+turns every way a file can be unreadable (truncated, empty, not a zip, bytes
+that do not match the zip's checksums, not written by fempdl, missing keys,
+values out of their types or ranges: :mod:`fempdl.app.runs.checkpoint_values`)
+into one :class:`CheckpointError` that names the file and says what to do.
 
 Files are written to a temporary file beside the target (``.<name>.<random>.tmp``,
 created with mode 0666 so the umask applies, as for any file the user
@@ -35,19 +36,19 @@ from typing import Callable
 import numpy as np
 import torch
 
+from fempdl.app.runs.checkpoint_values import CheckpointError, malformed
+
 __all__ = ["CHECKPOINT", "PREVIOUS", "CheckpointError", "write_atomically", "save", "load", "plain",
            "rng_state", "restore_rng", "remove_stale_temporaries"]
 
 CHECKPOINT = "checkpoint.pt"
 PREVIOUS = "checkpoint.prev.pt"
 _TEMP_SUFFIX = ".tmp"
+# ``.<name>.<8 hex digits>.tmp``: what write_atomically creates, and nothing a user is likely to name so.
+_TEMPORARY = re.compile(r"\..+\.[0-9a-f]{8}\.tmp")
 # Keys every checkpoint written by fempdl holds.
 REQUIRED_KEYS = ("epoch", "rows", "elapsed", "model", "optimizer", "scheduler", "prdp", "k",
                  "layer_stats_by_rank", "rng", "fingerprint")
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint file is unreadable, incomplete, or holds something other than tensors and plain values."""
 
 
 def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
@@ -84,16 +85,21 @@ def remove_stale_temporaries(directory: Path) -> list[Path]:
     kill) are removed too."""
     removed = []
     for entry in Path(directory).iterdir():
-        name = entry.name
-        if not (name.startswith(".") and entry.is_file()):
-            continue
-        ours = name.endswith(_TEMP_SUFFIX) and name.count(".") >= 3
-        legacy = any(name.startswith(f".{target}.") and len(name) == len(target) + 10
-                     for target in (CHECKPOINT, "metrics.json", "metrics.csv")) and entry.stat().st_size == 0
-        if ours or legacy:
+        if entry.is_file() and not entry.is_symlink() and (_is_temporary(entry.name) or _legacy_temporary(entry)):
             entry.unlink(missing_ok=True)
             removed.append(entry)
     return removed
+
+
+def _is_temporary(name: str) -> bool:
+    """Whether ``name`` is that of a temporary file :func:`write_atomically` creates."""
+    return _TEMPORARY.fullmatch(name) is not None
+
+
+def _legacy_temporary(entry: Path) -> bool:
+    name = entry.name
+    return any(name.startswith(f".{target}.") and len(name) == len(target) + 10
+               for target in (CHECKPOINT, "metrics.json", "metrics.csv")) and entry.stat().st_size == 0
 
 
 def plain(value, where: str = "checkpoint"):
@@ -163,19 +169,23 @@ def save(directory: Path, state: dict) -> Path:
     return path
 
 
-def _refused_object(err: Exception) -> str:
-    """What torch's weights-only unpickler refused, e.g. ``"GLOBAL posix.system"``, from its message."""
+def _refused_object(err: Exception) -> str | None:
+    """What torch's weights-only unpickler refused, e.g. ``"it refers to GLOBAL posix.system"``, from its
+    message; None when it refused no object (the bytes are no pickle at all: a damaged file)."""
     found = re.search(r"(GLOBAL [\w.]+)", str(err))
-    return f"it refers to {found.group(1)}" if found else type(err).__name__
+    return f"it refers to {found.group(1)}" if found else None
 
 
-def load(path: Path) -> dict:
+def load(path: Path, row_fields: tuple | None = None) -> dict:
     """The checkpoint at ``path``, loaded with ``weights_only=True`` (nothing in it is executed).
+
+    ``row_fields``: the keys a metric row may hold (None: any).
 
     Raises:
         FileNotFoundError: no such file.
-        CheckpointError: the file is unreadable or incomplete, holds objects
-            other than tensors and plain values, or lacks keys fempdl writes.
+        CheckpointError: the file is unreadable, damaged or incomplete, holds objects
+            other than tensors and plain values, lacks keys fempdl writes, or holds
+            values out of their types and ranges.
     """
     path = Path(path)
     if not path.exists():
@@ -185,15 +195,19 @@ def load(path: Path) -> dict:
               + (f", or restore the previous checkpoint: mv {previous} {path}" if previous.exists() and
                  previous.resolve() != path.resolve() else ""))
     try:
-        state = torch.load(path, weights_only=True, map_location="cpu")
+        damaged = _damaged_record(path)
+        state = None if damaged else torch.load(path, weights_only=True, map_location="cpu")
     except pickle.UnpicklingError as err:
+        if _refused_object(err) is None:
+            raise _unreadable(path, err, remedy) from None
         raise CheckpointError(f"checkpoint {str(path)!r} holds objects other than tensors and plain values "
                               f"({_refused_object(err)}); it was not written by this version of fempdl and is "
                               f"not loaded, since unpickling objects can run code. To continue: {remedy}") from None
-    except (EOFError, OSError, RuntimeError, ValueError, zipfile.BadZipFile, KeyError, IndexError) as err:
-        raise CheckpointError(f"checkpoint {str(path)!r} is unreadable or incomplete "
-                              f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); "
-                              f"to continue: {remedy}") from None
+    except Exception as err:    # a damaged file fails anywhere in the zip reader and unpickler (struct.error, ...)
+        raise _unreadable(path, err, remedy) from None
+    if damaged:
+        raise CheckpointError(f"checkpoint {str(path)!r} is damaged (its part {damaged!r} does not match the "
+                              f"checksum written with it); to continue: {remedy}")
     if not isinstance(state, dict):
         raise CheckpointError(f"checkpoint {str(path)!r} holds a {type(state).__name__}, not a fempdl "
                               f"checkpoint; to continue: {remedy}")
@@ -201,36 +215,28 @@ def load(path: Path) -> dict:
     if missing:
         raise CheckpointError(f"checkpoint {str(path)!r} is incomplete or was written by an older fempdl "
                               f"(missing {missing}); to continue: {remedy}")
-    wrong = _malformed(state)
+    try:
+        wrong = malformed(state, row_fields)
+    except Exception as err:    # a shape the checks did not foresee is as malformed as one they name
+        wrong = f"{type(err).__name__}: {_first_line(err)}"
     if wrong:
         raise CheckpointError(f"checkpoint {str(path)!r} is malformed ({wrong}); it was not written by fempdl "
-                              f"or was edited since. To continue: {remedy}")
+                              f"or was edited or damaged since. To continue: {remedy}")
     return state
 
 
-def _malformed(state: dict) -> str | None:
-    """What is wrong with the plain values of a loaded checkpoint (None: nothing found)."""
-    def whole(value, least=0):
-        return isinstance(value, int) and not isinstance(value, bool) and value >= least
+def _damaged_record(path: Path) -> str | None:
+    """The first part of the checkpoint's zip whose bytes do not match their CRC-32 (torch's reader
+    does not compare them, so a changed byte would load as a changed number); None when all match."""
+    with zipfile.ZipFile(path) as archive:
+        return archive.testzip()
 
-    def seconds(value):
-        return isinstance(value, (int, float)) and not isinstance(value, bool) and 0.0 <= value < float("inf")
 
-    epoch, rows = state["epoch"], state["rows"]
-    if not whole(epoch):
-        return f"epoch {epoch!r} is not a whole number >= 0"
-    if not isinstance(rows, list) or len(rows) != epoch + 1:
-        return f"it holds {len(rows) if isinstance(rows, list) else type(rows).__name__} metric rows for {epoch + 1} epochs"
-    if any(not isinstance(row, dict) or row.get("epoch") != i for i, row in enumerate(rows)):
-        return "its metric rows are not numbered 0, 1, ... in order"
-    if not seconds(state["elapsed"]) or not seconds(state.get("train_time", 0.0)):
-        return f"elapsed {state['elapsed']!r} or train_time {state.get('train_time')!r} is not a time in seconds"
-    if state["k"] is not None and not whole(state["k"], 1):
-        return f"k {state['k']!r} is not an iteration cap >= 1"
-    by_rank = state["layer_stats_by_rank"]
-    if not isinstance(by_rank, list) or not by_rank or not all(isinstance(r, list) for r in by_rank):
-        return "layer_stats_by_rank is not one list per rank"
-    for key in ("model", "optimizer", "rng", "fingerprint"):
-        if not isinstance(state[key], dict):
-            return f"{key} is a {type(state[key]).__name__}, not a dict"
-    return None
+def _unreadable(path: Path, err: BaseException, remedy: str) -> CheckpointError:
+    return CheckpointError(f"checkpoint {str(path)!r} is unreadable or incomplete "
+                           f"({type(err).__name__}: {_first_line(err)}); to continue: {remedy}")
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err)
+    return text.splitlines()[0] if text else ""

@@ -11,6 +11,11 @@
   that holds no kernel lock is respected too. It is removed when the run
   ends, also on an exception or Ctrl-C. A second run on the same directory
   is refused with a message naming the owner.
+* :func:`check_output_directory`: a run writes only into a new or empty
+  directory, or into one holding an earlier run when told to resume or
+  overwrite it; a directory holding files of the user's (anything visible but
+  a run's files) needs ``overwrite``, which replaces only files of the names
+  fempdl writes and deletes nothing else.
 * :func:`fingerprint` and :func:`differences`: what defines a run (the parsed
   scene, the mode, K, the number of ranks, the package version, ...) as a
   flat dict of plain values; a resumed run compares its own with the
@@ -24,18 +29,24 @@ import os
 import socket
 from pathlib import Path
 
-from fempdl.app.runs.checkpoints import CHECKPOINT
+from fempdl.app.runs.checkpoints import CHECKPOINT, PREVIOUS
 from fempdl.app.schema import check_slug
 from fempdl.core.locks import same_file
 
 __all__ = ["LOCK", "ResumeError", "RunDirectoryError", "RunLock", "check_slug", "child", "fingerprint", "differences",
-           "holds_run"]
+           "holds_run", "foreign_entries", "check_output_directory", "COMMAND_FLAGS", "PYTHON_FLAGS"]
 
 LOCK = ".lock"
 #: In :func:`differences`' ``absent_means``: a checkpoint written before the key existed did not record it.
 NOT_RECORDED = object()
 # Files whose presence means a directory holds a run.
 RUN_FILES = (CHECKPOINT, "metrics.csv", "metrics.json")
+# The other files a run writes into its directory (fields and TensorBoard files when asked for).
+RUN_OUTPUTS = RUN_FILES + (PREVIOUS, "tensorboard", "fields.xdmf", "fields.h5", "fields.png")
+#: How the command and the Python API spell the choices a refusal names.
+COMMAND_FLAGS = {"resume": "--resume", "overwrite": "--overwrite", "out": "--out"}
+PYTHON_FLAGS = {"resume": "resume=True", "overwrite": "overwrite=True (the command: --overwrite)", "out": "out_dir"}
+_NAMES_SHOWN = 3
 
 
 class RunDirectoryError(RuntimeError):
@@ -54,13 +65,58 @@ def child(parent: Path, name: str, what: str = "name") -> Path:
     return path
 
 
-def holds_run(directory: Path) -> bool:
-    """Whether ``directory`` or a directory directly inside it holds run files (a checkpoint or metrics)."""
+def holds_run(directory: Path, nested: bool = True) -> bool:
+    """Whether ``directory`` (or, ``nested``, a directory directly inside it) holds run files (a
+    checkpoint or metrics)."""
     directory = Path(directory)
     if not directory.is_dir():
         return False
-    candidates = [directory] + [d for d in directory.iterdir() if d.is_dir()]
+    candidates = [directory] + ([d for d in directory.iterdir() if d.is_dir()] if nested else [])
     return any((d / name).exists() for d in candidates for name in RUN_FILES)
+
+
+def foreign_entries(directory: Path) -> list[str]:
+    """The sorted names in ``directory`` that are no run's: neither a file a run writes
+    (:data:`RUN_OUTPUTS`) nor a folder holding a run (such as a scene's ``tradeoff`` folder beside
+    its runs) or only such files. Hidden names do not count: fempdl's own (its lock, temporary
+    files) are hidden, and no file it writes could replace one of yours (``.DS_Store``, ``.git``).
+    Empty for a new or empty directory."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    return sorted(entry.name for entry in directory.iterdir() if not _ours(entry, depth=1))
+
+
+def _ours(entry: Path, depth: int) -> bool:
+    if entry.name in RUN_OUTPUTS or entry.name.startswith("."):
+        return True
+    if not entry.is_dir() or entry.is_symlink():
+        return False
+    return holds_run(entry) or (depth > 0 and all(_ours(inner, depth - 1) for inner in entry.iterdir()))
+
+
+def check_output_directory(directory: Path, *, resume: bool, overwrite: bool, nested: bool = True,
+                           flags: dict = COMMAND_FLAGS) -> None:
+    """Raise :class:`RunDirectoryError` unless runs may write into ``directory``: it is new or empty,
+    or holds an earlier run (:func:`holds_run`, ``nested`` as there) and ``resume`` or ``overwrite`` is
+    given, or it holds other files (the user's: a plot of the same name as one fempdl writes would be
+    replaced) and ``overwrite`` is given. ``flags`` spell the choices in the message."""
+    directory = Path(directory)
+    if holds_run(directory, nested):
+        if not (resume or overwrite):
+            raise RunDirectoryError(
+                f"{str(directory)!r} holds the files of an earlier run; pass {flags['resume']} to continue it, "
+                f"{flags['overwrite']} to replace it, or choose another {flags['out']}")
+        return
+    foreign = foreign_entries(directory)
+    if foreign and not overwrite:
+        shown = ", ".join(foreign[:_NAMES_SHOWN]) + (f", ... ({len(foreign)} entries)"
+                                                     if len(foreign) > _NAMES_SHOWN else "")
+        raise RunDirectoryError(
+            f"{str(directory)!r} holds no fempdl run but other files ({shown}); runs write into a new or empty "
+            f"directory or one of their own: choose another {flags['out']}, or pass {flags['overwrite']} to write "
+            "into it anyway (files named as fempdl's, such as metrics.csv or time_split.png, are then replaced; "
+            "nothing else is touched)")
 
 
 class RunLock:

@@ -27,20 +27,21 @@ import torch
 from mpi4py import MPI
 
 from fempdl.core import io, mesh
-from fempdl.app.schema import NONLINEAR_PDES, Scene
+from fempdl.app.schema import NONLINEAR_PDES, SEED_MAX, Scene
 from fempdl.app.tasks import SPECS, spec_of, task_class
 from fempdl.app.tasks.nonlinear_emulator import newton_options
 from fempdl.app.runs.training import CHECKPOINT_EVERY, Trainer
 from fempdl.app.tasks.base import cap_target, set_cap
 from fempdl.bridge_torch import SolveLayer
-from fempdl.solve.options import KSPOptions
+from fempdl.solve.options import MAX_PETSC_INT, KSPOptions
+from fempdl.core.checks import check_int
 from fempdl.core.parallel import shard
 from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps
 from fempdl.methods.newton_caps import converged_caps as measure_converged_caps     # run() takes converged_caps=
 from fempdl.methods.prdp import PRDP
 
-__all__ = ["build_task", "check_parallel", "k_eps", "layer_options", "newton_caps_eps", "run", "run_method",
-           "run_settings", "save_fields", "RunResult", "MODES"]
+__all__ = ["build_task", "check_caps", "check_parallel", "k_eps", "layer_options", "newton_caps_eps", "run",
+           "run_method", "run_settings", "save_fields", "RunResult", "MODES"]
 _log = logging.getLogger(__name__)
 
 MODES = ("fixed", "converged", "prdp")
@@ -126,6 +127,25 @@ def check_parallel(scene: Scene, parallel: str | None) -> None:
 def field_tasks() -> list[str]:
     """The tasks whose validation predictions and references :func:`save_fields` writes."""
     return [name for name, spec in SPECS.items() if spec.writes_fields]
+
+
+def check_caps(scene: Scene, mode: str, k: int | None = None, name: str = "k") -> None:
+    """Raise ValueError when a run of ``scene`` in ``mode`` could not take its caps: ``k`` (named
+    ``name``) in fixed mode, ``[prdp] k0`` and ``k_cap`` in PRDP mode. Checked before anything is
+    built or trained: a cap beyond PETSc's int range used to be refused only when it was first set,
+    after K_eps was measured (and, in the command, after the baseline had trained)."""
+    caps = [(f"{name} {k!r}" if name.startswith("--") else f"{name}={k!r}", k)] if mode == "fixed" else []
+    if mode == "prdp" and scene.prdp is not None:
+        caps += [(f"[prdp] {key} = {value!r}", value) for key, value in
+                 (("k0", scene.prdp.k0), ("k_cap", scene.prdp.k_cap)) if value is not None]
+    for shown, cap in caps:
+        try:
+            if scene.pde.type in NONLINEAR_PDES:     # K counts Newton steps or inner iterations, each a PETSc int
+                check_int("K", cap, minimum=1, maximum=MAX_PETSC_INT)
+            else:
+                solver_options(scene, cap)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{shown} cannot cap the solver of scene {scene.name!r}: {err}") from None
 
 
 def solver_options(scene: Scene, k: int | None, rtol: float | None = None) -> KSPOptions:
@@ -232,6 +252,10 @@ def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None =
                          f"{scene.task!r}, out_dir={out_dir!r}")
     if (mode == "fixed") != (k is not None):
         raise ValueError("give k exactly when mode='fixed'")
+    check_caps(scene, mode, k)
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= SEED_MAX):
+        raise ValueError(f"seed must be an int in [0, 2^63 - 1] (what torch's and numpy's generators take), "
+                         f"got {seed!r}")
     task = build_task(scene, layer_options(scene, k or 1), parallel, comm, seed)
     try:
         keps, prdp = _set_caps(task, scene, mode, k, k_eps_value, converged_caps,

@@ -42,6 +42,7 @@ from fempdl.app.runs import checkpoints
 from fempdl.app.runs import rundir
 from fempdl.app.runs.board import tensorboard_writer
 from fempdl.app.runs.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
+from fempdl.app.runs.checkpoint_values import check_optimizer, check_stats, fitting
 from fempdl.app.runs.timesplit import TIME_FIELDS, TIME_PARTS, TimeSplit
 from fempdl.app.tasks.base import cap_target, set_cap
 from fempdl.methods.prdp import PRDP
@@ -95,9 +96,10 @@ class Trainer:
             whose fingerprint differs is refused (:data:`RESUMABLE_CHANGES`
             may differ).
         overwrite: a fresh run (``resume=False``) replaces the files of a run
-            already in ``out_dir``; without it that is refused
-            (:class:`~fempdl.app.runs.rundir.RunDirectoryError`), as the command
-            refuses without ``--overwrite``.
+            already in ``out_dir``, or writes into a directory holding other files
+            (those of fempdl's names replaced, nothing deleted); without it both are
+            refused (:func:`~fempdl.app.runs.rundir.check_output_directory`), as the
+            command refuses without ``--overwrite``.
         checkpoint_every: write the files after an epoch that ends at least this many seconds of
             the run's clock after they were last written (and after the last epoch of the call);
             0 writes them after every epoch.
@@ -150,12 +152,15 @@ class Trainer:
         a second run on it is refused); temporary files an interrupted write
         left there are removed; a fresh run (``resume=False``) first removes
         the checkpoints of a run it replaces."""
-        held = (not resume and not self.overwrite and self.out_dir is not None and self._writer
-                and any((self.out_dir / name).exists() for name in rundir.RUN_FILES))
-        if self.comm.bcast(held, root=0):       # every rank takes the same branch
-            raise rundir.RunDirectoryError(
-                f"{str(self.out_dir)!r} holds the files of an earlier run; pass resume=True to continue it, "
-                "overwrite=True to replace it (the command: --resume, --overwrite), or choose another out_dir")
+        refusal = None
+        if self.out_dir is not None and self._writer:
+            try:
+                rundir.check_output_directory(self.out_dir, resume=resume, overwrite=self.overwrite, nested=False,
+                                              flags=rundir.PYTHON_FLAGS)
+            except rundir.RunDirectoryError as err:
+                refusal = str(err)
+        if self.comm.bcast(refusal, root=0):       # every rank takes the same branch
+            raise rundir.RunDirectoryError(refusal)
         lock = rundir.RunLock(self.out_dir) if self.out_dir is not None and self._writer else None
         if lock is not None:
             lock.acquire()
@@ -195,7 +200,8 @@ class Trainer:
             if self.task.scheduler is not None:
                 self.task.scheduler.step()
             if self.comm.size > 1:
-                parallel.check_identical(self.comm, k=self.k, val_metric=metric, parameters=self._fingerprint())
+                parallel.check_identical(self.comm, k=self.k, val_metric=metric)
+                parallel.check_same_parameters(self.task.model, self.comm)
             self._clock.end_epoch()
             self.rows.append(self._row(epoch, float(np.mean(losses)), metric, k_used))
             bar.set_postfix(loss=f"{self.rows[-1]['train_loss']:.2e}", val=f"{metric:.2e}", K=k_used)
@@ -261,10 +267,6 @@ class Trainer:
         if self.parallel == "data":
             total = self.comm.allreduce(total)
         return total / self.task.val_size
-
-    def _fingerprint(self) -> float:
-        with torch.no_grad():
-            return float(sum(p.double().abs().sum() for p in self.task.model.parameters()))
 
     def _batches(self):
         order = torch.randperm(self.task.train_size, generator=self._shuffle)
@@ -339,7 +341,7 @@ class Trainer:
         if path is None or not path.exists():
             raise FileNotFoundError(f"resume: no checkpoint {CHECKPOINT} in {self.out_dir}; "
                                     "start the run without resume first")
-        state = checkpoints.load(path)
+        state = checkpoints.load(path, row_fields=METRIC_FIELDS + NEWTON_FIELDS)
         changed = rundir.differences(state["fingerprint"], self.fingerprint(), RESUMABLE_CHANGES, KEYS_ADDED_LATER)
         if changed:
             raise rundir.ResumeError(
@@ -351,25 +353,25 @@ class Trainer:
             raise rundir.ResumeError(
                 f"resume: {path} already holds {done} epochs, more than the {self.epochs} asked for, so there is "
                 f"nothing to continue; ask for more (--epochs N with N > {done}) or start afresh (--overwrite)")
-        try:
+        with fitting(path, "model or optimizer state"):
             self.task.model.load_state_dict(state["model"])
             self.task.optimizer.load_state_dict(state["optimizer"])
             if self.task.scheduler is not None:
                 self.task.scheduler.load_state_dict(state["scheduler"])
-        except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as err:
-            raise CheckpointError(f"{path}: its model or optimizer state does not fit this run's "
-                                  f"({type(err).__name__}: {str(err).splitlines()[0]}); start afresh (--overwrite) "
-                                  "or restore a checkpoint of this run") from None
+            check_optimizer(self.task.optimizer)
         if self.prdp is not None:
             if state["prdp"] is None:
                 raise ValueError(f"{path} was written by a run without PRDP; resume it without --prdp")
-            self.prdp.load_state_dict(state["prdp"])
+            with fitting(path, "PRDP state"):
+                self.prdp.load_state_dict(state["prdp"])
         elif state["k"] is not None:
             set_cap(cap_target(self.task), state["k"])
         by_rank = state["layer_stats_by_rank"]
         if len(by_rank) != self.comm.size:
             raise ValueError(f"{path} was written by a run on {len(by_rank)} rank(s); "
                              f"resume it on {len(by_rank)}, not {self.comm.size}")
+        with fitting(path, "record of the layers' counters"):
+            check_stats(by_rank[self.comm.rank], self.task.layers)
         for layer, saved in zip(self.task.layers, by_rank[self.comm.rank]):
             for key, value in saved.items():
                 if not key.startswith("last"):     # the last solve's stats (last, last_newton) are not counters
@@ -377,7 +379,8 @@ class Trainer:
         # Checkpoints written before tasks kept state hold none: the task starts from its initial state.
         task_states = state.get("task_state_by_rank", [{}] * self.comm.size)
         if hasattr(self.task, "load_state_dict"):
-            self.task.load_state_dict(task_states)
+            with fitting(path, "task state"):
+                self.task.load_state_dict(task_states)
         elif any(task_states):
             raise ValueError(f"{path} holds task state that {type(self.task).__name__} cannot take (no load_state_dict)")
         checkpoints.restore_rng(state["rng"], self._shuffle)

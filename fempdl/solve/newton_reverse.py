@@ -1,0 +1,75 @@
+"""The exact reverse pass of the plain Newton map that was run (``NonlinearSolveLayer(diff="unrolled")``).
+
+:class:`NewtonReversePass` is a part of :class:`~fempdl.solve.nonlinear_system.NonlinearSystem`: per
+sample and per step k = N-1 ... 0, backwards, mu = J(u_k)^{-T} u_bar, then u_bar <- u_bar + a dQ/du and
+m_bar += a dQ/dm with Q = mu^T J(u_k; m) delta_k - F(u_k, mu; m) (the problem's step forms), from the
+iterates a forward solve recorded (:class:`NewtonPath`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from fempdl.core import _dolfinx
+from fempdl.solve.assembly import ControlValues, Timer, set_owned, without_bc_entries
+from fempdl.solve.linear_system import INITIAL_GUESS
+
+__all__ = ["NewtonPath", "NewtonReversePass"]
+
+
+@dataclass
+class NewtonPath:
+    """The iterates of one call's Newton solves, for the unrolled reverse pass:
+    ``iterates[i]`` is (steps_i + 1, n) for sample i (u_0 with its boundary values, ..., u_N)."""
+
+    iterates: list
+    damping: float
+
+
+class NewtonReversePass:
+    """The reverse pass over a :class:`NewtonPath`; the system provides ``problem``, ``stats`` and
+    ``_transpose_solve(u, g)`` (J(u)^T lam = g into ``problem.lam``), and holds ``_step_vectors``."""
+
+    def unrolled_adjoint(self, controls: Mapping[str, np.ndarray], path: NewtonPath, G: np.ndarray,
+                         wanted, initial_guess: bool = False) -> dict[str, np.ndarray]:
+        """The exact vector-Jacobian product of the plain Newton map that produced ``path``:
+        dJ/dm (batch, n_m) for m in ``wanted`` and, with ``initial_guess``, dJ/du_0 (batch, n)."""
+        p = self.problem
+        batch = G.shape[0]
+        wanted = [n for n in p.control_names if n in set(wanted)]
+        grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
+        a = path.damping
+        G = without_bc_entries(G, p)
+        with ControlValues(p, controls) as ctl:
+            for i in range(batch):
+                ctl.set_sample(i)
+                iterates = path.iterates[i]
+                u_bar = G[i]
+                for k in range(len(iterates) - 2, -1, -1):
+                    self._transpose_solve(iterates[k], u_bar)            # lam = mu_k, u = u_k
+                    set_owned(p.step, (iterates[k] - iterates[k + 1]) / a, p.output_size)
+                    for name in wanted:
+                        grads[name][i] += a * self._assembled(p.step_control_form(name), name)
+                    u_bar = u_bar + a * self._assembled(p.step_state_form(), None)
+                    if len(p.bc_dofs):
+                        u_bar[p.bc_dofs] = 0.0        # u_k takes the boundary values whatever came before
+                    self.stats.backward_newton_steps += 1
+                if initial_guess:
+                    grads.setdefault(INITIAL_GUESS, np.zeros((batch, p.output_size)))[i] = u_bar
+        return grads
+
+
+    def _assembled(self, form, name: str | None) -> np.ndarray:
+        """Owned values of a compiled linear form on the space of control ``name`` (None: the solution space)."""
+        p = self.problem
+        n = p.output_size if name is None else p.control_size(name)
+        if form is None:
+            return np.zeros(n)
+        vec = self._step_vectors.get(name)
+        if vec is None:
+            vec = self._step_vectors[name] = _dolfinx.create_vector(form)
+        with Timer(self.stats, "assembly_time"):
+            _dolfinx.assemble_vector_into(vec, form)
+        return vec.getArray(readonly=True)[:n].copy()
