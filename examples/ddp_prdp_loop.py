@@ -3,13 +3,13 @@
     torchrun --standalone --nproc_per_node 2 examples/ddp_prdp_loop.py [--epochs 30] [--local-metric]
 
 Every process holds the whole problem (MPI.COMM_SELF), DDP averages the gradients, the validation metric is
-all-reduced before PRDP sees it, and PRDP (which finds the torch.distributed group itself) checks that every
-rank steps with the same metric, so the ranks refine K together. ``--local-metric`` steps PRDP on each
-rank's own metric, as a first DDP loop often does: PRDP refuses it on every rank instead of letting the
-caps drift apart. Prints one line of JSON per rank.
+all-reduced, and PRDP (finding the torch.distributed group itself) checks that every rank steps with the same
+metric, so the ranks refine K together. ``--local-metric`` steps PRDP on each rank's own metric, as a first
+DDP loop often does: PRDP refuses it on every rank. Prints one line of JSON per rank.
 """
 import argparse
 import json
+import sys
 import numpy as np
 import torch
 import torch.distributed as dist
@@ -52,8 +52,9 @@ try:
         if not args.local_metric:
             dist.all_reduce(total)                      # the whole validation set's sum, on every rank
         ctrl.step(total.item() / (len(mine) if args.local_metric else 8))
-    print(json.dumps({"rank": rank, "k": layer.max_it, "ks": [r.k for r in ctrl.history],
-                      "metric": ctrl.history[-1].metric}), flush=True)
+    line = {"rank": rank, "k": layer.max_it, "ks": [r.k for r in ctrl.history], "metric": ctrl.history[-1].metric}
 except ValueError as err:
-    print(json.dumps({"rank": rank, "error": str(err)}), flush=True)
+    line = {"rank": rank, "error": str(err)}
+sys.stdout.write(json.dumps(line) + "\n")        # one write: the ranks share the pipe
+sys.stdout.flush()
 dist.destroy_process_group()

@@ -121,8 +121,8 @@ def test_an_unrolled_newton_call_beyond_the_memory_budget_is_refused_before_its_
 
 
 UNBOUNDED_CAP = """
+from mpi4py import MPI  # before DOLFINx: PyPI's DOLFINx needs the MPI library mpi4py loads
 import dolfinx.mesh, torch
-from mpi4py import MPI
 from fempdl import NewtonOptions, NonlinearSolveLayer, forms
 prob = forms.nonlinear_diffusion.problem(dolfinx.mesh.create_unit_square(MPI.COMM_WORLD, 6, 6), controls=("f",))
 layer = NonlinearSolveLayer(prob, NewtonOptions(ksp="lu", max_it=10**8), diff="unrolled")
@@ -185,7 +185,7 @@ def test_a_loop_without_sum_gradients_is_caught_after_one_step(tmp_path):
 
 def test_on_a_distributed_mesh_every_rank_refuses_alike():
     """The budget sums the iterates of a machine's ranks; a kappa <= 0 on one rank is refused on both."""
-    done = mpirun(2, "newton_budget.py", timeout=120)
+    done = mpirun(2, "newton_memory.py", timeout=120)
     assert done.returncode == 0, done.stderr[-3000:]
     lines = dict(line.split(": ", 1) for line in done.stdout.strip().splitlines())
     assert lines["budget"].startswith("MemoryError: an unrolled Newton call would keep ")

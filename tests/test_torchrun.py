@@ -22,8 +22,14 @@ def torchrun(script: Path, *args: str, cwd: Path) -> subprocess.CompletedProcess
 
 
 def lines(done: subprocess.CompletedProcess) -> dict:
-    found = [json.loads(line) for line in done.stdout.splitlines() if line.startswith("{")]
-    return {entry["rank"]: entry for entry in found}
+    """Each rank's JSON object from the shared stdout (one object per rank, in any order)."""
+    decoder, found, text = json.JSONDecoder(), {}, done.stdout
+    start = text.find('{"rank"')
+    while start >= 0:
+        entry, end = decoder.raw_decode(text, start)
+        found[entry["rank"]] = entry
+        start = text.find('{"rank"', end)
+    return found
 
 
 def test_ddp_example_refines_on_every_rank_together(tmp_path):

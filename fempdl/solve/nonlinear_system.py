@@ -97,7 +97,7 @@ class NonlinearSystem(NewtonReversePass):
                             for nsp in (attach_nullspace(A, problem.nullspace),
                                         attach_nullspace(A, problem.near_nullspace, near=True)) if nsp]
         self.stats = NewtonCumulativeStats()
-        self._forms = ControlForms(problem, self._b, functools.partial(Timer, self.stats, "assembly_time"))
+        self._forms = ControlForms(problem, self._b.duplicate(), functools.partial(Timer, self.stats, "assembly_time"))
         self._step_vectors: dict = {}
         self._force_step, self._budget = force_step, budget
         self._stopped_on_error = False
@@ -313,8 +313,11 @@ class NonlinearSystem(NewtonReversePass):
         self._stopped_on_error = False
         self._free_solvers()
         self._J.assemble()     # Ctrl-C between setting J's values and assembling them: PETSc would refuse to zero J
-        self._sol.destroy()
-        self._sol = _dolfinx.create_vector(self.problem.F_form)
+        # An error inside the inner KSPSolve (Ctrl-C in its monitor) leaves the residual read-locked on
+        # PETSc >= 3.2x, and the next residual evaluation refuses to write it: fresh vectors for both.
+        for name in ("_sol", "_b"):
+            getattr(self, name).destroy()
+            setattr(self, name, _dolfinx.create_vector(self.problem.F_form))
         self._build(self._options)
 
     # --------------------------------------------------------------- adjoint
