@@ -33,6 +33,8 @@ def test_preflight_of_a_hand_written_loop(coarse_lshape):
     assert report.k_cap == k_eps(layer, f=f) and report.k0 == k_start(layer, f=f)
     assert calls == [report.k_cap] * 3 and layer.max_it == 3          # run at K_eps, the cap put back
     assert 0.0 < report.solver_share <= 1.0 and report.capped_parts == ("iterations",)
+    # A pure cap runs exactly K iterations: solves at k0 cost k0 / K_eps of those at K_eps.
+    assert report.cost_ratio == pytest.approx(report.k0 / report.k_cap)
     assert report.max_saving == pytest.approx(report.solver_share * (1 - report.k0 / report.k_cap))
 
 
@@ -43,13 +45,19 @@ def test_preflight_of_a_newton_loop_counts_assembly(coarse_lshape):
     report = preflight(lambda: layer(f=f).sum().backward(), layer, steps=1, f=f.detach())
     assert report.capped_parts == ("iterations", "setup", "assembly")
     assert report.k_cap >= report.k0 >= 1 and layer.max_it == 1
+    # From a warm start at the solution a Newton cap is a budget both caps leave unused: nothing to save.
+    with torch.no_grad():
+        solution = NonlinearSolveLayer(prob, NewtonOptions(ksp="lu"))(f=f)
+    warm = preflight(lambda: layer(f=f, initial_guess=solution).sum().backward(), layer, steps=1, f=f.detach(),
+                     initial_guess=solution)
+    assert warm.cost_ratio == 1.0 and warm.max_saving == 0.0 and not warm.pays()
 
 
 def test_the_verdict_names_the_caps_or_says_prdp_cannot_pay():
-    pays = Preflight(k0=2, k_cap=40, step_time=0.010, capped_time=0.008, capped_parts=("iterations",))
+    pays = Preflight(k0=2, k_cap=40, step_time=0.010, capped_time=0.008, capped_parts=("iterations",), cost_ratio=0.05)
     assert pays.max_saving == pytest.approx(0.8 * 0.95)
     assert pays.summary().endswith("PRDP can save at most 76% of the wall time; use PRDP(..., k0=2, k_cap=40)")
-    idle = Preflight(k0=2, k_cap=4, step_time=0.010, capped_time=0.001, capped_parts=("iterations",))
+    idle = Preflight(k0=2, k_cap=4, step_time=0.010, capped_time=0.001, capped_parts=("iterations",), cost_ratio=0.5)
     assert not idle.pays() and "PRDP can save at most 5% of the wall time, below 10%: PRDP cannot pay in this " \
                                "loop; train at K_eps (max_it=4)" in idle.summary()
 

@@ -25,7 +25,7 @@ from fempdl.layer.newton_layer import NonlinearSolveLayer
 from fempdl.methods.newton_caps import NewtonCaps
 from fempdl.solve.stats import SolverFailedError
 
-__all__ = ["k_start"]
+__all__ = ["k_start", "probe_layers", "close_probes"]
 
 
 def k_start(target, *, tolerance: float = 0.5, k_max: int = 100_000, rtol: float = 1e-8, **inputs) -> int:
@@ -50,7 +50,7 @@ def k_start(target, *, tolerance: float = 0.5, k_max: int = 100_000, rtol: float
     if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not 0.0 < tolerance <= 1.0:
         raise ValueError(f"tolerance must be a relative error in (0, 1], got {tolerance!r}")
     check_int("k_max", k_max, minimum=1)
-    capped, converged = _probes(target, rtol)
+    capped, converged = probe_layers(target, rtol)
     try:
         with torch.no_grad():
             reference = converged(**inputs)
@@ -74,12 +74,13 @@ def k_start(target, *, tolerance: float = 0.5, k_max: int = 100_000, rtol: float
                 low, high = (low, mid) if error(mid) <= tolerance else (mid, high)
             return high
     finally:
-        getattr(capped, "layers", [capped])[0].close()
-        converged.close()
+        close_probes(capped, converged)
 
 
-def _probes(target, rtol: float):
-    """A capped probe that takes K as ``max_it`` (a layer or a NewtonCaps over one) and a converged probe."""
+def probe_layers(target, rtol: float = 1e-8):
+    """Probe layers on ``target``'s problem: a capped one that takes K as ``max_it`` (a layer, or a
+    NewtonCaps over one, moved by the target's rule) and a converged one (to ``rtol``). The caller
+    closes them (``close_probes``)."""
     if isinstance(target, NonlinearSolveLayer):
         target = NewtonCaps(target, "newton")
     if isinstance(target, NewtonCaps):
@@ -101,6 +102,11 @@ def _probes(target, rtol: float):
         converged = dataclasses.replace(options, max_it=None, rtol=rtol, atol=None, divtol=None)
         return SolveLayer(target.problem, options), SolveLayer(target.problem, converged)
     raise TypeError(f"target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps, got {type(target).__name__}")
+
+
+def close_probes(capped, converged) -> None:
+    for layer in (*getattr(capped, "layers", [capped]), converged):
+        layer.close()
 
 
 class _Caller:

@@ -10,10 +10,14 @@ inputs and starts (its ``initial_guess`` too):
 * the time split of a few of the loop's own steps run at K_eps (real training
   steps): the parts that shrink with the cap (the iterations; where K moves the
   Newton cap, also each Newton step's assembly and set-up) hold a share s of
-  the step time.
+  the step time;
+* c, the cost of solves capped at k0 over solves capped at K_eps, on the inputs:
+  k0 / K_eps for a cap that runs exactly K iterations; for a Newton cap, a
+  budget that converged solves stop short of, what they ran (from a warm start
+  near the solution both may take the same two or three steps, and c is 1).
 
 PRDP never runs below k0, and everything else costs what it did, so it can
-save at most s (1 - k0 / K_eps) of the wall time (:attr:`Preflight.max_saving`).
+save at most s (1 - c) of the wall time (:attr:`Preflight.max_saving`).
 Where that is below ``worthwhile``, PRDP cannot pay in this loop and the
 report says so: train at K_eps.
 """
@@ -23,10 +27,12 @@ import dataclasses
 import time
 from typing import Callable
 
+import torch
+
 from fempdl.bridge_torch import SolveLayer
 from fempdl.core.checks import check_int
 from fempdl.layer.newton_layer import NonlinearSolveLayer
-from fempdl.methods.k_start import k_start
+from fempdl.methods.k_start import close_probes, k_start, probe_layers
 from fempdl.methods.newton_caps import NewtonCaps, newton_k_eps
 from fempdl.methods.prdp import k_eps
 
@@ -42,6 +48,7 @@ class Preflight:
     step_time: float
     capped_time: float
     capped_parts: tuple
+    cost_ratio: float
 
     @property
     def solver_share(self) -> float:
@@ -50,16 +57,17 @@ class Preflight:
 
     @property
     def max_saving(self) -> float:
-        """The most of the wall time PRDP can save: s (1 - k0 / K_eps)."""
-        return self.solver_share * (1.0 - self.k0 / self.k_cap)
+        """The most of the wall time PRDP can save: s (1 - c)."""
+        return self.solver_share * max(0.0, 1.0 - self.cost_ratio)
 
     def pays(self, worthwhile: float = 0.1) -> bool:
         return self.max_saving >= worthwhile
 
     def summary(self, worthwhile: float = 0.1) -> str:
-        head = (f"K_eps {self.k_cap}, k0 {self.k0}; at K_eps the solver ({'+'.join(self.capped_parts)}) holds "
-                f"{100 * self.solver_share:.0f}% of a {self.step_time * 1e3:.1f} ms step: PRDP can save at most "
-                f"{100 * self.max_saving:.0f}% of the wall time")
+        head = (f"K_eps {self.k_cap}, k0 {self.k0} (its solves cost {self.cost_ratio:.2f}x those at K_eps); at K_eps "
+                f"the solver ({'+'.join(self.capped_parts)}) holds {100 * self.solver_share:.0f}% of a "
+                f"{self.step_time * 1e3:.1f} ms step: PRDP can save at most {100 * self.max_saving:.0f}% of the "
+                "wall time")
         if self.pays(worthwhile):
             return f"{head}; use PRDP(..., k0={self.k0}, k_cap={self.k_cap})"
         return (f"{head}, below {100 * worthwhile:.0f}%: PRDP cannot pay in this loop; train at K_eps "
@@ -95,6 +103,7 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
     else:
         raise TypeError(f"target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps, got {type(target).__name__}")
     k0 = min(k_start(target, tolerance=tolerance, rtol=rtol, k_max=k_cap, **inputs), k_cap)
+    cost_ratio = _solve_cost(target, k0, parts, inputs) / max(_solve_cost(target, k_cap, parts, inputs), 1)
     saved = [layer.get_extra_state() for layer in layers]      # every cap, as state_dict carries them
     target.max_it = k_cap
     try:
@@ -108,7 +117,22 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
     finally:
         for layer, state in zip(layers, saved):
             layer.set_extra_state(state)
-    return Preflight(k0=k0, k_cap=k_cap, step_time=elapsed / steps, capped_time=capped / steps, capped_parts=parts)
+    return Preflight(k0=k0, k_cap=k_cap, step_time=elapsed / steps, capped_time=capped / steps, capped_parts=parts,
+                     cost_ratio=cost_ratio)
+
+
+def _solve_cost(target, k: int, parts: tuple, inputs: dict) -> int:
+    """What probe solves of ``inputs`` capped at ``k`` ran: Newton steps where the cap moves them (each
+    repeats assembly and set-up), else inner iterations."""
+    capped, converged = probe_layers(target)
+    try:
+        capped.max_it = k
+        with torch.no_grad():
+            capped(**inputs)
+        stats = getattr(capped, "layers", [capped])[0].stats
+        return stats.newton_steps if "assembly" in parts else stats.forward_iterations
+    finally:
+        close_probes(capped, converged)
 
 
 def _capped_seconds(stats, parts: tuple) -> float:

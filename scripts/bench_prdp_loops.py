@@ -1,0 +1,319 @@
+"""Benchmark: PRDP against converged solves in training loops written as users write them.
+
+Each setting is a hand-written loop (no scene, no CLI), trained twice per seed
+with the same data, network initialisation and batches:
+
+* ``converged``: the cap at K_eps, what converged solves of the loop's
+  validation inputs need from zero (:func:`fempdl.prdp.k_eps`, or
+  ``newton_k_eps``); a Newton solve stops at its tolerance before it;
+* ``prdp``: :class:`fempdl.PRDP` stepped on the loop's validation metric with
+  the README's rule refined geometrically (``growth=1.5``: as many refinements
+  from k0 to K_eps whatever K_eps is), from ``k0 = k_start(...)`` (the first cap
+  within 50% of converged solves from zero) up to ``k_cap = K_eps``.
+
+Settings:
+
+* ``readme``: the README's loop (a network maps 8 amplitudes to a source,
+  -div grad u = f on the L-shape, Richardson + Jacobi from zero);
+* ``warm-linear``: a heat-step emulator (a residual network advances u0 -> u1,
+  a capped heat step u1 -> u2 warm-started from u1, the loss against two
+  converged steps);
+* ``newton-cold`` / ``newton-warm``: an inverse problem through Newton solves: a
+  coordinate MLP gives kappa(x) in the regularised p-Laplacian
+  -div(kappa (1e-4 + |grad u|^2)^(1/2) grad u) = f for 4 sources, 40 point
+  sensors, Adam, LU inner solves; from zero, or from the previous step's states
+  (the metric PRDP steps on is the training loss, as such a loop has no
+  validation set);
+* ``nonlinear-heat``: the emulator through one backward-Euler step of
+  -div((1 + 20 u^2) grad u), Newton warm-started from u1;
+* ``ddp``: ``warm-linear`` under torchrun with its gradients all-reduced over 2
+  processes (gloo), each solving its shard, the metric all-reduced.
+
+Recorded per run: the metric at the end evaluated with converged solves, Newton
+steps and inner iterations (forward + backward, training and validation, all
+ranks), the training wall time and the K schedule; per setting the means over
+the seeds and the ratios PRDP / converged. Writes
+``bench-results/bench_prdp_loops.json`` (``--out``) after every run and resumes
+from it. Run on an idle machine: ``python scripts/bench_prdp_loops.py``;
+``--quick`` runs one seed of shortened loops.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from bench_common import comma_list, machine_info, write_json_atomically
+
+import torch
+import torch.distributed as dist
+import ufl
+from mpi4py import MPI
+
+import dolfinx.fem
+from fempdl import (PRDP, KSPOptions, NewtonOptions, NonlinearProblem, NonlinearSolveLayer, PointObservation,
+                    SolveLayer, forms, mesh)
+from fempdl.core import _dolfinx
+from fempdl.methods.newton_caps import NewtonCaps, newton_k_eps
+from fempdl.prdp import k_eps, k_start
+
+SETTINGS = ("readme", "warm-linear", "newton-cold", "newton-warm", "nonlinear-heat", "ddp")
+EPOCHS = {"readme": 60, "warm-linear": 60, "newton-cold": 300, "newton-warm": 300, "nonlinear-heat": 40, "ddp": 60}
+# The README's rule, refined geometrically (K -> max(K + 1, ceil(1.5 K))): the same number of
+# refinements from k0 to K_eps whether K_eps is 10 or 500 iterations.
+PRDP_RULE = dict(dk=1, growth=1.5, tau_step=0.95, tau_stop=0.9, delta=3, ema_window=6)
+
+
+def nmse_sum(u, ref):
+    return (((u - ref) ** 2).sum(-1) / (ref ** 2).sum(-1)).sum()
+
+
+def all_reduce(value: torch.Tensor) -> torch.Tensor:
+    if dist.is_available() and dist.is_initialized():
+        dist.all_reduce(value)
+    return value
+
+
+class Emulator:
+    """A network trained through a layer on a fixed data set: ``readme``, ``warm-linear``,
+    ``nonlinear-heat`` and ``ddp`` (``rank``/``size``: this process's shard of every batch)."""
+
+    def __init__(self, setting: str, seed: int, rank: int = 0, size: int = 1):
+        self.rank, self.size = rank, size
+        msh = mesh.load("lshape", MPI.COMM_SELF, h=0.1)
+        data = torch.Generator().manual_seed(0)                    # the data do not depend on the seed
+        self.warm = setting != "readme"
+        if setting == "readme":
+            prob = forms.poisson.problem(msh, controls=("f",))
+            basis = torch.randn(8, prob.control_size("f"), dtype=torch.float64, generator=data)
+            self.x = torch.randn(80, 8, dtype=torch.float64, generator=data)
+            exact = SolveLayer(prob, "lu")
+            self.layer = SolveLayer(prob, KSPOptions.preset("jacobi", max_it=1))
+            self.caps, self.key = self.layer, "f"
+            with torch.no_grad():
+                self.y = exact(f=self.x @ basis)
+            width_in = 8
+        else:
+            if setting == "nonlinear-heat":
+                prob = forms.nonlinear_diffusion.problem(msh, controls=("u0",), alpha=20.0, f=0.0, dt=0.01)
+                exact = NonlinearSolveLayer(prob, NewtonOptions(ksp="lu"))
+                self.layer = NonlinearSolveLayer(prob, NewtonOptions(max_it=1, ksp="lu"))
+                self.caps = NewtonCaps(self.layer, "newton")
+            else:
+                prob = forms.heat.problem(msh, controls=("u0",), dt=0.002)
+                exact = SolveLayer(prob, "lu")
+                self.layer = SolveLayer(prob, KSPOptions.preset("jacobi", max_it=1))
+                self.caps = self.layer
+            self.key = "u0"
+            x = torch.from_numpy(prob.dof_coordinates())
+            modes = torch.stack([torch.sin(i * x[:, 0] + 1.0) * torch.cos(j * x[:, 1])
+                                 for i in range(1, 4) for j in range(1, 4)], 1)
+            self.x = 0.5 * torch.randn(80, 9, dtype=torch.float64, generator=data) @ modes.T
+            with torch.no_grad():
+                self.u1 = exact(u0=self.x)
+                self.y = exact(u0=self.u1, initial_guess=self.u1)
+            width_in = prob.output_size
+        self.exact, self.layers = exact, [self.layer]
+        self.inputs = ({self.key: self.u1[64:], "initial_guess": self.u1[64:]} if self.warm
+                       else {self.key: self.x[64:] @ basis})
+        torch.manual_seed(seed)
+        self.net = torch.nn.Sequential(torch.nn.Linear(width_in, 64), torch.nn.Tanh(),
+                                       torch.nn.Linear(64, prob.output_size)).double()
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=1e-2 if setting == "readme" else 3e-3)
+        self.order = torch.Generator().manual_seed(seed)
+
+    def predict(self, idx, layer):
+        out = self.net(self.x[idx])
+        if not self.warm:
+            return layer(f=out)
+        u1 = self.x[idx] + out                                      # a residual emulator of u0 -> u1
+        return layer(u0=u1, initial_guess=u1.detach())
+
+    def epoch(self) -> None:
+        for batch in torch.randperm(64, generator=self.order).split(16):
+            mine = batch[self.rank::self.size]
+            self.opt.zero_grad()
+            (nmse_sum(self.predict(mine, self.layer), self.y[mine]) / len(batch)).backward()
+            for p in self.net.parameters():                        # the batch gradient, on every rank
+                all_reduce(p.grad)
+            self.opt.step()
+
+    def metric(self, layer=None) -> float:
+        mine = torch.arange(64, 80)[self.rank::self.size]
+        with torch.no_grad():
+            return float(all_reduce(nmse_sum(self.predict(mine, layer or self.layer), self.y[mine]))) / 16
+
+    def final(self) -> dict:
+        return {"final_metric": self.metric(self.exact)}
+
+
+class NewtonInverse:
+    """kappa(x) = softplus(MLP(x)) through Newton solves of a regularised p-Laplacian, 4 sources, 40 sensors."""
+
+    def __init__(self, setting: str, seed: int):
+        msh = mesh.load("lshape", MPI.COMM_SELF, h=0.07)
+        V = _dolfinx.function_space(msh.mesh, "Lagrange", 1)
+        u, kappa, f = (dolfinx.fem.Function(V) for _ in range(3))
+        v = ufl.TestFunction(V)
+        F = (kappa * (1e-4 + ufl.inner(ufl.grad(u), ufl.grad(u))) ** 0.5 * ufl.inner(ufl.grad(u), ufl.grad(v))
+             - f * v) * ufl.dx
+        bc = _dolfinx.dirichlet_bc(V, dolfinx.fem.Function(V), _dolfinx.boundary_facets(msh.mesh))
+        prob = NonlinearProblem(F, u, [bc], controls={"kappa": kappa, "f": f})
+        coords = torch.from_numpy(prob.dof_coordinates()[:, :2])
+        centres = torch.tensor([[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.3, 0.3]], dtype=torch.float64)
+        self.f = 10.0 * torch.exp(-((coords[None] - centres[:, None]) ** 2).sum(-1) / 0.1)   # (4, n)
+        self.kappa_true = 1.0 + 0.5 * torch.sin(2.0 * coords[:, 0]) * torch.cos(1.5 * coords[:, 1])
+        sensors = torch.Generator().manual_seed(0)
+        points = coords[torch.randperm(len(coords), generator=sensors)[:40]].numpy()
+        self.observe = PointObservation(prob, points)
+        self.exact = NonlinearSolveLayer(prob, NewtonOptions(ksp="lu"))
+        with torch.no_grad():
+            self.data = self.observe(self.exact(kappa=self.kappa_true, f=self.f))
+        self.layer = NonlinearSolveLayer(prob, NewtonOptions(max_it=1, ksp="lu"))
+        self.caps, self.layers, self.coords = NewtonCaps(self.layer, "newton"), [self.layer], coords.float()
+        torch.manual_seed(seed)
+        self.net = torch.nn.Sequential(torch.nn.Linear(2, 32), torch.nn.Tanh(), torch.nn.Linear(32, 32),
+                                       torch.nn.Tanh(), torch.nn.Linear(32, 1)).double()
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=3e-3)
+        self.warm, self.state, self.loss = setting == "newton-warm", None, None
+        self.inputs = {"kappa": self.kappa().detach(), "f": self.f}
+
+    def kappa(self):
+        return torch.nn.functional.softplus(self.net(self.coords.double())).squeeze(-1) + 0.1
+
+    def epoch(self) -> None:
+        self.opt.zero_grad()
+        start = {"initial_guess": self.state} if self.warm and self.state is not None else {}
+        u = self.layer(kappa=self.kappa(), f=self.f, **start)
+        loss = ((self.observe(u) - self.data) ** 2).mean() / (self.data ** 2).mean()
+        loss.backward()
+        self.opt.step()
+        self.state, self.loss = u.detach(), loss.item()
+
+    def metric(self) -> float:
+        return self.loss
+
+    def final(self) -> dict:
+        with torch.no_grad():
+            kappa = self.kappa()
+            u = self.exact(kappa=kappa, f=self.f)
+            loss = float(((self.observe(u) - self.data) ** 2).mean() / (self.data ** 2).mean())
+        return {"final_metric": loss,
+                "kappa_error": float((kappa - self.kappa_true).norm() / self.kappa_true.norm())}
+
+
+def build(setting: str, seed: int, rank: int = 0, size: int = 1):
+    if setting.startswith("newton"):
+        return NewtonInverse(setting, seed)
+    return Emulator("warm-linear" if setting == "ddp" else setting, seed, rank, size)
+
+
+def caps_for(loop) -> tuple[int, int]:
+    """(k0, K_eps) from zero on the loop's validation inputs (k0 within 50% of converged solves)."""
+    cold = {k: v for k, v in loop.inputs.items() if k != "initial_guess"}
+    keps = newton_k_eps(loop.caps, rtol=1e-8, **cold) if isinstance(loop.caps, NewtonCaps) \
+        else k_eps(loop.caps, rtol=1e-6, **cold)
+    return min(k_start(loop.caps, tolerance=0.5, k_max=keps, **cold), keps), keps
+
+
+def train(setting: str, mode: str, seed: int, epochs: int, rank: int = 0, size: int = 1) -> dict:
+    loop = build(setting, seed, rank, size)
+    k0, keps = caps_for(loop)
+    ctrl = PRDP(loop.caps, k0=k0, k_cap=keps, **PRDP_RULE) if mode == "prdp" else None
+    if ctrl is None:
+        loop.caps.max_it = keps
+    ks = []
+    t0 = time.perf_counter()
+    for _ in range(epochs):
+        loop.epoch()
+        metric = loop.metric()
+        ks.append(loop.caps.max_it)
+        if ctrl is not None:
+            ctrl.step(metric)
+    wall = time.perf_counter() - t0
+    counts = torch.tensor([float(sum(getattr(s, name, 0) for s in (layer.stats for layer in loop.layers)))
+                           for name in ("newton_steps", "backward_newton_steps", "forward_iterations",
+                                        "backward_iterations")], dtype=torch.float64)
+    counts = all_reduce(counts)
+    return {"mode": mode, "seed": seed, "k0": k0, "k_eps": keps, "k_schedule": ks, "wall_time": wall,
+            "newton_steps": int(counts[0] + counts[1]), "inner_iterations": int(counts[2] + counts[3]),
+            **loop.final(), "load_average_1_min": os.getloadavg()[0]}
+
+
+def train_ddp(mode: str, seed: int, epochs: int) -> dict:
+    """Run this script's worker on 2 processes under torchrun; rank 0's result."""
+    result = Path(os.environ.get("TMPDIR", "/tmp"), f"bench_prdp_loops_{os.getpid()}.json")
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+               __file__, "--worker", mode, str(seed), str(epochs), str(result)]
+    done = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    if done.returncode:
+        raise RuntimeError(done.stderr[-3000:])
+    out = json.loads(result.read_text())
+    result.unlink()
+    return out
+
+
+def worker(mode: str, seed: int, epochs: int, result: str) -> None:
+    dist.init_process_group("gloo")
+    torch.set_num_threads(1)
+    out = train("ddp", mode, seed, epochs, dist.get_rank(), dist.get_world_size())
+    if dist.get_rank() == 0:
+        Path(result).write_text(json.dumps(out))
+    dist.destroy_process_group()
+
+
+def summarise(runs: dict) -> dict:
+    by_mode = {mode: [r for r in runs.values() if r["mode"] == mode] for mode in ("converged", "prdp")}
+    if not all(by_mode.values()):
+        return {}
+    mean = {mode: {key: statistics.fmean(r[key] for r in rs) for key in
+                   ("final_metric", "wall_time", "newton_steps", "inner_iterations")}
+            for mode, rs in by_mode.items()}
+    base, prdp = mean["converged"], mean["prdp"]
+    ratio = {key: (prdp[key] / base[key] if base[key] else None) for key in base}
+    return {"mean": mean, "prdp_over_converged": ratio,
+            "targets": {"metric_within_1.05": ratio["final_metric"] <= 1.05,
+                        "wall_at_most_1.00": ratio["wall_time"] <= 1.0}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--settings", type=comma_list(str), default=list(SETTINGS))
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help="one seed, a fifth of the epochs")
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent.parent / "bench-results" /
+                        "bench_prdp_loops.json")
+    parser.add_argument("--worker", nargs=4, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        mode, seed, epochs, result = args.worker
+        return worker(mode, int(seed), int(epochs), result)
+    torch.set_num_threads(1)
+    record = json.loads(args.out.read_text()) if args.out.exists() else {"settings": {}}
+    record["machine"] = machine_info()
+    seeds = 1 if args.quick else args.seeds
+    for setting in args.settings:
+        entry = record["settings"].setdefault(setting, {"runs": {}})
+        epochs = max(2, EPOCHS[setting] // 5) if args.quick else EPOCHS[setting]
+        for seed in range(seeds):
+            for mode in ("converged", "prdp"):          # one after the other: the same machine load
+                key = f"{mode}-{seed}"
+                if key in entry["runs"] and entry["runs"][key].get("epochs") == epochs:
+                    continue
+                run = train_ddp(mode, seed, epochs) if setting == "ddp" else train(setting, mode, seed, epochs)
+                entry["runs"][key] = {**run, "epochs": epochs}
+                entry["summary"] = summarise(entry["runs"])
+                write_json_atomically(record, args.out)
+                print(f"{setting:15s} {key:12s} metric {run['final_metric']:.3e} wall {run['wall_time']:7.1f} s "
+                      f"newton {run['newton_steps']:7d} inner {run['inner_iterations']:9d} K {run['k0']}.."
+                      f"{run['k_schedule'][-1]} (K_eps {run['k_eps']})", flush=True)
+        print(setting, json.dumps(entry.get("summary", {}).get("prdp_over_converged")), flush=True)
+
+
+if __name__ == "__main__":
+    main()
