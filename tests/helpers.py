@@ -16,6 +16,7 @@ from mpi4py import MPI
 import dolfinx.fem
 
 from fempdl import forms
+from fempdl.app import cli as _cli
 from fempdl.ksp_adjoint import KSPOptions
 
 # Converged solvers: gradients must be exact (gradcheck, Taylor test).
@@ -208,3 +209,14 @@ def settled_rss() -> int:
     if _libc is not None and hasattr(_libc, "malloc_trim"):
         _libc.malloc_trim(0)
     return rss()
+
+
+def one_line_error(argv, capsys) -> str:
+    """The command's last stderr line, checked to be its one-line error with exit code 2."""
+    code = _cli.main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    # Log lines of the run may come first (stderr is no terminal here); the error is the last line.
+    assert "Traceback" not in err and all(line.startswith("fempdl: ") for line in lines), err
+    return lines[-1]

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 
 from fempdl.app import cli
-from helpers import tiny_scene
+from helpers import one_line_error, tiny_scene
 
 
 @pytest.fixture
@@ -12,16 +12,6 @@ def scene_file(tmp_path):
     path = tmp_path / "tiny.toml"
     path.write_text(tiny_scene(name="tiny", optimizer={"epochs": 2}))
     return path
-
-
-def one_line_error(argv, capsys) -> str:
-    code = cli.main([str(a) for a in argv])
-    err = capsys.readouterr().err
-    assert code == 2, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    # Log lines of the run may come first (stderr is no terminal here); the error is the last line.
-    assert "Traceback" not in err and all(line.startswith("fempdl: ") for line in lines), err
-    return lines[-1]
 
 
 @pytest.mark.parametrize("args, fragment", [

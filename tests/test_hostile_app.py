@@ -11,7 +11,7 @@ import torch
 
 from fempdl.app import cli, scene
 from fempdl.app.runs import checkpoints, rundir, runner
-from helpers import tiny_scene
+from helpers import one_line_error, tiny_scene
 
 SCENE = tiny_scene("inverse", name="hostile-app", optimizer={"epochs": 2})
 
@@ -21,17 +21,6 @@ def scene_file(tmp_path):
     path = tmp_path / "tiny.toml"
     path.write_text(SCENE)
     return path
-
-
-def one_line_error(argv, capsys) -> str:
-    """The command's last stderr line, checked to be its one-line error with exit code 2."""
-    code = cli.main([str(a) for a in argv])
-    err = capsys.readouterr().err
-    assert code == 2, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    # Log lines of the run may come first (stderr is no terminal here); the error is the last line.
-    assert "Traceback" not in err and all(line.startswith("fempdl: ") for line in lines), err
-    return lines[-1]
 
 
 def run_argv(scene_file, out, *extra):
