@@ -141,8 +141,9 @@ class SolveLayer(SystemLayer):
         if self._unrolled is not None:
             self._check_finite(names, tensors)
             t0 = time.perf_counter()
-            out = self._unrolled.solve(self.system, {n: t.to(device="cpu", dtype=torch.float64)
-                                                     for n, t in zip(names, tensors)}, batch)
+            given = {n: t.to(device="cpu", dtype=torch.float64) for n, t in zip(names, tensors)}
+            training = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+            out = self.solve_healthy(lambda: self._unrolled.solve(self.system, given, batch), training)
             self.stats.layer_time += time.perf_counter() - t0
         else:
             out = self._implicit(names, tensors, batch, dtype)

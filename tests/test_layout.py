@@ -28,7 +28,7 @@ FLOORS = [
               ["fempdl.forms"], ["fempdl.core"], ["fempdl.mesh", "fempdl.io"]]),
     ("solve", [["fempdl.solve.options", "fempdl.solve.option_checks", "fempdl.solve.newton_options"],
                ["fempdl.solve.stats", "fempdl.solve.petsc", "fempdl.solve.newton_stats", "fempdl.solve.snes",
-                "fempdl.solve.newton_stop"],
+                "fempdl.solve.newton_stop", "fempdl.solve.health"],
                ["fempdl.ksp_adjoint"],
                ["fempdl.solve.assembly", "fempdl.solve.control_forms", "fempdl.solve.call_state"],
                ["fempdl.solve.linear_system", "fempdl.solve.newton_reverse", "fempdl.solve.nonlinear_system"],

@@ -263,3 +263,21 @@ def test_observations_on_a_distributed_mesh_equal_the_serial_ones(tmp_path):
     np.testing.assert_allclose(two["values"], one["values"], rtol=0, atol=1e-13)
     assert abs(float(two["inner"]) - float(one["inner"])) <= 1e-12 * abs(float(one["inner"]))
     np.testing.assert_allclose(two["grad"], one["grad"], rtol=0, atol=1e-12)
+
+
+def test_health_refinements_on_a_distributed_mesh_equal_the_serial_ones(tmp_path):
+    """A garbage capped solve refines PRDP's K on every rank alike, at the serial run's residual ratios."""
+    results = {}
+    for ranks in (1, 2):
+        path = tmp_path / f"ranks{ranks}.json"
+        done = mpirun(ranks, "health.py", str(path), timeout=120)
+        assert done.returncode == 0, done.stderr[-3000:]
+        results[ranks] = json.loads(path.read_text())
+    one, two = results[1], results[2]
+    assert two["ranks"] == 2 and two["same_on_every_rank"]
+    assert len(one["newton"]) >= 1 and [e["to"] for e in two["newton"]] == [e["to"] for e in one["newton"]]
+    assert [e["to"] for e in two["linear"]] == [e["to"] for e in one["linear"]] == [9]
+    assert one["linear_warned"] and two["linear_warned"]
+    for kind in ("newton", "linear"):
+        for a, b in zip(one[kind], two[kind]):
+            assert abs(a["ratio"] - b["ratio"]) <= 1e-8 * a["ratio"]

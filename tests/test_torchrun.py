@@ -60,3 +60,6 @@ def test_layers_refuse_training_at_drifted_caps(tmp_path):
         assert "train this SolveLayer at different caps ([5, 6], by rank)" in rank["layer"]
         assert "NonlinearSolveLayer at different caps ([(4, None), (5, None)], by rank)" in rank["newton"]
         assert rank["agreed"] == seen[0]["agreed"] > 0
+    # rank 0's garbage solve refined both ranks' caps together (rank 1's own solves were healthy at K = 1)
+    assert seen[0]["health_k"] == seen[1]["health_k"] > 1
+    assert seen[0]["health_refinements"] == seen[1]["health_refinements"] == seen[0]["health_k"] - 1

@@ -61,7 +61,6 @@ def implicit_solve(handle: int, names: str, batch: int, keep_matrices: bool, flo
     ``call_state``: a copy of its Constants and fixed Functions, small beside a solve);
     ``names`` comma-separated, one per tensor."""
     layer = _layer(handle)
-    state = layer.call_state.pack(layer.system)
     t0 = time.perf_counter()
     names = _split(names)
     values = _float64_values(names, tensors)
@@ -73,7 +72,11 @@ def implicit_solve(handle: int, names: str, batch: int, keep_matrices: bool, flo
     shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
     arrays = _batched(values, batch)
     guess = arrays.pop(INITIAL_GUESS, None)
-    U = layer.system.solve(arrays, batch, shared, initial_guess=guess, keep_matrices=keep_matrices)
+    # A training call (one that keeps matrices for its backward) is solved again at a refined cap while its
+    # capped solves are garbage; the state is packed after, so the backward runs at the caps that held.
+    U = layer.solve_healthy(lambda: layer.system.solve(arrays, batch, shared, initial_guess=guess,
+                                                       keep_matrices=keep_matrices), keep_matrices)
+    state = layer.call_state.pack(layer.system)
     if float32 and count_nonfinite(U.astype(np.float32), layer.problem):
         layer._report_overflow(torch.float32)
     layer.stats.layer_time += time.perf_counter() - t0

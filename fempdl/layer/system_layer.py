@@ -1,5 +1,5 @@
 """What fempdl's solve layers share: controls as keyword tensors, checks, collective calls, the cap in
-``state_dict``, and the PETSc objects' lifetime.
+``state_dict``, the health check of capped training solves, and the PETSc objects' lifetime.
 
 :class:`SystemLayer` is the base of :class:`~fempdl.bridge_torch.SolveLayer` (a linear system) and
 :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (a Newton solve). A subclass calls
@@ -11,17 +11,23 @@ Shapes: each control tensor is (B, n_m) or (n_m,) with n_m = ``problem.control_s
 """
 from __future__ import annotations
 
+import math
+from typing import Callable
+
 import torch
 
 from fempdl.core.ranks import torch_group_initialised, training_ranks
 from fempdl.layer.implicit_diff import ImplicitSolve, count_on_all_ranks, nonfinite_control_message, register_layer
 from fempdl.solve.call_state import CallState
+from fempdl.solve.health import CallHealth, HealthCheck
 from fempdl.solve.linear_system import INITIAL_GUESS
-from fempdl.solve.stats import CumulativeStats, warn_at_caller
+from fempdl.solve.stats import CumulativeStats, SolverWarning, warn_at_caller
 
 __all__ = ["SystemLayer", "INITIAL_GUESS"]
 
 _FLOAT_DTYPES = (torch.float32, torch.float64)
+#: Refinements one call may ask for (each raises the cap; a refinement that does not lower the ratio ends them).
+MAX_HEALTH_REFINES = 100
 
 
 class SystemLayer(torch.nn.Module):
@@ -37,6 +43,63 @@ class SystemLayer(torch.nn.Module):
         self._sizes = {**{n: problem.control_size(n) for n in problem.control_names},
                        INITIAL_GUESS: problem.output_size}
         self._handle = register_layer(self)
+        self._health: HealthCheck | None = None
+
+    @property
+    def health(self) -> HealthCheck | None:
+        """The rule for garbage capped solves (:mod:`fempdl.solve.health`), ``None`` for none. PRDP installs
+        one on the layers it moves (``PRDPSettings.health``); setting it makes the system measure the
+        residual ratio of its capped forward solves."""
+        return self._health
+
+    @health.setter
+    def health(self, check: HealthCheck | None) -> None:
+        if check is not None and not isinstance(check, HealthCheck):
+            raise TypeError(f"health must be a fempdl.solve.health.HealthCheck or None, got {type(check).__name__}")
+        self.system.call_health = CallHealth(None if check is None else check.limit)
+        self._health = check
+
+    def solve_healthy(self, solve: Callable, training: bool):
+        """``solve()``, one call's solves on the system, run again at a refined cap while a training call's
+        capped solves are garbage (their largest residual ratio above the health limit, agreed over the
+        ranks that train together). A no-grad call (validation) is never refined: it trains nothing, and a
+        validation that one rank runs alone must not enter a collective. Refinement ends when the ratio
+        is within the limit, when the caps cannot rise, or when a refinement did not lower the ratio (a
+        diverging iteration: more of it does not help); the last two warn and keep the solve."""
+        check = self._health
+        if check is None or not training:
+            return solve()
+        previous = math.inf
+        for _ in range(MAX_HEALTH_REFINES):
+            result = solve()
+            ratio = self._agreed_health(self.system.call_health.ratio)
+            if ratio is None or ratio <= check.limit:
+                return result
+            if ratio >= previous:
+                why = (f"refining did not lower it (from {previous:.3g}): the iteration diverges at these inputs; "
+                       "use a convergent solver or preconditioner")
+                break
+            if not check.refine(ratio):
+                why = "the cap cannot rise further (k_cap): raise k_cap or use a stronger solver"
+                break
+            previous = ratio
+        else:
+            why = f"{MAX_HEALTH_REFINES} refinements did not cure it"
+        warn_at_caller(f"a capped solve of this {type(self).__name__} ends with its residual at {ratio:.3g} times "
+                       f"its start (health limit {check.limit:g}) at caps {self._caps()}, and {why}; the network "
+                       "trains on that solve", SolverWarning)
+        return result
+
+    def _agreed_health(self, ratio: float | None) -> float | None:
+        """The largest ratio over the ranks of a torch.distributed group (each holds its own data shard, so
+        they decide together); a distributed mesh's norms are global already."""
+        if self._distributed or not torch_group_initialised():
+            return ratio
+        ranks = training_ranks()
+        if ranks is None:
+            return ratio
+        every = [r for r in ranks.allgather(ratio) if r is not None]
+        return max(every) if every else None
 
     @property
     def options(self):

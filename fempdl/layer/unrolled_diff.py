@@ -21,6 +21,7 @@ from fempdl.core import _dolfinx
 from fempdl.iterative import unrolled
 from fempdl.iterative.sparse import SparseOperator
 from fempdl.solve.assembly import fingerprint, fingerprint_matches
+from fempdl.solve.health import CallHealth, round_off_floor
 from fempdl.solve.options import KSPOptions
 from fempdl.solve.stats import capped_solve_stats
 from fempdl.solve.linear_system import INITIAL_GUESS, LinearSystem
@@ -81,6 +82,8 @@ class UnrolledPath:
                            memory_budget=self.memory_budget)
         system.record_batch("forward", options, time.perf_counter() - t_solve,
                             torch.isfinite(X).all(0).numpy(), "unrolled")
+        if system.call_health.measuring:
+            _measure_health(system, A, R, X0, X)
         out = X.T
         if out.requires_grad:
             out.register_hook(_count_backward(system, batch))
@@ -206,6 +209,33 @@ def _distance_two_colors(m_cells: np.ndarray, v_cells: np.ndarray, n_m: int) -> 
     return colors
 
 
+
+
+def _measure_health(system: LinearSystem, A, R: torch.Tensor, X0: torch.Tensor | None, X: torch.Tensor) -> None:
+    """The call's residual ratios ||r_K|| / ||r_0|| (:mod:`fempdl.solve.health`), columns of R and X (n, B)."""
+    with torch.no_grad():
+        R, X = R.detach(), X.detach()
+        starts = (R if X0 is None else R - A @ X0.detach()).norm(dim=0)
+        finals = (R - A @ X).norm(dim=0)
+        health = system.call_health = CallHealth(system.call_health.limit)
+        a_norm = []                                  # ||A||_inf, computed at the first floor asked for
+
+        def floor(x: float, b: float) -> float:
+            if not a_norm:
+                a_norm.append(_inf_norm(A))
+            return round_off_floor(a_norm[0], x, b)
+
+        for final, start, x, b in zip(finals.tolist(), starts.tolist(), X.norm(dim=0).tolist(),
+                                      R.norm(dim=0).tolist()):
+            health.add(final, start, lambda: floor(x, b))
+
+
+def _inf_norm(A) -> float:
+    """max_i sum_j |A_ij| (over every sample of an :class:`_EntryMatrix`)."""
+    if isinstance(A, SparseOperator):
+        return float(abs(A.to_scipy()).sum(1).max())
+    sums = torch.zeros(A.n, A.values.shape[1], dtype=A.values.dtype).index_add_(0, A.rows, A.values.abs())
+    return float(sums.max())
 
 
 def _columns(m: torch.Tensor) -> torch.Tensor:

@@ -8,6 +8,12 @@ it smooths the history with an EMA, and when the progress over the last
 1 - ``tau_stop`` (then it holds, until the metric moves again). The interface
 follows ``ReduceLROnPlateau``: ``step(metric) -> bool``, ``state_dict()``.
 
+Between validations, the layers it moves refine at once when a training call's
+capped solves are garbage rather than coarse: their residual grew, or did not
+shrink below ``health`` times its start (:mod:`fempdl.solve.health`). The layer
+solves that call again at the refined cap, so the network never trains on it;
+:attr:`PRDP.health_refinements` lists these refinements.
+
 :func:`k_eps` measures a layer's converged cap K_eps, the usual ``k_cap``.
 """
 from __future__ import annotations
@@ -15,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import weakref
 from typing import Callable, Iterable
 
 import torch
@@ -22,6 +29,8 @@ import torch
 from fempdl.bridge_torch import SolveLayer
 from fempdl.core.checks import check_int
 from fempdl.core.ranks import Ranks, training_ranks
+from fempdl.layer.system_layer import SystemLayer
+from fempdl.solve.health import HealthCheck
 
 __all__ = ["PRDP", "PRDPRecord", "PRDPSettings", "k_eps"]
 _log = logging.getLogger(__name__)
@@ -69,6 +78,9 @@ class PRDPSettings:
     guard: float | None = _setting(None, "refine at once when the metric rises above guard x its best "
                                          "(none: never)", float, minimum=1.0 + 1e-12)
     growth: float = _setting(1.0, "a refinement sets K to max(K + dk, ceil(growth K))", float, minimum=1.0)
+    health: float | None = _setting(1.0, "refine at once when a training call's capped solve ends with its residual "
+                                         "above health x its start, and solve it again (none: never)", float,
+                                    minimum=_POSITIVE)
 
     def __post_init__(self):
         check_int("k0", self.k0, minimum=1)
@@ -89,6 +101,10 @@ class PRDPSettings:
         if not (_is_number(self.growth) and 1.0 <= self.growth < math.inf):
             raise ValueError(f"growth must be a finite number >= 1, got {self.growth!r}")
         object.__setattr__(self, "growth", float(self.growth))
+        if self.health is not None:
+            if not (_is_number(self.health) and 0.0 < self.health < math.inf):
+                raise ValueError(f"health must be a finite residual ratio > 0 (or None: off), got {self.health!r}")
+            object.__setattr__(self, "health", float(self.health))
 
 
 _SETTING_NAMES = frozenset(f.name for f in dataclasses.fields(PRDPSettings))
@@ -120,6 +136,10 @@ class PRDP:
         guard: refine at once when the metric exceeds ``guard`` (> 1) times the
             best metric so far and the previous one (``None``: off).
         growth: a refinement sets K = max(K + dk, ceil(growth * K)) (>= 1; 1: K + dk).
+        health: the largest residual ratio ||r_K|| / ||r_0|| of a training call's capped solves
+            (:mod:`fempdl.solve.health`) before the target layers refine K at once and solve that call
+            again (1, the default: a residual that did not shrink; ``None``: off). It costs one
+            matrix-vector product per capped linear sample (two from a warm start) and nothing for Newton.
         comm: the ranks that train together: an ``mpi4py`` communicator or a
             torch.distributed ``ProcessGroup``. Default: the communicator of the
             target layers' mesh when it is distributed, else torch.distributed's
@@ -148,7 +168,11 @@ class PRDP:
         self.k = settings.k0
         self.checkpoint: float | None = None
         self.history: list[PRDPRecord] = []
+        #: Refinements for garbage solves between validations: dicts of the step (validations so far),
+        #: the cap before and after and the residual ratio that asked for it.
+        self.health_refinements: list[dict] = []
         self._apply(self.k)
+        self._install_health(target)
 
     def __getattr__(self, name: str):
         if name in _SETTING_NAMES and "settings" in self.__dict__:
@@ -185,16 +209,47 @@ class PRDP:
                 if rc < self.tau_stop or rc > 1.0:
                     self.checkpoint = emas[-1]
                     cause = "plateau"
-        refine = cause is not None and (self.k_cap is None or self.k < self.k_cap)
+        refine = cause is not None and self._can_refine()
         self.history.append(PRDPRecord(step=len(self.history), k=k_used, metric=metric, ema=ema,
                                        r=r, rc=rc, refined=refine, cause=cause if refine else None))
         if refine:
-            k = max(self.k + self.dk, math.ceil(self.growth * self.k - 1e-9))
-            self.k = k if self.k_cap is None else min(k, self.k_cap)
-            self._apply(self.k)
+            self._refine()
             _log.info("PRDP: K %d -> %d (%s) at step %d, metric %.3e", k_used, self.k, cause,
                       len(self.history) - 1, metric)
         return refine
+
+    def _can_refine(self) -> bool:
+        return self.k_cap is None or self.k < self.k_cap
+
+    def _refine(self) -> None:
+        k = max(self.k + self.dk, math.ceil(self.growth * self.k - 1e-9))
+        self.k = k if self.k_cap is None else min(k, self.k_cap)
+        self._apply(self.k)
+
+    def refine_for_health(self, ratio: float) -> bool:
+        """Refine K now, for a training call whose capped solves ended with residual ratio ``ratio``
+        (a layer's :class:`~fempdl.solve.health.HealthCheck` calls it); False when K is at ``k_cap``."""
+        if not self._can_refine():
+            return False
+        k_used = self.k
+        self._refine()
+        self.health_refinements.append({"step": len(self.history), "k": k_used, "to": self.k, "ratio": float(ratio)})
+        _log.info("PRDP: K %d -> %d (a capped solve's residual ended at %.3g x its start) before step %d",
+                  k_used, self.k, ratio, len(self.history))
+        return True
+
+    def _install_health(self, target) -> None:
+        """Give the target's layers the health check (``health`` set), or take a previous one away."""
+        layers = [layer for t in _targets(target) for layer in getattr(t, "layers", [t])
+                  if isinstance(layer, SystemLayer)]
+        if self.health is None:
+            for layer in layers:
+                layer.health = None
+            return
+        refine = weakref.WeakMethod(self.refine_for_health)    # the layers do not keep the controller alive
+        check = HealthCheck(self.health, lambda ratio: (refine() or _cannot_refine)(ratio))
+        for layer in layers:
+            layer.health = check
 
     @property
     def ranks(self) -> Ranks | None:
@@ -221,13 +276,15 @@ class PRDP:
         return {
             "k": self.k, "checkpoint": self.checkpoint,
             "history": [dataclasses.asdict(rec) for rec in self.history],
+            "health_refinements": [dict(event) for event in self.health_refinements],
             "settings": dataclasses.asdict(self.settings),
         }
 
     def load_state_dict(self, state: dict) -> None:
         """Restore from :meth:`state_dict` (and set the target's cap to the saved K)."""
-        # States saved before guard and growth existed ran plain Algorithm 4.
-        settings = {"guard": None, "growth": 1.0, **state["settings"]}
+        # States saved before guard and growth existed ran plain Algorithm 4; health acts between
+        # validations and leaves the saved history valid, so a state saved before it resumes with either.
+        settings = {"guard": None, "growth": 1.0, "health": self.health, **state["settings"]}
         mine = self.state_dict()["settings"]
         if settings != mine:
             changed = {k: (settings.get(k), v) for k, v in mine.items() if settings.get(k) != v}
@@ -235,6 +292,7 @@ class PRDP:
         self.k = int(state["k"])
         self.checkpoint = state["checkpoint"]
         self.history = [PRDPRecord(**rec) for rec in state["history"]]
+        self.health_refinements = [dict(event) for event in state.get("health_refinements", [])]
         self._apply(self.k)
 
     def __repr__(self) -> str:
@@ -272,12 +330,23 @@ def k_eps(layer: SolveLayer, *, rtol: float = 1e-8, **controls) -> int:
 
 def _layers_comm(target):
     """The communicator of the first target layer's mesh (``None`` for other targets)."""
-    targets = list(target) if isinstance(target, Iterable) and not hasattr(target, "max_it") else [target]
-    for t in targets:
+    for t in _targets(target):
         problem = getattr(t, "problem", None)
         if problem is not None:
             return problem.V.mesh.comm
     return None
+
+
+def _targets(target) -> list:
+    """The objects with a ``max_it`` that ``target`` names (none for None or a callable)."""
+    if target is None or callable(target) and not hasattr(target, "max_it"):
+        return []
+    return list(target) if isinstance(target, Iterable) and not hasattr(target, "max_it") else [target]
+
+
+def _cannot_refine(ratio: float) -> bool:
+    """The health check of a controller that no longer exists."""
+    return False
 
 
 def _setter(target) -> Callable[[int], None]:
@@ -285,7 +354,7 @@ def _setter(target) -> Callable[[int], None]:
         return lambda k: None
     if callable(target) and not hasattr(target, "max_it"):
         return target
-    targets = list(target) if isinstance(target, Iterable) and not hasattr(target, "max_it") else [target]
+    targets = _targets(target)
     for i, t in enumerate(targets):
         if not hasattr(t, "max_it"):
             raise TypeError(f"PRDP target {i} ({type(t).__name__}) has no max_it attribute; pass SolveLayers, "

@@ -35,6 +35,7 @@ from fempdl.solve.assembly import (SYMMETRIC_PC_TYPES, ControlValues, KeptMatric
                                     fingerprint_matches, set_owned, without_bc_entries)
 from fempdl.solve.petsc import petsc_to_scipy
 from fempdl.solve.control_forms import ControlForms
+from fempdl.solve.health import CallHealth, round_off_floor
 from fempdl.solve.options import KSPOptions
 from fempdl.solve.stats import CumulativeStats, record_batch
 from fempdl.core.problem import Problem
@@ -84,6 +85,9 @@ class LinearSystem:
         # the system is freed as soon as its last owner drops it)
         self._forms = ControlForms(problem, self._b, functools.partial(Timer, self._solver.stats, "assembly_time"))
         self._kept_matrices = KeptMatrices(problem.matrix_controls)
+        #: The last call's residual ratios of capped forward solves, measured when its limit is set (a layer's
+        #: health check sets it: :mod:`fempdl.solve.health`).
+        self.call_health = CallHealth()
 
     # ------------------------------------------------------------ properties
     @property
@@ -121,6 +125,8 @@ class LinearSystem:
         use_batched = self._use_batched(batch, per_sample_matrix)
         U = np.empty((batch, p.output_size))
         kept = self._kept_matrices.start(controls, batch) if keep_matrices and per_sample_matrix else None
+        self.call_health = CallHealth(self.call_health.limit)
+        health = self.call_health.measuring and self.options.capped
         with ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             b_base = self._forms.base_rhs(names, ctl) if affine else None
@@ -128,7 +134,7 @@ class LinearSystem:
                 # All right-hand sides at once: b_i = b_base + sum_m C_m m_i (no per-sample PETSc calls).
                 with self._assembling():
                     R = self._affine_rhs_block(b_base, controls, batch)
-                return self._batched_solve(R, "forward", initial_guess)
+                return self._batched_forward(R, initial_guess, health)
             rhs_mats = {name: self._forms.rhs_matrix(name) for name in sorted(names)} if affine else {}
             many = self._direct_many(batch, per_sample_matrix)
             for i in range(batch):
@@ -147,15 +153,39 @@ class LinearSystem:
                 else:
                     if initial_guess is not None:
                         self._x.setArray(initial_guess[i])
+                    start = self._residual_norm() if health and initial_guess is not None else None
                     self._lag_preconditioner(per_sample_matrix and i > 0)
                     self._solver.solve(self._b, self._x, warm=initial_guess is not None)
                     U[i] = self._x.getArray(readonly=True)
+                    if health:            # from zero r_0 = b (its null-space part removed by the solve)
+                        self._add_health(self._residual_norm(), self._b.norm() if start is None else start)
             self._lag_preconditioner(False)
         if use_batched:
-            U = self._batched_solve(U, "forward", initial_guess)
+            U = self._batched_forward(U, initial_guess, health)
         elif many:
             U = self._solver.solve_many(U)
         return U
+
+    def _residual_norm(self) -> float:
+        """||b - A x|| of the current b and x (the transposed RHS vector is the work vector)."""
+        self._A.mult(self._x, self._rhs)
+        self._rhs.aypx(-1.0, self._b)
+        return self._rhs.norm()
+
+    def _add_health(self, final: float, start: float) -> None:
+        self.call_health.add(final, start, lambda: round_off_floor(self._A, self._x.norm(), self._b.norm()))
+
+    def _batched_forward(self, R: np.ndarray, initial_guess: np.ndarray | None, health: bool) -> np.ndarray:
+        """The forward solves of R's rows on the batched engine, their residual ratios measured if ``health``."""
+        X = self._batched_solve(R, "forward", initial_guess)
+        if health:
+            starts = R if initial_guess is None else R - self._batched.matmul(np.asarray(initial_guess))
+            finals = R - self._batched.matmul(X)
+            for final, start, x, b in zip(finals, starts, X, R):
+                self.call_health.add(float(np.linalg.norm(final)), float(np.linalg.norm(start)),
+                                     lambda: round_off_floor(self._A, float(np.linalg.norm(x)),
+                                                             float(np.linalg.norm(b))))
+        return X
 
     def _direct_many(self, batch: int, per_sample_matrix: bool) -> bool:
         """Whether a call's direct solves share one factorisation and one MatMatSolve."""

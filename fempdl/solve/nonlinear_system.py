@@ -38,6 +38,7 @@ from fempdl.ksp_adjoint import PC_FAILED, CappedSolver, set_interrupt_checks
 from fempdl.solve.assembly import (ControlValues, Timer, attach_nullspace, check_operator, check_symmetric_factor,
                                    operator_defect, set_owned, without_bc_entries)
 from fempdl.solve.control_forms import ControlForms
+from fempdl.solve.health import CallHealth, round_off_floor
 from fempdl.solve.linear_system import INITIAL_GUESS
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.newton_reverse import NewtonPath, NewtonReversePass
@@ -109,6 +110,9 @@ class NonlinearSystem(NewtonReversePass):
         self._recording: list | None = None
         self._residual_norms: list = []
         self._nonfinite_residual = False
+        #: The last call's ||F(u_N)|| / ||F(u_0)|| of capped solves, measured when its limit is set (a layer's
+        #: health check sets it: :mod:`fempdl.solve.health`).
+        self.call_health = CallHealth()
 
     # ------------------------------------------------------------ options
     @property
@@ -221,10 +225,15 @@ class NonlinearSystem(NewtonReversePass):
         U = np.empty((batch, n))
         paths = [] if record else None
         self._called_controls = frozenset(controls)
+        self.call_health = CallHealth(self.call_health.limit)
         with ControlValues(p, controls) as ctl:
             for i in range(batch):
                 ctl.set_sample(i)
                 U[i] = self._solve_one(None if initial_guess is None else initial_guess[i], paths)
+                last = self.stats.last_newton
+                if self.call_health.measuring and last.capped:     # a solve that stopped at a tolerance is healthy
+                    self.call_health.add(last.residual_norms[-1], last.residual_norms[0],
+                                         lambda: round_off_floor(self._snes.getJacobian()[0], self._sol.norm()))
         return (U, NewtonPath(paths, self._options.damping)) if record else U
 
     def _solve_one(self, guess: np.ndarray | None, paths: list | None) -> np.ndarray:

@@ -1,6 +1,7 @@
 """Under torchrun --nproc_per_node 2 (gloo): data-parallel processes, each with the whole mesh, whose layer
 caps drift apart. A training call (gradients on) refuses on every rank; a no-grad call on rank 0 alone (a
-validation only rank 0 runs) does not wait for the other rank. Writes what each rank saw to OUT.rank<r>.json."""
+validation only rank 0 runs) does not wait for the other rank. A garbage solve on one rank's shard refines
+PRDP's cap on both. Writes what each rank saw to OUT.rank<r>.json."""
 import json
 import sys
 
@@ -8,7 +9,8 @@ import torch
 import torch.distributed as dist
 from mpi4py import MPI
 
-from fempdl import KSPOptions, NonlinearSolveLayer, SolveLayer, forms, mesh
+from fempdl import PRDP, KSPOptions, NewtonOptions, NonlinearSolveLayer, SolveLayer, forms, mesh
+from fempdl.methods.newton_caps import NewtonCaps
 
 dist.init_process_group("gloo")
 rank = dist.get_rank()
@@ -32,6 +34,15 @@ try:
     newton(f=f)
 except ValueError as err:
     seen["newton"] = str(err)
+# Rank 0's shard is a stiff heat step (plain Newton from zero overshoots), rank 1's a mild one.
+heat = forms.nonlinear_diffusion.problem(msh, controls=("u0",), alpha=20.0, f=0.0, dt=0.01)
+x = torch.from_numpy(heat.dof_coordinates())
+u0 = (2.0 if rank == 0 else 0.01) * torch.sin(3 * x[:, 0]) * torch.cos(2 * x[:, 1])
+stepper = NonlinearSolveLayer(heat, NewtonOptions(max_it=1, ksp="lu"))
+ctrl = PRDP(NewtonCaps(stepper, "newton"), k0=1, k_cap=20)
+stepper(u0=u0.requires_grad_()).sum().backward()
+seen["health_k"] = ctrl.k
+seen["health_refinements"] = len(ctrl.health_refinements)
 with open(f"{sys.argv[1]}.rank{rank}.json", "w") as fh:
     json.dump(seen, fh)
 dist.destroy_process_group()

@@ -1,0 +1,86 @@
+"""Solver health: whether a capped solve is coarse or garbage.
+
+PRDP trains on capped solves because a coarse solve still points the right way.
+A capped solve whose residual grew, or stayed where it started, does not: the
+network would train on garbage until the validation metric noticed. A system
+whose ``call_health`` has a limit (a layer's :class:`HealthCheck` sets it)
+measures, for every capped forward solve of a call, the residual ratio
+
+    rho = ||r_K|| / ||r_0||,   r = b - A x (linear), r = F(u) (Newton),
+
+from the start x_0 (zero, or the warm start) to the K-th iterate, in the
+2-norm over every rank's owned DOFs, and keeps the largest over the call's
+samples (:attr:`CallHealth.ratio`). A solve that met a tolerance, or whose
+final residual lies within the round-off of the terms it sums
+(||r_K|| <= FLOOR_RESIDUAL eps (||A||_inf ||x_K|| + ||b||): a warm start at the
+solution), counts as healthy. The measure costs one matrix-vector product per
+capped sample (two from a warm start); a Newton solve has its residuals already.
+
+:class:`HealthCheck` is what a layer does with it (:class:`~fempdl.layer.system_layer.SystemLayer`):
+a training call whose ratio exceeds ``limit`` asks ``refine`` for a larger cap
+and solves again, before anything downstream sees the garbage.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable
+
+import numpy as np
+from petsc4py import PETSc
+
+from fempdl.solve.newton_stop import FLOOR_RESIDUAL
+
+__all__ = ["HealthCheck", "CallHealth", "round_off_floor"]
+
+_EPS = float(np.finfo(np.float64).eps)
+
+
+@dataclasses.dataclass(frozen=True)
+class HealthCheck:
+    """A layer's rule for garbage solves.
+
+    Attributes:
+        limit: a capped training solve with rho > ``limit`` is garbage (1: its residual did not shrink).
+        refine: called with rho; raises the caps of every layer it moves and returns True, or returns
+            False when they cannot rise (then the layer warns and keeps the solve).
+    """
+
+    limit: float
+    refine: Callable[[float], bool]
+
+    def __post_init__(self):
+        if isinstance(self.limit, bool) or not isinstance(self.limit, (int, float)) \
+                or not 0.0 < self.limit < math.inf:
+            raise ValueError(f"a health limit must be a finite number > 0 (a residual ratio), got {self.limit!r}")
+        if not callable(self.refine):
+            raise TypeError(f"refine must be callable, got {type(self.refine).__name__}")
+
+
+class CallHealth:
+    """The largest residual ratio rho of one call's capped forward solves (``ratio``; ``None``: none was
+    measured), for a health limit ``limit`` (``None``: measure nothing)."""
+
+    def __init__(self, limit: float | None = None):
+        self.limit, self.ratio = limit, None
+
+    @property
+    def measuring(self) -> bool:
+        return self.limit is not None
+
+    def add(self, final: float, start: float, floor: Callable[[], float]) -> None:
+        """One sample's residual norms; ``floor()``, the round-off level under which a final residual is a
+        solution's, is computed only for a ratio above the limit (it costs about a matrix-vector product)."""
+        rho = final / start if start > 0.0 else (0.0 if final == 0.0 else math.inf)
+        if not math.isfinite(final):
+            rho = math.inf
+        elif rho > self.limit and final <= floor():
+            rho = 0.0
+        self.ratio = rho if self.ratio is None else max(self.ratio, rho)
+
+
+def round_off_floor(A: PETSc.Mat | float, x_norm: float, b_norm: float = 0.0) -> float:
+    """The residual of an exact solution in floating point: FLOOR_RESIDUAL eps (||A||_inf ||x|| + ||b||)
+    (``A``: the matrix, or its infinity norm)."""
+    a_norm = A if isinstance(A, float) else A.norm(PETSc.NormType.INFINITY)
+    return FLOOR_RESIDUAL * _EPS * (a_norm * x_norm + b_norm)
