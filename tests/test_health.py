@@ -9,6 +9,7 @@ import torch
 from mpi4py import MPI
 
 from fempdl import PRDP, KSPOptions, NewtonOptions, NonlinearSolveLayer, PRDPSettings, SolveLayer, forms, mesh
+from fempdl.layer.system_layer import HEALTH_EVERY
 from fempdl.methods.newton_caps import NewtonCaps
 from fempdl.solve.health import CallHealth, HealthCheck
 from fempdl.solve.stats import SolverWarning
@@ -83,7 +84,7 @@ def test_no_grad_calls_and_a_controller_without_health_never_refine(stiff_heat):
     off = PRDP(NewtonCaps(layer, "newton"), k0=1, k_cap=20, health=None)
     assert layer.health is None and layer.system.call_health.limit is None   # the old check taken away
     layer(u0=u0.clone().requires_grad_())
-    assert off.k == 1 and not off.health_refinements and layer.system.call_health.ratio is None
+    assert off.k == 1 and not off.health_refinements and layer.last_health_ratio is None
     layer.close()
 
 
@@ -131,13 +132,22 @@ def test_a_diverging_linear_solve_refines_once_then_warns(poisson, engine, diff)
     layer.close()
 
 
-def test_a_garbage_solve_at_k_cap_warns_and_is_kept(poisson):
+def test_a_garbage_solve_at_k_cap_warns_and_is_kept_and_calls_are_measured_every_eighth(poisson):
     problem, f = poisson
     layer = SolveLayer(problem, KSPOptions.preset("jacobi", max_it=3))
     ctrl = PRDP(layer, k0=3, k_cap=3, health=1e-3)     # three Jacobi steps never shrink a residual 1000-fold
-    with pytest.warns(SolverWarning, match=r"cannot rise further \(k_cap\)"):
+    warned = []
+    for _ in range(2 * HEALTH_EVERY + 1):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            layer(f=f.clone().requires_grad_())
+        warned.append([str(w.message) for w in caught if issubclass(w.category, SolverWarning)])
+    assert all("cannot rise further (k_cap)" in w[0] for w in warned[::HEALTH_EVERY])
+    assert [bool(w) for w in warned] == [i % HEALTH_EVERY == 0 for i in range(2 * HEALTH_EVERY + 1)]
+    assert ctrl.k == 3 and not ctrl.health_refinements and layer.last_health_ratio > 0.5
+    layer.max_it = 2                                   # new caps: measured at once
+    with pytest.warns(SolverWarning, match="at caps 2"):
         layer(f=f.clone().requires_grad_())
-    assert ctrl.k == 3 and not ctrl.health_refinements
     layer.close()
 
 
@@ -152,7 +162,7 @@ def test_a_warm_start_at_the_solution_is_healthy(poisson):
     with warnings.catch_warnings():
         warnings.simplefilter("error", SolverWarning)
         layer(f=f.clone().requires_grad_(), initial_guess=u)
-    assert ctrl.k == 2 and not ctrl.health_refinements and layer.system.call_health.ratio == 0.0
+    assert ctrl.k == 2 and not ctrl.health_refinements and layer.last_health_ratio == 0.0
     for lay in (exact, layer):
         lay.close()
 

@@ -28,6 +28,10 @@ __all__ = ["SystemLayer", "INITIAL_GUESS"]
 _FLOAT_DTYPES = (torch.float32, torch.float64)
 #: Refinements one call may ask for (each raises the cap; a refinement that does not lower the ratio ends them).
 MAX_HEALTH_REFINES = 100
+#: A health check measures the first training call at new caps and then every HEALTH_EVERY-th: garbage comes
+#: from a cap too small for the inputs, which a new cap's first call shows and inputs drifting over training
+#: show within a few calls; measuring every call would cost a loop whose solves are cheap several percent.
+HEALTH_EVERY = 8
 
 
 class SystemLayer(torch.nn.Module):
@@ -44,6 +48,9 @@ class SystemLayer(torch.nn.Module):
                        INITIAL_GUESS: problem.output_size}
         self._handle = register_layer(self)
         self._health: HealthCheck | None = None
+        self._health_due = (None, 0)             # (caps of the last measured call, training calls since)
+        #: The largest residual ratio of the last training call the health check measured (None: none yet).
+        self.last_health_ratio: float | None = None
 
     @property
     def health(self) -> HealthCheck | None:
@@ -56,8 +63,7 @@ class SystemLayer(torch.nn.Module):
     def health(self, check: HealthCheck | None) -> None:
         if check is not None and not isinstance(check, HealthCheck):
             raise TypeError(f"health must be a fempdl.solve.health.HealthCheck or None, got {type(check).__name__}")
-        self.system.call_health = CallHealth(None if check is None else check.limit)
-        self._health = check
+        self._health, self._health_due = check, (None, 0)
 
     def solve_healthy(self, solve: Callable, training: bool):
         """``solve()``, one call's solves on the system, run again at a refined cap while a training call's
@@ -65,14 +71,21 @@ class SystemLayer(torch.nn.Module):
         ranks that train together). A no-grad call (validation) is never refined: it trains nothing, and a
         validation that one rank runs alone must not enter a collective. Refinement ends when the ratio
         is within the limit, when the caps cannot rise, or when a refinement did not lower the ratio (a
-        diverging iteration: more of it does not help); the last two warn and keep the solve."""
+        diverging iteration: more of it does not help); the last two warn and keep the solve. Measured are
+        the first training call at new caps and every ``HEALTH_EVERY``-th after (the same calls on every
+        rank: the caps agree and training calls run in step)."""
         check = self._health
-        if check is None or not training:
+        if check is None or not training or not self._health_is_due():
             return solve()
         previous = math.inf
         for _ in range(MAX_HEALTH_REFINES):
-            result = solve()
-            ratio = self._agreed_health(self.system.call_health.ratio)
+            self.system.call_health = CallHealth(check.limit)
+            try:
+                result = solve()
+            finally:
+                measured, self.system.call_health = self.system.call_health, CallHealth()
+            ratio = self.last_health_ratio = self._agreed_health(measured.ratio)
+            self._health_due = (self._caps(), 1)
             if ratio is None or ratio <= check.limit:
                 return result
             if ratio >= previous:
@@ -89,6 +102,13 @@ class SystemLayer(torch.nn.Module):
                        f"its start (health limit {check.limit:g}) at caps {self._caps()}, and {why}; the network "
                        "trains on that solve", SolverWarning)
         return result
+
+    def _health_is_due(self) -> bool:
+        caps, since = self._health_due
+        if caps == self._caps() and since % HEALTH_EVERY:
+            self._health_due = (caps, since + 1)
+            return False
+        return True
 
     def _agreed_health(self, ratio: float | None) -> float | None:
         """The largest ratio over the ranks of a torch.distributed group (each holds its own data shard, so

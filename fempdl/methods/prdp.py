@@ -138,8 +138,9 @@ class PRDP:
         growth: a refinement sets K = max(K + dk, ceil(growth * K)) (>= 1; 1: K + dk).
         health: the largest residual ratio ||r_K|| / ||r_0|| of a training call's capped solves
             (:mod:`fempdl.solve.health`) before the target layers refine K at once and solve that call
-            again (1, the default: a residual that did not shrink; ``None``: off). It costs one
-            matrix-vector product per capped linear sample (two from a warm start) and nothing for Newton.
+            again (1, the default: a residual that did not shrink; ``None``: off). Measured on the first
+            training call at new caps and every 8th after, at one matrix-vector product per capped linear
+            sample (two from a warm start) and nothing for Newton.
         comm: the ranks that train together: an ``mpi4py`` communicator or a
             torch.distributed ``ProcessGroup``. Default: the communicator of the
             target layers' mesh when it is distributed, else torch.distributed's
