@@ -37,7 +37,9 @@ Settings:
 Recorded per run: the metric at the end evaluated with converged solves, Newton
 steps and inner iterations (forward + backward, training and validation, all
 ranks), the training wall time and the K schedule; per setting the means over
-the seeds and the ratios PRDP / converged. Writes
+the seeds and the ratios PRDP / converged. The loops of a few seconds run 5
+times (the same numbers but the wall time, whose median is kept: their ratio
+moved by 0.92-1.02x from one run to the next). Writes
 ``bench-results/bench_prdp_loops.json`` (``--out``) after every run and resumes
 from it. Run on an idle machine: ``python scripts/bench_prdp_loops.py``;
 ``--quick`` runs one seed of shortened loops.
@@ -69,6 +71,7 @@ from fempdl.prdp import k_eps, k_start
 
 SETTINGS = ("readme", "warm-linear", "newton-cold", "newton-warm", "nonlinear-heat", "ddp")
 STRICT = ("newton-cold", "newton-warm")
+REPEATS = {"warm-linear": 5, "ddp": 5}
 K0_TOLERANCE = {"prdp": 0.5, "prdp-strict": 0.01}
 EPOCHS = {"readme": 60, "warm-linear": 60, "newton-cold": 300, "newton-warm": 300, "nonlinear-heat": 40, "ddp": 60}
 # The README's rule, refined geometrically (K -> max(K + 1, ceil(1.5 K))): the same number of
@@ -321,7 +324,10 @@ def main() -> None:
                 key = f"{mode}-{seed}"
                 if key in entry["runs"] and entry["runs"][key].get("epochs") == epochs:
                     continue
-                run = train_ddp(mode, seed, epochs) if setting == "ddp" else train(setting, mode, seed, epochs)
+                runs = [train_ddp(mode, seed, epochs) if setting == "ddp" else train(setting, mode, seed, epochs)
+                        for _ in range(REPEATS.get(setting, 1))]
+                run = {**runs[0], "wall_time": statistics.median(r["wall_time"] for r in runs),
+                       "wall_times": [r["wall_time"] for r in runs]}
                 entry["runs"][key] = {**run, "epochs": epochs}
                 entry["summary"] = summarise(entry["runs"])
                 write_json_atomically(record, args.out)

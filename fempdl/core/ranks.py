@@ -15,6 +15,9 @@ trains together:
 """
 from __future__ import annotations
 
+import math
+
+import torch
 import torch.distributed as dist
 
 __all__ = ["Ranks", "training_ranks", "torch_group_initialised"]
@@ -39,6 +42,26 @@ class Ranks:
     @property
     def kind(self) -> str:
         return "torch.distributed process group" if self._torch else "MPI communicator"
+
+    def max(self, value: float) -> float:
+        """The largest ``value`` over the ranks (over torch.distributed one all-reduce of a float, no pickling)."""
+        if not self._torch:
+            return max(self.group.allgather(value))
+        reduced = torch.tensor([value], dtype=torch.float64)
+        dist.all_reduce(reduced, op=dist.ReduceOp.MAX, group=self.group)
+        return float(reduced)
+
+    def agree(self, values: tuple) -> bool:
+        """Whether every rank holds the same numbers ``values`` (``None`` entries allowed): over
+        torch.distributed one all-reduce of their floats and negatives (the largest and the least are
+        equal), no pickling; callers gather the values for a message only when they differ."""
+        if not self._torch:
+            return all(other == values for other in self.group.allgather(values))
+        mine = [math.nan if v is None else float(v) for v in values]
+        mine = [-math.inf if math.isnan(v) else v for v in mine]       # None: a value no cap takes
+        both = torch.tensor(mine + [-v for v in mine], dtype=torch.float64)
+        dist.all_reduce(both, op=dist.ReduceOp.MAX, group=self.group)
+        return bool((both[:len(mine)] == -both[len(mine):]).all())
 
     def allgather(self, value) -> list:
         if not self._torch:

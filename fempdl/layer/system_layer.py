@@ -118,8 +118,8 @@ class SystemLayer(torch.nn.Module):
         ranks = training_ranks()
         if ranks is None:
             return ratio
-        every = [r for r in ranks.allgather(ratio) if r is not None]
-        return max(every) if every else None
+        largest = ranks.max(-1.0 if ratio is None else ratio)      # -1: no capped solve measured
+        return None if largest < 0.0 else largest
 
     @property
     def options(self):
@@ -197,11 +197,11 @@ class SystemLayer(torch.nn.Module):
         """Under torch.distributed (torchrun + DDP) each process holds the whole mesh, so no solve is
         collective and ranks whose caps drift apart would train on different physics with equal
         parameters, silently. A training call (gradients enabled) is collective under DDP anyway, so one
-        all_gather of the caps there cannot hang a loop that validates on rank 0 alone."""
+        all-reduce of the caps there cannot hang a loop that validates on rank 0 alone."""
         ranks = training_ranks()
-        if ranks is None:
-            return
         mine = self._caps()
+        if ranks is None or ranks.agree(mine if isinstance(mine, tuple) else (mine,)):
+            return
         every = ranks.allgather(mine)
         if any(caps != mine for caps in every):
             raise ValueError(

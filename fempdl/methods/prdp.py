@@ -260,7 +260,7 @@ class PRDP:
 
     def _check_ranks_agree(self, metric: float) -> None:
         ranks = self.ranks
-        if ranks is None or ranks.size == 1:
+        if ranks is None or ranks.size == 1 or ranks.agree((metric,)):
             return
         every = ranks.allgather(metric)
         if any(m != metric for m in every):
