@@ -45,6 +45,7 @@ _PUBLIC = {
     "NewtonCaps": "fempdl.methods.newton_caps",
     "PointObservation": "fempdl.layer.observation",
     "MassInner": "fempdl.layer.observation",
+    "Rollout": "fempdl.layer.rollout",
 }
 _SUBMODULES = {"forms": "fempdl.forms", "mesh": "fempdl.mesh", "io": "fempdl.io"}
 

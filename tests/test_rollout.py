@@ -1,0 +1,132 @@
+"""Rollout (fempdl/layer/rollout.py): N steps of a step layer as one layer; per-step controls and constants,
+a differentiable initial state, gradients against central differences, linear and Newton steps."""
+import numpy as np
+import pytest
+import torch
+from mpi4py import MPI
+
+from fempdl import PRDP, KSPOptions, NewtonOptions, NonlinearSolveLayer, Rollout, SolveLayer, forms, mesh
+
+DTS = [0.01, 0.03, 0.002, 0.05, 0.02]
+
+
+@pytest.fixture(scope="module")
+def lshape():
+    return mesh.load("lshape", MPI.COMM_SELF, h=0.25)
+
+
+def heat_step(msh, options="lu"):
+    return SolveLayer(forms.heat.problem(msh, controls=("u0", "f")), options)
+
+
+def nonlinear_step(msh):
+    problem = forms.nonlinear_diffusion.problem(msh, controls=("u0", "f"), alpha=2.0, dt=0.01)
+    return NonlinearSolveLayer(problem, NewtonOptions(rtol=1e-13, atol=1e-15, ksp="lu"))
+
+
+def inputs(problem, steps, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    n = problem.output_size
+    u0 = 0.3 * torch.rand(2, n, dtype=torch.float64, generator=g)
+    f = torch.rand(2, steps, problem.control_size("f"), dtype=torch.float64, generator=g)
+    return u0, f
+
+
+def directional_check(loss, tensors, rel=1e-7):
+    """grad . d against the central difference (loss(x + h d) - loss(x - h d)) / 2h for a random d."""
+    tensors = [t.detach().clone().requires_grad_() for t in tensors]
+    loss(*tensors).backward()
+    g = torch.Generator().manual_seed(1)
+    dirs = [torch.rand(t.shape, dtype=t.dtype, generator=g) - 0.5 for t in tensors]
+    exact = sum(float((t.grad * d).sum()) for t, d in zip(tensors, dirs))
+    h = 1e-6
+    with torch.no_grad():
+        plus = float(loss(*[t + h * d for t, d in zip(tensors, dirs)]))
+        minus = float(loss(*[t - h * d for t, d in zip(tensors, dirs)]))
+    fd = (plus - minus) / (2 * h)
+    assert abs(exact - fd) <= rel * max(abs(fd), 1e-12), (exact, fd)
+
+
+@pytest.mark.parametrize("make_step", [heat_step, nonlinear_step], ids=["heat", "nonlinear"])
+def test_rollout_equals_the_hand_loop_and_restores_the_constants(lshape, make_step):
+    step = make_step(lshape)
+    rollout = Rollout(step, "u0")
+    u0, f = inputs(step.problem, len(DTS))
+    dt = step.problem.constants["dt"]
+    before = float(dt.value)
+    with torch.no_grad():
+        out = rollout(u0, len(DTS), constants={"dt": DTS}, per_step={"f": f})
+        assert out.shape == (2, len(DTS) + 1, step.problem.output_size)
+        assert float(dt.value) == before
+        u = u0
+        for k, value in enumerate(DTS):
+            dt.value = value
+            u = step(u0=u, f=f[:, k], initial_guess=u)
+            torch.testing.assert_close(out[:, k + 1], u, rtol=1e-12, atol=1e-14)
+        dt.value = before
+        torch.testing.assert_close(out[:, 0], u0)
+        last = rollout(u0, len(DTS), constants={"dt": DTS}, per_step={"f": f}, outputs=[-1, 2])
+        torch.testing.assert_close(last, out[:, [len(DTS), 2]])
+    step.close()
+
+
+@pytest.mark.parametrize("make_step", [heat_step, nonlinear_step], ids=["heat", "nonlinear"])
+def test_gradients_match_central_differences_with_a_varying_dt(lshape, make_step):
+    step = make_step(lshape)
+    rollout = Rollout(step, "u0")
+    u0, f = inputs(step.problem, len(DTS))
+    weights = torch.rand(2, 2, step.problem.output_size, dtype=torch.float64,
+                         generator=torch.Generator().manual_seed(2))
+
+    def per_step_loss(u0, f):          # the initial state and a source per step, two observed states
+        u = rollout(u0, len(DTS), constants={"dt": DTS}, per_step={"f": f}, outputs=[3, 5])
+        return (weights * u ** 2).sum()
+
+    def constant_loss(u0, f):          # a source constant in time, the final state
+        return (weights[:, 0] * rollout(u0, len(DTS), constants={"dt": DTS}, f=f, outputs=[5])[:, 0]).sum()
+
+    directional_check(per_step_loss, [u0, f])
+    directional_check(constant_loss, [u0, f[:, 0]])
+    step.close()
+
+
+def test_prdp_moves_the_cap_of_every_step(lshape):
+    step = heat_step(lshape, KSPOptions.preset("jacobi", max_it=3))
+    rollout = Rollout(step, "u0")
+    ctrl = PRDP(rollout, k0=2, k_cap=10)
+    assert step.max_it == rollout.max_it == 2 and step.health is not None
+    u0, f = inputs(step.problem, 4)
+    rollout(u0, 4, f=f[:, 0].clone().requires_grad_()).sum().backward()
+    assert step.stats.forward_solves == 2 * 4 and step.stats.max_forward_iterations == 2
+    ctrl.k = 5
+    ctrl.load_state_dict(ctrl.state_dict())
+    assert step.max_it == 5
+    step.close()
+
+
+def test_bad_calls_are_named(lshape):
+    step = heat_step(lshape)
+    rollout = Rollout(step, "u0")
+    u0, f = inputs(step.problem, 3)
+    bad = [
+        (dict(constants={"dt": [0.1, 0.2]}), r"one value per step, shape \(3,\)"),
+        (dict(constants={"tau": [0.1] * 3}), "no Constant 'tau'"),
+        (dict(constants={"dt": [0.1, np.nan, 0.1]}), "NaN"),
+        (dict(u0=u0), "pass it as `initial`"),
+        (dict(per_step={"f": f[:, :2]}), r"\(B, N, n_m\) or \(N, n_m\) with N = steps = 3"),
+        (dict(f=f[:, 0], per_step={"f": f}), "both constant in time and per step"),
+        (dict(outputs=[4]), r"state indices in 0 ... 3"),
+        (dict(g=f[:, 0]), "unknown control 'g'"),
+    ]
+    for kwargs, message in bad:
+        with pytest.raises(ValueError, match=message):
+            rollout(u0, 3, **kwargs)
+    with pytest.raises(ValueError, match="steps must be"):
+        rollout(u0, 0)
+    with pytest.raises(ValueError, match="no control 'f0'"):
+        Rollout(step, "f0")
+    kappa_step = SolveLayer(forms.heat.problem(lshape, controls=("u0", "kappa"), kappa_space="DG0"), "lu")
+    with pytest.raises(ValueError, match="must live in the solution's space"):
+        Rollout(kappa_step, "kappa")
+    for lay in (step, kappa_step):
+        lay.close()
