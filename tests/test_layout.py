@@ -35,7 +35,7 @@ FLOORS = [
                ["fempdl.solve"]]),
     ("iterative", [["fempdl.iterative"]]),
     ("layer", [["fempdl.layer.implicit_diff", "fempdl.layer.unrolled_diff", "fempdl.layer.observation"],
-               ["fempdl.layer.system_layer", "fempdl.layer.newton_unrolled"], ["fempdl.layer.newton_layer", "fempdl.layer.rollout"],
+               ["fempdl.layer.system_layer", "fempdl.layer.newton_unrolled"], ["fempdl.layer.newton_layer", "fempdl.layer.rollout_checkpoint"], ["fempdl.layer.rollout"],
                ["fempdl.bridge_torch"], ["fempdl.layer"]]),
     ("methods", [["fempdl.methods"], ["fempdl.prdp"]]),
     ("public", [["fempdl"]]),                    # __init__: the public names

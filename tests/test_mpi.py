@@ -284,12 +284,16 @@ def test_health_refinements_on_a_distributed_mesh_equal_the_serial_ones(tmp_path
 
 
 def test_a_rollout_on_a_distributed_mesh_equals_the_serial_one(tmp_path):
-    """Loss and gradients (along fixed directions) of a 4-step Newton rollout with a varying dt."""
+    """Loss and gradients (along fixed directions) of a 4-step Newton rollout with a varying dt, by autograd
+    and under revolve and multistage schedules."""
     results = {}
     for ranks in (1, 2):
         path = tmp_path / f"ranks{ranks}.json"
         done = mpirun(ranks, "rollout.py", str(path), timeout=120)
         assert done.returncode == 0, done.stderr[-3000:]
         results[ranks] = json.loads(path.read_text())
+    assert len(results[1]) == 9
     for key, value in results[1].items():
         assert abs(results[2][key] - value) <= 1e-10 * abs(value), key
+        plain = results[1][key.split()[0] + " None"]
+        assert abs(value - plain) <= 1e-12 * abs(plain), key          # every schedule, the same gradient

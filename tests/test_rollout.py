@@ -130,3 +130,54 @@ def test_bad_calls_are_named(lshape):
         Rollout(kappa_step, "kappa")
     for lay in (step, kappa_step):
         lay.close()
+
+
+SCHEDULES = ["all", ("revolve", 2), ("multistage", 1, 2)]
+
+
+@pytest.mark.parametrize("make_step", [heat_step, nonlinear_step,
+                                       lambda msh: heat_step(msh, KSPOptions.preset("jacobi", max_it=4))],
+                         ids=["heat-lu", "nonlinear", "heat-capped-jacobi"])
+def test_every_schedule_gives_the_autograd_gradient(lshape, make_step, tmp_path):
+    step = make_step(lshape)
+    steps = 7
+    u0, f = inputs(step.problem, steps)
+    dts = np.linspace(0.005, 0.04, steps)
+    weights = torch.rand(2, 2, step.problem.output_size, dtype=torch.float64,
+                         generator=torch.Generator().manual_seed(3))
+
+    def run(rollout):
+        x, g, c = u0.clone().requires_grad_(), f.clone().requires_grad_(), f[:, 0].clone().requires_grad_()
+        u = rollout(x, steps, constants={"dt": dts}, per_step={"f": g}, outputs=[4, -1])
+        (weights * u ** 2).sum().backward()
+        v = rollout(x, steps, constants={"dt": dts}, f=c, outputs=[-1])
+        (weights[:, 0] * v[:, 0]).sum().backward()
+        return u.detach(), x.grad, g.grad, c.grad
+
+    reference = run(Rollout(step, "u0"))
+    for schedule in SCHEDULES:
+        rollout = Rollout(step, "u0", schedule=schedule, disk_dir=str(tmp_path))
+        for got, want in zip(run(rollout), reference):
+            torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-14)
+        stats = rollout.schedule_stats
+        assert stats.steps == steps and stats.adjoint_steps == steps
+        if schedule == "all":
+            assert stats.recomputed == 0 and stats.most_in_memory == steps + 1
+        elif schedule[0] == "revolve":
+            assert stats.recomputed > 0 and stats.most_in_memory <= 2 + 2
+        else:
+            assert stats.recomputed > 0 and stats.most_on_disk >= 1 and stats.most_in_memory <= 1 + 2
+    assert list(tmp_path.iterdir()) == []                # the disk snapshots are gone
+    step.close()
+
+
+def test_schedules_are_checked(lshape):
+    step = heat_step(lshape)
+    for bad in ("revolve", ("revolve", 0), ("multistage", 0, 0), ("multistage", -1, 2), ("binomial", 3)):
+        with pytest.raises(ValueError, match="schedule|snapshot"):
+            Rollout(step, "u0", schedule=bad)
+    unrolled = SolveLayer(step.problem, KSPOptions.preset("jacobi", max_it=3), diff="unrolled")
+    with pytest.raises(ValueError, match="runs the step's implicit adjoint"):
+        Rollout(unrolled, "u0", schedule=("revolve", 2))
+    for lay in (step, unrolled):
+        lay.close()

@@ -15,8 +15,14 @@ gradient by construction. Each step starts its solve from the state it
 advances (``initial_guess=u_k``, differentiable), as time steppers do.
 
 The step layer's caps apply to every step; PRDP moves them for the whole
-rollout (``PRDP(rollout, ...)`` or ``PRDP(step, ...)``). The gradient flows
-through every step by autograd, which keeps every state (O(N B n) floats).
+rollout (``PRDP(rollout, ...)`` or ``PRDP(step, ...)``). Without a
+``schedule`` the gradient flows through every step by autograd, which keeps
+every state (O(N B n) floats) and works for any step layer; with one
+(``"all"``, ``("revolve", s)``, ``("multistage", s_ram, s_disk)``) the rollout is one
+autograd node whose backward runs the step adjoints under that checkpoint
+schedule (:mod:`fempdl.layer.rollout_checkpoint`): O(s B n) floats, steps run
+again counted in :attr:`Rollout.schedule_stats`, the same gradient. A schedule
+needs a step differentiated implicitly (the step layers' default).
 
 Shapes: ``initial`` (B, n) or (n,); a control constant in time (B, n_m) or
 (n_m,); a control per step (B, N, n_m) or (N, n_m) (shared by the batch);
@@ -25,13 +31,16 @@ the result (B, T, n), or (T, n) when nothing is batched, for the T indices
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from typing import Mapping, Sequence
 
 import numpy as np
 import torch
 
 from fempdl.core.checks import check_int
+from fempdl.layer.rollout_checkpoint import CheckpointedRollout, ScheduleStats, make_schedule
 from fempdl.layer.system_layer import SystemLayer
+from fempdl.solve.linear_system import INITIAL_GUESS
 
 __all__ = ["Rollout"]
 
@@ -44,6 +53,9 @@ class Rollout(torch.nn.Module):
         state: the name of the step's control that takes the previous state; its space is the
             solution's (``problem.control_size(state) == problem.output_size``).
         warm_start: start each step's solve from the state it advances (``False``: from zero).
+        schedule: ``None`` (autograd through every step), or a checkpoint schedule for the adjoint:
+            ``"all"``, ``("revolve", s)``, ``("multistage", s_in_memory, s_on_disk)`` (module docstring).
+        disk_dir: where a multistage schedule writes its states on disk (default: the temporary directory).
 
     Example:
         >>> heat = SolveLayer(forms.heat.problem(msh, controls=("u0", "f")), KSPOptions.preset("cg", max_it=20))
@@ -51,7 +63,8 @@ class Rollout(torch.nn.Module):
         >>> u = rollout(u_init, steps=50, constants={"dt": dts}, f=f_batch, outputs=[50])   # (B, 1, n)
     """
 
-    def __init__(self, step: SystemLayer, state: str = "u0", *, warm_start: bool = True):
+    def __init__(self, step: SystemLayer, state: str = "u0", *, warm_start: bool = True, schedule=None,
+                 disk_dir: str | None = None):
         super().__init__()
         if not isinstance(step, SystemLayer):
             raise TypeError(f"step must be a SolveLayer or a NonlinearSolveLayer, got {type(step).__name__}")
@@ -64,7 +77,15 @@ class Rollout(torch.nn.Module):
                              f"{problem.output_size}: the previous state must live in the solution's space")
         if not isinstance(warm_start, bool):
             raise TypeError(f"warm_start must be True or False, got {warm_start!r}")
+        if schedule is not None:
+            make_schedule(schedule, 1)                       # validates the spec
+            if getattr(step, "diff", "implicit") != "implicit":
+                raise ValueError("a checkpoint schedule runs the step's implicit adjoint; this step is "
+                                 f"diff={step.diff!r} (use schedule=None: autograd keeps its graph)")
         self.step, self.state, self.warm_start = step, state, warm_start
+        self.schedule, self.disk_dir = schedule, disk_dir
+        #: What the last call under a schedule ran (:class:`~fempdl.layer.rollout_checkpoint.ScheduleStats`).
+        self.schedule_stats: ScheduleStats | None = None
 
     @property
     def layers(self) -> list:
@@ -98,6 +119,9 @@ class Rollout(torch.nn.Module):
         values = self._constant_values(constants or {}, steps)
         self._check_controls(controls, per_step, steps)
         indices = self._outputs(outputs, steps)
+        if self.schedule is not None:
+            return _Scheduled.apply(self, steps, values, tuple(controls), tuple(per_step), indices, initial,
+                                    *controls.values(), *per_step.values())
         problem = self.step.problem
         saved = {name: problem.constants[name].value.copy() for name in values}
         u, states = initial, [initial]
@@ -158,4 +182,146 @@ class Rollout(torch.nn.Module):
         return [int(i) % (steps + 1) for i in indices]
 
     def extra_repr(self) -> str:
-        return f"state={self.state!r}, warm_start={self.warm_start}, max_it={self.max_it}"
+        return f"state={self.state!r}, warm_start={self.warm_start}, schedule={self.schedule!r}, max_it={self.max_it}"
+
+
+class _Scheduled(torch.autograd.Function):
+    """The rollout as one node: forward sweep without autograd, backward under the schedule."""
+
+    @staticmethod
+    def forward(ctx, rollout, steps, values, constant_names, step_names, indices, initial, *tensors):
+        plan = _Plan(rollout, steps, values, constant_names, step_names, initial, tensors)
+        training = any(ctx.needs_input_grad[6:])
+        runner = CheckpointedRollout(make_schedule(rollout.schedule, steps), steps,
+                                     lambda k, u, first: plan.run(k, u, first, training), plan.adjoint, indices,
+                                     rollout.disk_dir, rollout.step.problem.V.mesh.comm.rank)
+        with plan.constants_kept():
+            outs = runner.forward(plan.initial)
+        rollout.schedule_stats = runner.stats
+        ctx.plan, ctx.runner, ctx.indices = plan, runner, indices
+        ctx.unbatched = plan.unbatched
+        out = torch.from_numpy(np.stack(outs, axis=1))
+        return (out[0] if plan.unbatched else out).to(dtype=plan.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        plan, runner = ctx.plan, ctx.runner
+        G = grad_out.detach().to(device="cpu", dtype=torch.float64).numpy()
+        G = G[None] if ctx.unbatched else G
+        output_grads: dict = {}
+        for t, i in enumerate(ctx.indices):
+            output_grads[i] = output_grads[i] + G[:, t] if i in output_grads else G[:, t].copy()
+        plan.wanted = [name for name, need in zip(plan.names, ctx.needs_input_grad[7:]) if need]
+        with plan.constants_kept(), plan.call_state():
+            lam0, per_step = runner.backward(output_grads)
+        grads = [plan.reduce(lam0, plan.initial_shared) if ctx.needs_input_grad[6] else None,
+                 *plan.control_grads(per_step)]
+        return (None,) * 6 + tuple(None if g is None else g.to(dtype) for g, dtype in zip(grads, plan.dtypes))
+
+
+class _Plan:
+    """A scheduled call's arrays and the step's solves and adjoints on them."""
+
+    def __init__(self, rollout, steps, values, constant_names, step_names, initial, tensors):
+        self.rollout, self.layer, self.steps, self.values = rollout, rollout.step, steps, values
+        self.system, self.problem = rollout.step.system, rollout.step.problem
+        self.names = list(constant_names) + list(step_names)
+        self.per_step = frozenset(step_names)
+        self.dtypes = [initial.dtype, *(t.dtype for t in tensors)]
+        self.dtype = initial.dtype if all(t.dtype == initial.dtype for t in tensors) else torch.float64
+        shapes = [initial.dim() == 2] + [t.dim() == (3 if n in self.per_step else 2) for n, t in zip(self.names, tensors)]
+        sizes = {t.shape[0] for t, batched in zip([initial, *tensors], shapes) if batched}
+        if len(sizes) > 1:
+            raise ValueError(f"the initial state and the controls have different batch sizes {sorted(sizes)}")
+        self.batch = sizes.pop() if sizes else 1
+        self.unbatched = not any(shapes)
+        self.initial_shared = initial.dim() == 1
+        self.shared = {n for n, batched in zip(self.names, shapes[1:]) if not batched}
+        self.arrays = {n: np.broadcast_to(_float64(t), (self.batch, *t.shape[-2 if n in self.per_step else -1:]))
+                       for n, t in zip(self.names, tensors)}
+        self.initial = np.array(np.broadcast_to(_float64(initial), (self.batch, initial.shape[-1])))
+        self.caps: dict = {}
+        self.wanted: list = []
+        self.packed = self.layer.call_state.pack(self.system)
+
+    def step_controls(self, k: int, u: np.ndarray) -> dict:
+        arrays = {n: (a[:, k] if n in self.per_step else a) for n, a in self.arrays.items()}
+        arrays[self.rollout.state] = u
+        return arrays
+
+    def set_constants(self, k: int) -> None:
+        for name, seq in self.values.items():
+            self.problem.constants[name].value = seq[k]
+
+    def run(self, k: int, u: np.ndarray, first: bool, training: bool) -> np.ndarray:
+        self.set_constants(k)
+        guess = u if self.rollout.warm_start else None
+        solve = lambda: self.system.solve(self.step_controls(k, u), self.batch, frozenset(self.shared),  # noqa: E731
+                                          initial_guess=guess)
+        if first:
+            out = self.layer.solve_healthy(solve, training)
+            self.caps[k] = self.layer._caps()
+            return out
+        with _caps_set(self.layer, self.caps[k]):
+            return solve()
+
+    def adjoint(self, k: int, uk: np.ndarray, uk1: np.ndarray, lam: np.ndarray):
+        self.set_constants(k)
+        state = self.rollout.state
+        with _caps_set(self.layer, self.caps[k]):
+            grads = self.system.adjoint(self.step_controls(k, uk), uk1, lam, [state, *self.wanted],
+                                        frozenset(self.shared), initial_guess=self.rollout.warm_start)
+        lam_k = grads.pop(state) + grads.pop(INITIAL_GUESS, 0.0)
+        return lam_k, grads
+
+    def control_grads(self, per_step: dict) -> list:
+        out = []
+        for name in self.names:
+            if name not in self.wanted:
+                out.append(None)
+                continue
+            if name in self.per_step:
+                g = np.stack([per_step[k][name] for k in range(self.steps)], axis=1)     # (B, N, n_m)
+            else:
+                g = sum(per_step[k][name] for k in range(self.steps))
+            out.append(self.reduce(g, name in self.shared))
+        return out
+
+    def reduce(self, g: np.ndarray, shared: bool) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(g.sum(0) if shared else g))
+
+    @contextmanager
+    def constants_kept(self):
+        saved = {name: self.problem.constants[name].value.copy() for name in self.values}
+        try:
+            yield
+        finally:
+            for name, value in saved.items():
+                self.problem.constants[name].value = value
+
+    def call_state(self):
+        return self.layer.call_state.restored(self.system, self.packed)
+
+
+@contextmanager
+def _caps_set(layer, caps):
+    """The layer at ``caps`` (as its ``_caps()`` reads them) within the block."""
+    before = layer._caps()
+    _write_caps(layer, caps)
+    try:
+        yield
+    finally:
+        _write_caps(layer, before)
+
+
+def _write_caps(layer, caps) -> None:
+    if layer._caps() == caps:
+        return
+    if isinstance(caps, tuple):
+        layer.max_it, layer.inner_max_it = caps
+    else:
+        layer.max_it = caps
+
+
+def _float64(t: torch.Tensor) -> np.ndarray:
+    return t.detach().to(device="cpu", dtype=torch.float64).numpy()

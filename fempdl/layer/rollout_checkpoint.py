@@ -1,0 +1,192 @@
+"""A Rollout's gradient under a checkpoint schedule: O(s n) states kept instead of O(N n).
+
+The forward sweep runs the N steps without autograd; the backward sweep runs
+the adjoint of each step in reverse,
+
+    lam_N = dJ/du_N,   lam_k = dJ/du_k + (dS_k/du_k)^T lam_{k+1},   dJ/dm += (dS_k/dm_k)^T lam_{k+1},
+
+where (dS_k/d.)^T lam is the step layer's own adjoint at the states (u_k,
+u_{k+1}) (``system.adjoint``: one transposed solve per sample; through a warm
+start also the adjoint residual), at the Constants and caps step k's forward
+ran with. Which states are kept, and which steps are run again from a kept
+state, follows a schedule of the ``checkpoint_schedules`` package (pyadjoint's
+and Firedrake's): ``"all"`` keeps every state (no step run twice),
+``("revolve", s)`` keeps s states in memory (binomial checkpointing, the least
+recomputation for s snapshots), ``("multistage", s_ram, s_disk)`` keeps s_ram
+in memory and s_disk on disk (``disk_dir``). The gradient is the same under
+every schedule: a step run again from the same state with the same Constants
+and caps gives the same bits. :class:`ScheduleStats` counts what ran.
+
+This module runs a schedule's actions on NumPy arrays; the torch side is
+:mod:`fempdl.layer.rollout`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+
+import checkpoint_schedules as cs
+import numpy as np
+
+__all__ = ["ScheduleStats", "make_schedule", "CheckpointedRollout"]
+
+
+@dataclasses.dataclass
+class ScheduleStats:
+    """What the last checkpointed rollout ran: ``steps`` forward steps of the first sweep,
+    ``recomputed`` steps run again from kept states, ``adjoint_steps``, and the most states held at
+    once in memory and on disk (the adjoint's dependencies included)."""
+
+    steps: int = 0
+    recomputed: int = 0
+    adjoint_steps: int = 0
+    most_in_memory: int = 0
+    most_on_disk: int = 0
+
+
+def make_schedule(spec, steps: int) -> cs.CheckpointSchedule:
+    """The ``checkpoint_schedules`` schedule of ``spec`` (module docstring) for ``steps`` steps."""
+    if spec == "all":
+        return cs.SingleMemoryStorageSchedule()       # online: finalised at N by the forward sweep
+    if isinstance(spec, tuple) and spec and spec[0] == "revolve" and len(spec) == 2:
+        snapshots = _count("revolve snapshots", spec[1], steps)
+        return cs.Revolve(steps, snapshots)
+    if isinstance(spec, tuple) and spec and spec[0] == "multistage" and len(spec) == 3:
+        in_ram, on_disk = spec[1], spec[2]
+        for name, value in (("in memory", in_ram), ("on disk", on_disk)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"multistage snapshots {name} must be an int >= 0, got {value!r}")
+        if in_ram + on_disk < 1:
+            raise ValueError("a multistage schedule needs at least one snapshot")
+        return cs.MultistageCheckpointSchedule(steps, in_ram, on_disk)
+    raise ValueError(f"schedule must be 'all', ('revolve', s) or ('multistage', s_in_memory, s_on_disk), "
+                     f"got {spec!r}")
+
+
+def _count(name: str, value, steps: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+    return min(value, steps)
+
+
+class _Store:
+    """Kept states by step index, in memory or as .npy files in a private directory (per rank)."""
+
+    def __init__(self, disk_dir: str | None, rank: int):
+        self.memory: dict = {}
+        self._disk: dict = {}
+        self._dir, self._rank, self._tmp = disk_dir, rank, None
+
+    def put(self, storage, key, value: np.ndarray) -> None:
+        if storage == cs.StorageType.DISK:
+            if self._tmp is None:
+                self._tmp = tempfile.TemporaryDirectory(prefix="fempdl-rollout-", dir=self._dir)
+            path = os.path.join(self._tmp.name, f"{key}.rank{self._rank}.npy")
+            np.save(path, value)
+            self._disk[key] = path
+        else:
+            self.memory[key] = value
+
+    def take(self, storage, key, *, keep: bool) -> np.ndarray:
+        if storage == cs.StorageType.DISK:
+            value = np.load(self._disk[key])
+            if not keep:
+                os.remove(self._disk.pop(key))
+            return value
+        return self.memory[key] if keep else self.memory.pop(key)
+
+    @property
+    def on_disk(self) -> int:
+        return len(self._disk)
+
+    def close(self) -> None:
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+
+class CheckpointedRollout:
+    """One rollout call under a schedule: :meth:`forward` returns the output states, :meth:`backward`
+    the gradients. ``run(k, u, first)`` advances u_k to u_{k+1} ((B, n) arrays; ``first``: the first
+    sweep); ``adjoint(k, u_k, u_k1, lam)`` returns (lam_k, {control: dJ/dm_k}) for step k."""
+
+    def __init__(self, schedule: cs.CheckpointSchedule, steps: int, run, adjoint, outputs: list,
+                 disk_dir: str | None, rank: int):
+        self._schedule, self._actions = schedule, iter(schedule)
+        self._steps, self._run, self._adjoint, self._outputs = steps, run, adjoint, outputs
+        self._ics = _Store(disk_dir, rank)
+        self._deps: dict = {}                     # step k -> (u_k, u_k+1): shared arrays, counted once
+        self.stats = ScheduleStats()
+
+    def forward(self, initial: np.ndarray) -> list:
+        kept = {0: initial} if 0 in self._outputs else {}
+        u = initial
+        for action in self._actions:
+            if isinstance(action, cs.EndForward):
+                break
+            u = self._act(action, u, kept, first=True)
+            if self._schedule.max_n is None and self.stats.steps == self._steps:
+                self._schedule.finalize(self._steps)
+        self._work = u
+        return [kept[i] for i in self._outputs]
+
+    def backward(self, output_grads: dict) -> tuple:
+        """``output_grads``: state index -> dJ/du_i (B, n); returns (dJ/du_0, [per-step control grads])."""
+        lam, controls = None, {}
+        u = self._work
+        try:
+            for action in self._actions:
+                if isinstance(action, cs.EndReverse):
+                    break
+                if isinstance(action, cs.Reverse):
+                    for k in range(action.n1 - 1, action.n0 - 1, -1):
+                        uk, uk1 = self._deps[k]
+                        lam = _added(lam, output_grads.get(k + 1))
+                        if lam is None:
+                            lam = np.zeros_like(uk1)
+                        lam, controls[k] = self._adjoint(k, uk, uk1, lam)
+                        self.stats.adjoint_steps += 1
+                        if action.clear_adj_deps:
+                            del self._deps[k]
+                else:
+                    u = self._act(action, u, None, first=False)
+        finally:
+            self._ics.close()
+        return _added(lam, output_grads.get(0)), controls
+
+    def _act(self, action, u: np.ndarray, kept: dict | None, first: bool) -> np.ndarray:
+        if isinstance(action, cs.Forward):
+            for k in range(action.n0, min(action.n1, self._steps)):
+                if k == action.n0 and action.write_ics:
+                    self._ics.put(action.storage, action.n0, u)
+                u_next = self._run(k, u, first)
+                if first:
+                    self.stats.steps += 1
+                    if kept is not None and k + 1 in self._outputs:
+                        kept[k + 1] = u_next
+                else:
+                    self.stats.recomputed += 1
+                if action.write_adj_deps:
+                    self._deps[k] = (u, u_next)
+                u = u_next
+                self._count()
+            return u
+        if isinstance(action, (cs.Copy, cs.Move)):
+            if action.to_storage != cs.StorageType.WORK:
+                raise NotImplementedError(f"checkpoint action {action!r}: states move into working memory only")
+            return self._ics.take(action.from_storage, action.n, keep=isinstance(action, cs.Copy))
+        raise NotImplementedError(f"checkpoint action {action!r} is not one a rollout runs")
+
+    def _count(self) -> None:
+        arrays = {id(a): a for pair in self._deps.values() for a in pair}
+        arrays.update((id(a), a) for a in self._ics.memory.values())
+        self.stats.most_in_memory = max(self.stats.most_in_memory, len(arrays))
+        self.stats.most_on_disk = max(self.stats.most_on_disk, self._ics.on_disk)
+
+
+def _added(a, b):
+    if b is None:
+        return a
+    return b.copy() if a is None else a + b
+
