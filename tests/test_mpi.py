@@ -34,16 +34,21 @@ def mpirun(ranks: int, script: str, *args: str, timeout: float = TIMEOUT) -> sub
     return subprocess.run(command, env=MPI_ENV, capture_output=True, text=True, timeout=timeout)
 
 
-@pytest.fixture(scope="module")
-def layer_results(tmp_path_factory):
-    out = tmp_path_factory.mktemp("mpi")
+def on_one_and_two_ranks(script: str, out: Path, suffix: str, *args: str, timeout: float = TIMEOUT) -> dict:
+    """{1: ..., 2: ...}: what ``script`` wrote to its output file (its last argument) run on 1 rank and on 2,
+    read as JSON (``suffix`` ".json") or as an .npz's arrays."""
     results = {}
     for ranks in (1, 2):
-        path = out / f"ranks{ranks}.npz"
-        done = mpirun(ranks, "layer_gradients.py", str(path))
+        path = out / f"ranks{ranks}{suffix}"
+        done = mpirun(ranks, script, *args, str(path), timeout=timeout)
         assert done.returncode == 0, done.stderr[-3000:]
-        results[ranks] = dict(np.load(path))
+        results[ranks] = json.loads(path.read_text()) if suffix == ".json" else dict(np.load(path))
     return results
+
+
+@pytest.fixture(scope="module")
+def layer_results(tmp_path_factory):
+    return on_one_and_two_ranks("layer_gradients.py", tmp_path_factory.mktemp("mpi"), ".npz")
 
 
 def test_the_mesh_is_split_over_two_ranks(layer_results):
@@ -80,13 +85,7 @@ def test_an_error_on_one_rank_ends_the_job_instead_of_hanging():
 def training_results(request, tmp_path_factory):
     """Rows of the tiny scene trained in one parallel mode, on 1 rank and on 2."""
     out = tmp_path_factory.mktemp(f"training-{request.param}")
-    results = {}
-    for ranks in (1, 2):
-        path = out / f"ranks{ranks}.json"
-        done = mpirun(ranks, "parallel_training.py", request.param, str(path))
-        assert done.returncode == 0, done.stderr[-3000:]
-        results[ranks] = json.loads(path.read_text())
-    return request.param, results
+    return request.param, on_one_and_two_ranks("parallel_training.py", out, ".json", request.param)
 
 
 def _column(rows, key):
@@ -253,13 +252,7 @@ def test_two_processes_writing_one_xdmf_file_get_an_error(tmp_path):
 
 def test_observations_on_a_distributed_mesh_equal_the_serial_ones(tmp_path):
     """PointObservation and MassInner on two ranks: the same values and gradients (in DOF-coordinate order)."""
-    results = {}
-    for ranks in (1, 2):
-        path = tmp_path / f"ranks{ranks}.npz"
-        done = mpirun(ranks, "observation.py", str(path), timeout=120)
-        assert done.returncode == 0, done.stderr[-3000:]
-        results[ranks] = dict(np.load(path))
-    one, two = results[1], results[2]
+    one, two = on_one_and_two_ranks("observation.py", tmp_path, ".npz", timeout=120).values()
     np.testing.assert_allclose(two["values"], one["values"], rtol=0, atol=1e-13)
     assert abs(float(two["inner"]) - float(one["inner"])) <= 1e-12 * abs(float(one["inner"]))
     np.testing.assert_allclose(two["grad"], one["grad"], rtol=0, atol=1e-12)
@@ -267,13 +260,7 @@ def test_observations_on_a_distributed_mesh_equal_the_serial_ones(tmp_path):
 
 def test_health_refinements_on_a_distributed_mesh_equal_the_serial_ones(tmp_path):
     """A garbage capped solve refines PRDP's K on every rank alike, at the serial run's residual ratios."""
-    results = {}
-    for ranks in (1, 2):
-        path = tmp_path / f"ranks{ranks}.json"
-        done = mpirun(ranks, "health.py", str(path), timeout=120)
-        assert done.returncode == 0, done.stderr[-3000:]
-        results[ranks] = json.loads(path.read_text())
-    one, two = results[1], results[2]
+    one, two = on_one_and_two_ranks("health.py", tmp_path, ".json", timeout=120).values()
     assert two["ranks"] == 2 and two["same_on_every_rank"]
     assert len(one["newton"]) >= 1 and [e["to"] for e in two["newton"]] == [e["to"] for e in one["newton"]]
     assert [e["to"] for e in two["linear"]] == [e["to"] for e in one["linear"]] == [9]
@@ -286,12 +273,7 @@ def test_health_refinements_on_a_distributed_mesh_equal_the_serial_ones(tmp_path
 def test_a_rollout_on_a_distributed_mesh_equals_the_serial_one(tmp_path):
     """Loss and gradients (along fixed directions) of a 4-step Newton rollout with a varying dt, by autograd
     and under revolve and multistage schedules."""
-    results = {}
-    for ranks in (1, 2):
-        path = tmp_path / f"ranks{ranks}.json"
-        done = mpirun(ranks, "rollout.py", str(path), timeout=120)
-        assert done.returncode == 0, done.stderr[-3000:]
-        results[ranks] = json.loads(path.read_text())
+    results = on_one_and_two_ranks("rollout.py", tmp_path, ".json", timeout=120)
     assert len(results[1]) == 9
     for key, value in results[1].items():
         assert abs(results[2][key] - value) <= 1e-10 * abs(value), key
