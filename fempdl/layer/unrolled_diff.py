@@ -21,7 +21,7 @@ from fempdl.core import _dolfinx
 from fempdl.iterative import unrolled
 from fempdl.iterative.sparse import SparseOperator
 from fempdl.solve.assembly import fingerprint, fingerprint_matches
-from fempdl.solve.health import CallHealth, round_off_floor
+from fempdl.solve.health import CallHealth
 from fempdl.solve.options import KSPOptions
 from fempdl.solve.stats import capped_solve_stats
 from fempdl.solve.linear_system import INITIAL_GUESS, LinearSystem
@@ -215,19 +215,10 @@ def _measure_health(system: LinearSystem, A, R: torch.Tensor, X0: torch.Tensor |
     """The call's residual ratios ||r_K|| / ||r_0|| (:mod:`fempdl.solve.health`), columns of R and X (n, B)."""
     with torch.no_grad():
         R, X = R.detach(), X.detach()
-        starts = (R if X0 is None else R - A @ X0.detach()).norm(dim=0)
-        finals = (R - A @ X).norm(dim=0)
-        health = system.call_health = CallHealth(system.call_health.limit)
-        a_norm = []                                  # ||A||_inf, computed at the first floor asked for
-
-        def floor(x: float, b: float) -> float:
-            if not a_norm:
-                a_norm.append(_inf_norm(A))
-            return round_off_floor(a_norm[0], x, b)
-
-        for final, start, x, b in zip(finals.tolist(), starts.tolist(), X.norm(dim=0).tolist(),
-                                      R.norm(dim=0).tolist()):
-            health.add(final, start, lambda: floor(x, b))
+        starts = R if X0 is None else R - A @ X0.detach()
+        system.call_health = CallHealth(system.call_health.limit)
+        system.call_health.add_rows(*(M.norm(dim=0).tolist() for M in (R - A @ X, starts, X, R)),
+                                    lambda: _inf_norm(A))
 
 
 def _inf_norm(A) -> float:

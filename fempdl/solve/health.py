@@ -79,6 +79,20 @@ class CallHealth:
         self.ratio = rho if self.ratio is None else max(self.ratio, rho)
 
 
+    def add_rows(self, finals, starts, x_norms, b_norms, a_norm: Callable[[], float]) -> None:
+        """Many samples' residual norms at once (sequences of floats); ``a_norm()``, ||A||_inf, is computed
+        at most once, for the first ratio above the limit."""
+        norm: list = []
+
+        def floor(x: float, b: float) -> float:
+            if not norm:
+                norm.append(a_norm())
+            return round_off_floor(norm[0], x, b)
+
+        for final, start, x, b in zip(finals, starts, x_norms, b_norms):
+            self.add(float(final), float(start), lambda: floor(float(x), float(b)))
+
+
 def round_off_floor(A: PETSc.Mat | float, x_norm: float, b_norm: float = 0.0) -> float:
     """The residual of an exact solution in floating point: FLOOR_RESIDUAL eps (||A||_inf ||x|| + ||b||)
     (``A``: the matrix, or its infinity norm)."""

@@ -180,11 +180,8 @@ class LinearSystem:
         X = self._batched_solve(R, "forward", initial_guess)
         if health:
             starts = R if initial_guess is None else R - self._batched.matmul(np.asarray(initial_guess))
-            finals = R - self._batched.matmul(X)
-            for final, start, x, b in zip(finals, starts, X, R):
-                self.call_health.add(float(np.linalg.norm(final)), float(np.linalg.norm(start)),
-                                     lambda: round_off_floor(self._A, float(np.linalg.norm(x)),
-                                                             float(np.linalg.norm(b))))
+            norms = [np.linalg.norm(M, axis=1) for M in (R - self._batched.matmul(X), starts, X, R)]
+            self.call_health.add_rows(*norms, lambda: self._A.norm(PETSc.NormType.INFINITY))
         return X
 
     def _direct_many(self, batch: int, per_sample_matrix: bool) -> bool:
