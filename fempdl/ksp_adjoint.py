@@ -72,6 +72,8 @@ class CappedSolver:
         options: the solver options.
         prefix: options prefix; ``options.options_prefix`` when set, else a
             unique private one.
+        preconditioner_matrix: the matrix the preconditioner is set up on, when not
+            ``A`` (a lagged factorisation: the Newton system refreshes it).
 
     Attributes:
         stats: :class:`CumulativeStats` of every solve (``solve`` counts as
@@ -82,14 +84,14 @@ class CappedSolver:
     """
 
     def __init__(self, A: PETSc.Mat, options: KSPOptions, *, prefix: str | None = None,
-                 fields: Mapping[str, np.ndarray] | None = None):
+                 fields: Mapping[str, np.ndarray] | None = None, preconditioner_matrix: PETSc.Mat | None = None):
         if not isinstance(options, KSPOptions):
             raise TypeError(f"options must be KSPOptions, got {type(options).__name__}")
         self._options = options
-        self._A = A
+        self._A, self._P = A, preconditioner_matrix
         self._fields = fields
         self._prefix = prefix or options.options_prefix or unique_prefix("ksp")
-        self._ksp = create_ksp(A, options, self._prefix, fields)
+        self._ksp = self._forward_ksp()
         # The adjoint has its own KSP when its options differ, or when it runs on
         # an assembled A^T (created at the first transposed solve: A must be assembled).
         self._ksp_adjoint = None
@@ -242,13 +244,19 @@ class CappedSolver:
         failed, self._failed = self._failed, set()
         if "forward" in failed:
             destroy_ksp(self._ksp)
-            self._ksp = create_ksp(self._A, self._options, self._prefix, self._fields)
+            self._ksp = self._forward_ksp()
         if "adjoint" in failed and self._ksp_adjoint is not None:
             assembled = self._options.assembled_adjoint
             operator = self._At if assembled else self._A
             options = self._options.adjoint_options if assembled else self._options.adjoint
             destroy_ksp(self._ksp_adjoint)
             self._ksp_adjoint = create_ksp(operator, options, self._prefix + "adj_", self._fields)
+
+    def _forward_ksp(self) -> PETSc.KSP:
+        ksp = create_ksp(self._A, self._options, self._prefix, self._fields)
+        if self._P is not None:
+            ksp.setOperators(self._A, self._P)
+        return ksp
 
     def destroy(self) -> None:
         for ksp in (self._ksp, self._ksp_adjoint):

@@ -30,3 +30,10 @@ PARALLEL_MIN_WORK = 2_000_000
 #: of Richardson-Jacobi iterations or more. The monitor costs 0.2-0.7 us per iteration
 #: (scripts/bench_bounds.py), which only matters for small, short solves, and those go without it.
 INTERRUPT_CHECK_MIN_WORK = 10 ** 8
+
+# --- a Newton solve's lagged factorisation (KSPOptions.preset("lu-lagged"))
+#: A solve preconditioned by an earlier Jacobian's LU that needs more GMRES iterations than this sets
+#: the LU up again on the current matrix. At 9k DOFs an iteration (a product and two triangular
+#: solves) costs about an eighth of a factorisation; over a 100-step nonlinear heat rollout 3 was the
+#: fastest of 2, 3, 5 and 8 (10.3 s against 10.8, 10.4 and 12.2 s: scripts/bench_rollout.py).
+LAGGED_REFRESH_ITERATIONS = 3

@@ -107,6 +107,10 @@ class NewtonOptions:
         elif self.ksp is not None and not isinstance(self.ksp, KSPOptions):
             raise TypeError(f"NewtonOptions.ksp must be KSPOptions, a preset name or None, "
                             f"got {type(self.ksp).__name__}")
+        if self.ksp is not None and self.ksp.lag_preconditioner and self.ksp.direct:
+            raise ValueError("a Newton solve's lagged preconditioner (KSPOptions.lag_preconditioner) needs a Krylov "
+                             "inner solve run to a tolerance, e.g. KSPOptions.preset('lu-lagged'): with "
+                             "ksp_type='preonly' every step would solve an earlier Jacobian, not its own")
         if self.on_failure not in ("raise", "warn"):
             raise ValueError(f"NewtonOptions.on_failure must be 'raise' or 'warn', got {self.on_failure!r}")
 

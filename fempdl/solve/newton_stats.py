@@ -61,12 +61,14 @@ class NewtonCumulativeStats(CumulativeStats):
     """A nonlinear layer's counters: the inner linear solves as in :class:`CumulativeStats` (every
     Newton step's Krylov solve is one forward solve; adjoint and unrolled-step transposed solves are
     backward solves), plus Newton steps: ``newton_steps`` forward, ``backward_newton_steps`` run
-    backwards by the unrolled derivative, ``newton_solves`` samples solved."""
+    backwards by the unrolled derivative, ``newton_solves`` samples solved, and
+    ``preconditioner_refreshes``: set-ups of a lagged inner preconditioner on a new Jacobian."""
 
     newton_steps: int = 0
     newton_solves: int = 0
     max_newton_steps: int = 0
     backward_newton_steps: int = 0
+    preconditioner_refreshes: int = 0
     newton_failures: int = 0
     last_newton: NewtonSolveStats | None = None
 

@@ -14,6 +14,13 @@ solves), and works on NumPy arrays of owned DOF values, one row per sample:
 * :meth:`unrolled_adjoint` — the exact reverse pass of the plain Newton map that was run
   (:class:`~fempdl.solve.newton_reverse.NewtonReversePass`).
 
+A lagged inner preconditioner (``KSPOptions(lag_preconditioner=True)``, the ``"lu-lagged"`` preset) is
+set up on a copy P of an earlier J and kept across Newton steps, solves, samples and the adjoint's
+transposed solves: every solve still runs its Krylov method on the current J to its tolerance, and P
+is refreshed from the current J after a solve that needed more than
+``core.tuning.LAGGED_REFRESH_ITERATIONS`` iterations. In a time loop, where J moves a little per
+step, a factorisation then serves many steps and their adjoints.
+
 When a solve stops: uncapped solves, and capped ones whose cap is a ``budget`` (implicit
 differentiation), stop at their tolerances or at the round-off floor
 (:class:`~fempdl.solve.newton_stop.NewtonStop`); other capped solves run exactly ``max_it`` steps.
@@ -34,6 +41,7 @@ from petsc4py import PETSc
 
 from fempdl.core import _dolfinx
 from fempdl.core.nonlinear_problem import NonlinearProblem
+from fempdl.core.tuning import LAGGED_REFRESH_ITERATIONS
 from fempdl.ksp_adjoint import PC_FAILED, CappedSolver, set_interrupt_checks
 from fempdl.solve.assembly import (ControlValues, Timer, attach_nullspace, check_operator, check_symmetric_factor,
                                    operator_defect, set_owned, without_bc_entries)
@@ -105,6 +113,8 @@ class NonlinearSystem(NewtonReversePass):
         self._called_controls: frozenset = frozenset()     # named when an assembled Jacobian is singular
         self._jacobian_defect: str | None = None
         self._snes = self._ksp = self._adjoint_solver = None
+        self._P: PETSc.Mat | None = None               # a lagged preconditioner's matrix (module docstring)
+        self._refresh_P = False
         self._options = options
         self._build(options)
         self._recording: list | None = None
@@ -158,13 +168,18 @@ class NonlinearSystem(NewtonReversePass):
         p = self.problem
         ksp_options: KSPOptions = options.ksp
         check_symmetric_factor(ksp_options, p)
+        lagged = ksp_options.lag_preconditioner
+        if lagged and self._P is None:      # J's pattern, assembled: refreshes copy values only
+            self._P = _dolfinx.assemble_matrix_into(_dolfinx.create_matrix(p.J_form), p.J_form, p.bcs)
+        P = self._P if lagged else None
+        self._refresh_P = lagged                          # set up on the first Jacobian
         self._ksp = create_ksp(self._J, ksp_options, unique_prefix("newton_ksp"), p.fields or None)
         self._snes = create_snes(self._comm, options, self._ksp, *map(weak_callback, (
             self._residual, self._jacobian, self._monitor)), self._b, self._J, force_step=self._force_step,
             stop=NewtonStop(options.rtol, options.atol, force_step=self._force_step)
-            if self._stops_at_tolerances(options) else None)
+            if self._stops_at_tolerances(options) else None, P=P)
         set_interrupt_checks(self._ksp, ksp_options)      # Ctrl-C within a long inner solve
-        self._adjoint_solver = CappedSolver(self._J, ksp_options, fields=p.fields or None)
+        self._adjoint_solver = CappedSolver(self._J, ksp_options, fields=p.fields or None, preconditioner_matrix=P)
         self._adjoint_solver.stats = self.stats
         self._exact_adjoint_solver = self._adjoint_solver
         if self._dFdu is not self._J:
@@ -190,12 +205,18 @@ class NonlinearSystem(NewtonReversePass):
         with Timer(self.stats, "assembly_time"):
             self._set_state(x)
             _dolfinx.assemble_matrix_into(J, self.problem.J_form, self.problem.bcs)
-            if P.handle != J.handle:
-                _dolfinx.assemble_matrix_into(P, self.problem.J_form, self.problem.bcs)
             # A singular J (an empty row) would give MUMPS a tiny or huge finite step: a failed solve.
             self._jacobian_defect = operator_defect(J)
         if self._jacobian_defect is not None:
             raise _SingularJacobian(self._jacobian_defect)
+        if P.handle != J.handle and self._refresh_P:
+            self._set_preconditioner_matrix()
+
+    def _set_preconditioner_matrix(self) -> None:
+        """P <- J: the lagged preconditioner is set up again at its next solve (PETSc sees P changed)."""
+        self._J.copy(self._P, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        self._refresh_P = False
+        self.stats.preconditioner_refreshes += 1
 
     def _monitor(self, snes, its, fnorm) -> None:
         self._residual_norms.append(float(fnorm))
@@ -204,6 +225,8 @@ class NonlinearSystem(NewtonReversePass):
             reason = int(ksp.getConvergedReason())
             iterations = max(int(ksp.getIterationNumber()), 1 if self._options.ksp.direct else 0)
             capped = self._options.ksp.capped and reason == DIVERGED_MAX_IT
+            if self._P is not None and self._options.ksp.lag_preconditioner:
+                self._refresh_P |= iterations > LAGGED_REFRESH_ITERATIONS or reason <= 0
             self.stats.record("forward", SolveStats(
                 iterations=iterations, reason=reason, reason_name=REASON_NAMES.get(reason, str(reason)),
                 residual_norm=None, time=0.0, capped=capped, ok=reason > 0 or capped))
@@ -363,7 +386,10 @@ class NonlinearSystem(NewtonReversePass):
             check_operator(A, sorted(self._called_controls & (p.exact_jacobian_controls if exact
                                                               else p.jacobian_controls)), _AT_STATE)
         self._rhs.setArray(g)
-        solver.solve_transpose(self._rhs, self._lam)
+        solved = solver.solve_transpose(self._rhs, self._lam)
+        if A is self._J and self._P is not None and self._options.ksp.lag_preconditioner \
+                and solved.iterations > LAGGED_REFRESH_ITERATIONS:
+            self._set_preconditioner_matrix()     # at this J: the next solves start from a fresh set-up
         set_owned(p.lam, self._lam.getArray(readonly=True), p.output_size)
 
     # --------------------------------------------------------------- cleanup
@@ -385,6 +411,8 @@ class NonlinearSystem(NewtonReversePass):
                 *self._step_vectors.values(), *self._nullspaces]
         if self._dFdu is not self._J:
             objs.append(self._dFdu)
+        if self._P is not None:
+            objs.append(self._P)
         for obj in objs:
             obj.destroy()
         self._forms.destroy()

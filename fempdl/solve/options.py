@@ -126,7 +126,12 @@ class KSPOptions:
             a fieldsplit's velocity block) then costs once per call instead of
             once per sample; the Krylov method still runs on each sample's own
             matrix, and a capped solve still runs exactly ``max_it`` iterations,
-            but a converged one may need more of them.
+            but a converged one may need more of them. In a Newton solve's inner
+            solve (a Krylov method run to ``rtol``) the factor is kept across Newton
+            steps, solves and the adjoint's transposed solves, and set up again on the
+            current matrix after a solve that needed more than
+            ``core.tuning.LAGGED_REFRESH_ITERATIONS`` iterations: every step still
+            solves its own Jacobian to ``rtol`` (the ``"lu-lagged"`` preset).
         options_prefix: a PETSc options prefix of your own, e.g. ``"myprefix_"``:
             the layer's KSP reads the options database under it when it is
             created, so command-line options such as ``-myprefix_ksp_monitor``,
@@ -284,8 +289,10 @@ class KSPOptions:
         the zero pressure block of a saddle point), ``"cholesky"`` (direct, for
         problems declared symmetric: PETSc's own Cholesky on one process, about
         half the work of LU and without MUMPS's set-up cost on small systems;
-        MUMPS under MPI). Iterative presets run to
-        rtol=1e-10 unless ``max_it`` caps them.
+        MUMPS under MPI), ``"lu-lagged"`` (GMRES to rtol=1e-12, right-preconditioned by
+        a MUMPS LU set up on an earlier matrix and reused while it takes few iterations:
+        Newton steps and rollouts whose Jacobian moves a little per solve). Iterative presets
+        run to rtol=1e-10 unless ``max_it`` caps them.
 
         Example:
             ``KSPOptions.preset("jacobi", max_it=20)``
@@ -356,6 +363,11 @@ PRESETS: Mapping[str, KSPOptions] = types.MappingProxyType({
                      petsc_options={"pc_factor_mat_solver_type": "mumps"}),
     # PETSc's own factorisation on one process (create_ksp picks MUMPS under MPI).
     "cholesky": KSPOptions(ksp_type="preonly", pc_type="cholesky", max_it=None),
+    # GMRES on the current matrix, preconditioned by the MUMPS LU of an earlier one (right
+    # preconditioning: the tolerance is on the true residual).
+    "lu-lagged": KSPOptions(ksp_type="gmres", pc_type="lu", gmres_restart=30, max_it=None, rtol=1e-12,
+                            lag_preconditioner=True,
+                            petsc_options={"pc_factor_mat_solver_type": "mumps", "ksp_pc_side": "right"}),
 })
 
 

@@ -27,12 +27,13 @@ _OPTION_KEYS = ("snes_linesearch_type", "snes_linesearch_damping", "snes_diverge
 
 
 def create_snes(comm, options: NewtonOptions, ksp: PETSc.KSP, residual, jacobian, monitor,
-                b: PETSc.Vec, J: PETSc.Mat, force_step: bool = False, stop=None) -> PETSc.SNES:
+                b: PETSc.Vec, J: PETSc.Mat, force_step: bool = False, stop=None, P: PETSc.Mat | None = None) -> PETSc.SNES:
     """A SNES solving F(u) = 0 with ``residual(snes, x, b)`` into ``b``, ``jacobian(snes, x, J, P)``
     into ``J``, each step's linear solve by ``ksp``, and ``monitor(snes, its, fnorm)`` called per
     step. ``force_step``: take at least one step even from a solution (an unrolled map needs one).
     ``stop``: a convergence test ``stop(snes, its, (xnorm, step_norm, fnorm)) -> reason`` in place of
-    PETSc's (:class:`~fempdl.solve.newton_stop.NewtonStop`); SNES's own ``max_it`` still ends the solve."""
+    PETSc's (:class:`~fempdl.solve.newton_stop.NewtonStop`); SNES's own ``max_it`` still ends the solve.
+    ``P``: the matrix the inner preconditioner is set up on, when not ``J`` (``jacobian`` fills both)."""
     snes = PETSc.SNES().create(comm)
     prefix = unique_prefix("snes")
     snes.setOptionsPrefix(prefix)
@@ -45,7 +46,7 @@ def create_snes(comm, options: NewtonOptions, ksp: PETSc.KSP, residual, jacobian
         db[prefix + "snes_divergence_tolerance"] = -1.0       # off, in PETSc 3.18 (no setter in petsc4py)
     snes.setKSP(ksp)
     snes.setFunction(residual, b)
-    snes.setJacobian(jacobian, J)
+    snes.setJacobian(jacobian, J, P)
     snes.setFromOptions()
     snes.setTolerances(**options.snes_tolerances())
     if hasattr(snes, "setDivergenceTolerance"):
