@@ -172,3 +172,37 @@ def test_plot_data_is_signed_nodal_or_per_cell(poisson_p2, stokes, coarse):
     _, _, speed, _, vector = io.plot_data(stokes, "flow", w)
     assert vector
     np.testing.assert_allclose(speed, 5.0, rtol=1e-14)
+
+
+@pytest.mark.parametrize("schedule", [None, ("revolve", 2)])
+def test_a_rollout_writes_its_time_series_step_by_step(tmp_path, coarse, schedule):
+    """Every second state of a 5-step heat rollout with a varying dt, at t_k = dt_0 + ... + dt_k-1, with
+    the values the rollout returns; a schedule's recomputed steps write nothing more."""
+    from fempdl import Rollout, SolveLayer
+
+    step = SolveLayer(forms.heat.problem(coarse, controls=("u0", "f")), "lu")
+    rollout = Rollout(step, "u0", schedule=schedule)
+    n = step.problem.output_size
+    u0 = torch.linspace(0, 1, n, dtype=torch.float64).requires_grad_()
+    f = torch.ones(2, step.problem.control_size("f"), dtype=torch.float64)
+    dts = [0.1, 0.2, 0.05, 0.3, 0.1]
+    with io.TimeSeries(tmp_path / "heat", step.problem, every=2, sample=1, encoding="ascii") as series:
+        states = rollout(u0, 5, constants={"dt": dts}, f=f, series=series)
+        states[:, -1].sum().backward()
+    assert series.times == pytest.approx([0.0, 0.3, 0.65])
+    attrs, _ = _ascii_attributes(tmp_path / "heat.xdmf")
+    assert sorted(t for _, t in attrs) == pytest.approx([0.0, 0.3, 0.65])
+    for k, t in zip((0, 2, 4), series.times):
+        written = next(v for (name, s), v in attrs.items() if name == "u" and abs(s - t) < 1e-12)
+        # P1 values in node order: the same numbers as the state's DOF values
+        np.testing.assert_allclose(np.sort(written[0][:, 0]), np.sort(states[1, k].detach().numpy()), atol=1e-14)
+
+
+def test_time_series_arguments_are_checked(tmp_path, coarse):
+    prob = forms.heat.problem(coarse, controls=("u0",))
+    with pytest.raises(ValueError, match="every"):
+        io.TimeSeries(tmp_path / "x", prob, every=0)
+    with pytest.raises(ValueError, match="encoding"):
+        io.TimeSeries(tmp_path / "x", prob, encoding="csv")
+    with io.TimeSeries(tmp_path / "x", prob, sample=3) as series, pytest.raises(ValueError, match="3"):
+        series.write(0, 0.0, np.zeros((2, prob.output_size)))

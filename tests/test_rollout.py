@@ -181,3 +181,57 @@ def test_schedules_are_checked(lshape):
         Rollout(unrolled, "u0", schedule=("revolve", 2))
     for lay in (step, unrolled):
         lay.close()
+
+
+@pytest.mark.parametrize("schedule", [None, "all"])
+def test_a_shared_initial_state_with_batched_controls(lshape, schedule):
+    """u_0 (n,) shared by a batch of sources: (B, N + 1, n), the first row of each sample u_0."""
+    step = heat_step(lshape)
+    u0, f = inputs(step.problem, 3)
+    out = Rollout(step, "u0", schedule=schedule)(u0[0], 3, per_step={"f": f})
+    assert out.shape == (2, 4, step.problem.output_size)
+    assert torch.equal(out[0, 0], u0[0]) and torch.equal(out[1, 0], u0[0])
+
+
+def test_memory_under_a_schedule_grows_with_its_snapshots_not_its_steps():
+    """NumPy's allocations (the scheduled path's states live in NumPy; tracemalloc sees them) during
+    forward + backward of a 120-step heat rollout: storing every state holds at least N n floats,
+    revolve with 3 snapshots a small multiple of n, and both give the same gradient."""
+    import tracemalloc
+
+    import dolfinx.mesh
+
+    steps, peaks, grads = 120, {}, {}
+    step = heat_step(dolfinx.mesh.create_unit_square(MPI.COMM_SELF, 40, 40))      # 1,681 DOFs
+    n = step.problem.output_size
+    u0, f = inputs(step.problem, 1)
+    for schedule in ("all", ("revolve", 3)):
+        rollout = Rollout(step, "u0", schedule=schedule)
+        source = f[:, 0].clone().requires_grad_()
+        tracemalloc.start()
+        rollout(u0, steps, f=source, outputs=[steps]).square().sum().backward()
+        name = schedule if isinstance(schedule, str) else schedule[0]
+        peaks[name] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        grads[name] = source.grad
+    state = 2 * n * 8                                        # one state of the batch of 2, in bytes
+    assert peaks["all"] >= steps * state, (peaks, state)
+    assert peaks["revolve"] <= 40 * state, (peaks, state)      # 3 snapshots, a step's arrays, fixed overhead
+    assert torch.allclose(grads["all"], grads["revolve"], rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("schedule", [None, ("revolve", 2)])
+def test_float32_inputs_give_float32_states_and_the_float64_gradient_to_single_precision(lshape, schedule):
+    """The solves run in float64 whatever the inputs; the states and gradients come back in float32."""
+    step = heat_step(lshape)
+    u0, f = inputs(step.problem, 4)
+    results = {}
+    for dtype in (torch.float64, torch.float32):
+        a, b = u0.detach().to(dtype).requires_grad_(), f.detach().to(dtype).requires_grad_()
+        out = Rollout(step, "u0", schedule=schedule)(a, 4, constants={"dt": DTS[:4]}, per_step={"f": b})
+        out.square().sum().backward()
+        assert out.dtype == a.grad.dtype == b.grad.dtype == dtype
+        results[dtype] = (out.detach(), a.grad, b.grad)
+    for x64, x32 in zip(results[torch.float64], results[torch.float32]):
+        # float32 inputs and outputs: round-off of a few units of 2^-24 relative to the largest entry
+        assert float((x64 - x32.double()).abs().max()) <= 1e-5 * float(x64.abs().max())

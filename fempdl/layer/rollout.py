@@ -24,6 +24,10 @@ schedule (:mod:`fempdl.layer.rollout_checkpoint`): O(s B n) floats, steps run
 again counted in :attr:`Rollout.schedule_stats`, the same gradient. A schedule
 needs a step differentiated implicitly (the step layers' default).
 
+``series=`` (a :class:`fempdl.io.TimeSeries`) writes the states to an XDMF time series as the
+first sweep computes them (a schedule's recomputed steps write nothing), at the times
+t_k = dt_0 + ... + dt_{k-1} of the problem's Constant ``"dt"`` (the step index k without one).
+
 Shapes: ``initial`` (B, n) or (n,); a control constant in time (B, n_m) or
 (n_m,); a control per step (B, N, n_m) or (N, n_m) (shared by the batch);
 the result (B, T, n), or (T, n) when nothing is batched, for the T indices
@@ -103,7 +107,7 @@ class Rollout(torch.nn.Module):
 
     def forward(self, initial: torch.Tensor, steps: int, *, constants: Mapping[str, Sequence[float]] | None = None,
                 per_step: Mapping[str, torch.Tensor] | None = None, outputs: Sequence[int] | None = None,
-                **controls: torch.Tensor) -> torch.Tensor:
+                series=None, **controls: torch.Tensor) -> torch.Tensor:
         """Run ``steps`` steps from ``initial`` (module docstring).
 
         Args:
@@ -112,6 +116,7 @@ class Rollout(torch.nn.Module):
             constants: per-step values of the problem's Constants, name -> N floats.
             per_step: controls given per step, name -> (B, N, n_m) or (N, n_m).
             outputs: indices into 0 ... N of the states to return (default: all).
+            series: a :class:`fempdl.io.TimeSeries` the states are written to (module docstring).
             controls: controls constant in time, (B, n_m) or (n_m,).
         """
         check_int("steps", steps, minimum=1)
@@ -119,8 +124,10 @@ class Rollout(torch.nn.Module):
         values = self._constant_values(constants or {}, steps)
         self._check_controls(controls, per_step, steps)
         indices = self._outputs(outputs, steps)
+        write = self._writer(series, values, steps)
+        write(0, initial)
         if self.schedule is not None:
-            return _Scheduled.apply(self, steps, values, tuple(controls), tuple(per_step), indices, initial,
+            return _Scheduled.apply(self, steps, values, tuple(controls), tuple(per_step), indices, write, initial,
                                     *controls.values(), *per_step.values())
         problem = self.step.problem
         saved = {name: problem.constants[name].value.copy() for name in values}
@@ -133,10 +140,13 @@ class Rollout(torch.nn.Module):
                 if self.warm_start:
                     inputs["initial_guess"] = u
                 u = self.step(**inputs, **{self.state: u})
+                write(k + 1, u)
                 states.append(u)
         finally:
             for name, value in saved.items():
                 problem.constants[name].value = value
+        if initial.dim() == 1 and states[-1].dim() == 2:
+            states[0] = initial.expand_as(states[-1])        # one initial state shared by a batch
         return torch.stack([states[i] for i in indices], dim=-2)
 
     def _constant_values(self, constants: Mapping, steps: int) -> dict:
@@ -171,6 +181,22 @@ class Rollout(torch.nn.Module):
                 raise ValueError(f"per_step[{name!r}] must be (B, N, n_m) or (N, n_m) with N = steps = {steps}, "
                                  f"got {shape}")
 
+    def _writer(self, series, values: dict, steps: int):
+        """write(k, u_k): to ``series`` at t_k, or nothing."""
+        if series is None:
+            return lambda k, u: None
+        if not callable(getattr(series, "write", None)):
+            raise TypeError(f"series must be a fempdl.io.TimeSeries, got {type(series).__name__}")
+        dt = self.step.problem.constants.get("dt")
+        if "dt" in values:
+            dts = values["dt"].reshape(steps)
+        elif dt is not None and np.size(dt.value) == 1:
+            dts = np.full(steps, float(dt.value))
+        else:
+            dts = np.ones(steps)
+        times = np.concatenate([[0.0], np.cumsum(dts)])
+        return lambda k, u: series.write(k, times[k], u)
+
     @staticmethod
     def _outputs(outputs, steps: int) -> list:
         if outputs is None:
@@ -189,11 +215,16 @@ class _Scheduled(torch.autograd.Function):
     """The rollout as one node: forward sweep without autograd, backward under the schedule."""
 
     @staticmethod
-    def forward(ctx, rollout, steps, values, constant_names, step_names, indices, initial, *tensors):
+    def forward(ctx, rollout, steps, values, constant_names, step_names, indices, write, initial, *tensors):
         plan = _Plan(rollout, steps, values, constant_names, step_names, initial, tensors)
-        training = any(ctx.needs_input_grad[6:])
-        runner = CheckpointedRollout(make_schedule(rollout.schedule, steps), steps,
-                                     lambda k, u, first: plan.run(k, u, first, training), plan.adjoint, indices,
+        training = any(ctx.needs_input_grad[7:])
+
+        def run(k, u, first):
+            u_next = plan.run(k, u, first, training)
+            if first:
+                write(k + 1, u_next[0] if plan.unbatched else u_next)
+            return u_next
+        runner = CheckpointedRollout(make_schedule(rollout.schedule, steps), steps, run, plan.adjoint, indices,
                                      rollout.disk_dir, rollout.step.problem.V.mesh.comm.rank)
         with plan.constants_kept():
             outs = runner.forward(plan.initial)
@@ -211,12 +242,13 @@ class _Scheduled(torch.autograd.Function):
         output_grads: dict = {}
         for t, i in enumerate(ctx.indices):
             output_grads[i] = output_grads[i] + G[:, t] if i in output_grads else G[:, t].copy()
-        plan.wanted = [name for name, need in zip(plan.names, ctx.needs_input_grad[7:]) if need]
+        plan.wanted = [name for name, need in zip(plan.names, ctx.needs_input_grad[8:]) if need]
+        plan.sums = {}
         with plan.constants_kept(), plan.call_state():
             lam0, per_step = runner.backward(output_grads)
-        grads = [plan.reduce(lam0, plan.initial_shared) if ctx.needs_input_grad[6] else None,
+        grads = [plan.reduce(lam0, plan.initial_shared) if ctx.needs_input_grad[7] else None,
                  *plan.control_grads(per_step)]
-        return (None,) * 6 + tuple(None if g is None else g.to(dtype) for g, dtype in zip(grads, plan.dtypes))
+        return (None,) * 7 + tuple(None if g is None else g.to(dtype) for g, dtype in zip(grads, plan.dtypes))
 
 
 class _Plan:
@@ -242,6 +274,7 @@ class _Plan:
         self.initial = np.array(np.broadcast_to(_float64(initial), (self.batch, initial.shape[-1])))
         self.caps: dict = {}
         self.wanted: list = []
+        self.sums: dict = {}          # dJ/dm of the controls constant in time, summed over the steps
         self.packed = self.layer.call_state.pack(self.system)
 
     def step_controls(self, k: int, u: np.ndarray) -> dict:
@@ -272,6 +305,9 @@ class _Plan:
             grads = self.system.adjoint(self.step_controls(k, uk), uk1, lam, [state, *self.wanted],
                                         frozenset(self.shared), initial_guess=self.rollout.warm_start)
         lam_k = grads.pop(state) + grads.pop(INITIAL_GUESS, 0.0)
+        for name in [n for n in grads if n not in self.per_step]:     # summed as they come: O(n_m), not O(N n_m)
+            g = grads.pop(name)
+            self.sums[name] = self.sums[name] + g if name in self.sums else g
         return lam_k, grads
 
     def control_grads(self, per_step: dict) -> list:
@@ -283,7 +319,7 @@ class _Plan:
             if name in self.per_step:
                 g = np.stack([per_step[k][name] for k in range(self.steps)], axis=1)     # (B, N, n_m)
             else:
-                g = sum(per_step[k][name] for k in range(self.steps))
+                g = self.sums[name]
             out.append(self.reduce(g, name in self.shared))
         return out
 
