@@ -135,7 +135,7 @@ def test_burgers_chain_gradient_matches_finite_differences(burgers):
     task = runner.build_task(burgers, KSPOptions.preset("lu"))
     try:
         task.model.double()
-        u0, u2 = task.train_u0[:3].double(), task.train_u2[:3].double()
+        u0, u2 = task.train_u0[:3].double(), task.train_targets[0, :3].double()
         from fempdl.app.tasks.metrics import nmse
         exact, fd = _directional_check(task, lambda: nmse(task.physics(task.layer, task.model(u0)), u2))
         assert abs(exact - fd) <= 1e-6 * abs(fd) and abs(fd) > 1e-6
@@ -261,3 +261,29 @@ def test_hybrid_warm_start_begins_at_the_state(hybrid):
     finally:
         cold.close()
         warm.close()
+
+
+# ------------------------------------------------------------------ emulator trained over a rollout
+def test_an_emulator_trained_over_m_pairs_chains_them_and_its_gradient_is_exact():
+    """[data] train_rollout = 3: the loss is the mean nMSE of the three physics states of the chain
+    (network, heat step) x 3 from u0 against the converged trajectory, and its gradient in the
+    network's parameters matches central differences."""
+    from fempdl.app.tasks.metrics import nmse
+
+    sc = scene.parse(tiny_scene("emulator", data={"train_rollout": 3, "rollout": 2}))
+    task = runner.build_task(sc, KSPOptions.preset("lu"))
+    try:
+        task.model.double()
+        assert task.train_targets.shape == (3, sc.data.train, task.problem.output_size)
+        assert len(task.val_targets) == 2
+        idx = torch.arange(3)
+        u, errors = task.train_u0[idx].double(), []
+        for m in range(3):
+            u = task.physics(task.reference, task.model(u))
+            errors.append(float(nmse(u, task.train_targets[m, idx].double())))
+        task.train_u0, task.train_targets = task.train_u0.double(), task.train_targets.double()
+        assert abs(float(task.loss(idx)) - np.mean(errors)) <= 1e-12 * np.mean(errors)
+        exact, fd = _directional_check(task, lambda: task.loss(idx))
+        assert abs(exact - fd) <= 1e-6 * abs(fd) and abs(fd) > 1e-8
+    finally:
+        task.close()

@@ -149,7 +149,8 @@ def test_parse_fills_the_schema_defaults():
     assert (sc.name, sc.task, sc.description, sc.source) == ("t", "emulator", "", "<string>")
     assert sc.as_dict()["mesh"] == {"name": "lshape", "h": None}
     assert sc.as_dict()["pde"] == {"type": "heat", "dt": 0.01, "theta": 1.0, "kappa": 1.0, "degree": 1}   # nu, inflow: not heat
-    assert sc.as_dict()["data"] == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "k_eps_rtol": 1e-5, "rollout": 1}
+    assert sc.as_dict()["data"] == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "k_eps_rtol": 1e-5, "rollout": 1,
+                                       "train_rollout": 1}
     assert sc.as_dict()["network"] == {"type": "mlp", "hidden": 128, "layers": 2}
     assert sc.as_dict()["optimizer"] == {"type": "adam", "lr": 1e-3, "decay": 1.0, "epochs": 30, "batch": 16, "stop_at": None}
     assert sc.as_dict()["solver"] == {"preset": "jacobi", "diff": "implicit", "warm_start": False, "lag_preconditioner": False}

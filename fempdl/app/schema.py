@@ -129,6 +129,8 @@ class DataConfig:
     k_eps_rtol: float | None = _key(float, 1e-5, doc="rtol whose iteration count is the converged cap K_eps "
                                                      "(not sip, hig)", minimum=POSITIVE, maximum=0.5)
     rollout: int | None = _key(int, 1, doc="steps of the validation rollout (emulator, hybrid)", minimum=1)
+    train_rollout: int | None = _key(int, 1, doc="(network, physics) pairs the training loss covers, fed "
+                                                 "back autoregressively (emulator)", minimum=1)
     truths: str | None = _key(str, "smooth", doc="sums of `modes` sine modes or boxes (sip, hig)",
                               choices=("smooth", "rectangles"))
     noise: float | None = _key(float, 0.0, doc="Gaussian noise on the observations, relative to their largest "

@@ -27,7 +27,10 @@ def emulator_spec(pdes: tuple) -> TaskSpec:
 
 
 class EmulatorTask(Task):
-    """Network step u0 -> u1, capped physics step u1 -> u2, loss nMSE(u2, u2_ref).
+    """Network step u0 -> u1, capped physics step u1 -> u2, loss nMSE(u2, u2_ref); with ``[data]
+    train_rollout = M`` the chain of M (network, capped physics) pairs from u0, each pair's input
+    the previous pair's output, and the loss the mean nMSE of the M states u2, u4, ..., u2M against
+    the converged trajectory's (an autoregressive emulator trained over M pairs).
 
     The physics step is the scene's PDE: a heat step (control u0) or a
     linearised Burgers step around the network's output (w = u_prev = u1: the
@@ -47,18 +50,20 @@ class EmulatorTask(Task):
         self.warm_start = scene.solver.warm_start
         self.problem = self._build_problem(msh, pde)
         n_train, n_val = scene.data.train, scene.data.validation
-        self.rollout = scene.data.rollout
+        self.rollout, self.train_rollout = scene.data.rollout, scene.data.train_rollout
         u0 = torch.as_tensor(self._initial_states(n_train + n_val, scene.data.modes, rng))
         # Converged physics: reference data and validation (not counted in layers' iterations).
         self.reference = self._reference_layer()
         with torch.no_grad():
             trajectory = [u0]
-            for _ in range(2 * self.rollout):
+            for _ in range(2 * max(self.rollout, self.train_rollout)):
                 trajectory.append(self.physics(self.reference, trajectory[-1]))
         self.reference_states = trajectory[1]
-        self.train_u0, self.train_u2 = u0[:n_train].float(), trajectory[2][:n_train].float()
+        self.train_u0 = u0[:n_train].float()
+        # (M, n_train, n): the targets of the M pairs of the training chain
+        self.train_targets = torch.stack([s[:n_train] for s in trajectory[2:2 * self.train_rollout + 1:2]]).float()
         self.val_u0 = u0[n_train:].float()
-        self.val_targets = [state[n_train:].float() for state in trajectory[2::2]]
+        self.val_targets = [state[n_train:].float() for state in trajectory[2:2 * self.rollout + 1:2]]
         self.train_size, self.val_size = n_train, n_val
         self.layer = self._capped_layer(options, scene)
         self.layers = [self.layer]
@@ -106,8 +111,11 @@ class EmulatorTask(Task):
                             spec.hidden, spec.layers)
 
     def loss(self, idx) -> torch.Tensor:
-        u2 = self.physics(self.layer, self.model(self.train_u0[idx]))
-        return nmse(u2, self.train_u2[idx])
+        u, errors = self.train_u0[idx], []
+        for target in self.train_targets:
+            u = self.physics(self.layer, self.model(u))
+            errors.append(nmse(u, target[idx]))
+        return torch.stack(errors).mean()
 
     def validation_errors(self, idx) -> torch.Tensor:
         """Per sample: the nMSE of every (network, converged step) pair, averaged over the rollout."""

@@ -143,7 +143,8 @@ class HybridTask(Task):
 
     specs = (TaskSpec(name="hybrid", pdes=("oseen",), required=frozenset({"scene", "mesh", "pde", "hybrid"}),
                       optional=frozenset({"data", "network", "optimizer", "solver", "prdp"}),
-                      unused={"data": frozenset({"truths", "noise", "resample"})}, parallel=("data",)),)
+                      unused={"data": frozenset({"truths", "noise", "resample", "train_rollout"})},
+                      parallel=("data",)),)
 
     def __init__(self, scene: Scene, options: KSPOptions, *, comm: MPI.Comm = MPI.COMM_SELF,
                  seed: int | None = None):

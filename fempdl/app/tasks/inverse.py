@@ -42,7 +42,7 @@ class InverseTask(Task):
 
     specs = (TaskSpec(name="inverse", pdes=("poisson",), required=frozenset({"scene", "mesh", "pde", "inverse"}),
                       optional=frozenset({"data", "optimizer", "solver", "prdp"}),
-                      unused={"data": frozenset({"train", "validation", "modes", "rollout"}) | frozenset({"truths", "noise", "resample"}),
+                      unused={"data": frozenset({"train", "validation", "modes", "rollout", "train_rollout"}) | frozenset({"truths", "noise", "resample"}),
                               "optimizer": frozenset({"batch"})},
                       parallel=("mesh",), writes_fields=True),)
 

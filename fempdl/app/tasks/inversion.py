@@ -70,7 +70,7 @@ __all__ = ["InversionTask", "method_of"]
 #: The sip task on a one-layer physics (poisson, heat); the marker task serves it on the marker rollout.
 SIP_SPEC = TaskSpec(name="sip", pdes=("poisson", "heat", "nonlinear-poisson"), required=frozenset({"scene", "mesh", "pde", "sip"}),
                     optional=frozenset({"data", "network", "optimizer", "baseline", "marker"}),
-                    unused={"data": frozenset({"k_eps_rtol", "rollout"})}, trains="method")
+                    unused={"data": frozenset({"k_eps_rtol", "rollout", "train_rollout"})}, trains="method")
 
 
 def method_of(scene: Scene) -> str:
@@ -89,7 +89,7 @@ class InversionTask(Task):
 
     specs = (SIP_SPEC, TaskSpec(name="hig", pdes=("poisson", "nonlinear-poisson"), required=frozenset({"scene", "mesh", "pde", "hig"}),
                                 optional=frozenset({"data", "network", "optimizer", "baseline"}),
-                                unused={"data": frozenset({"k_eps_rtol", "rollout"}),
+                                unused={"data": frozenset({"k_eps_rtol", "rollout", "train_rollout"}),
                                         "optimizer": frozenset({"type", "lr", "decay"})},
                                 trains="method"))
 
