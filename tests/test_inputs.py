@@ -224,7 +224,7 @@ def test_layer_constructor_errors(prob):
         SolveLayer("poisson")
     with pytest.raises(TypeError, match=r"options must be KSPOptions or a preset name, got int"):
         SolveLayer(prob, 5)
-    with pytest.raises(ValueError, match=r"unknown preset 'nonexistent'; choose one of \['amg', 'cg', 'cholesky', 'gmres', 'gmres-ilu', 'jacobi', 'lu', 'schur'\]"):
+    with pytest.raises(ValueError, match=r"unknown preset 'nonexistent'; choose one of \['amg', 'cg', 'cholesky', 'gmres', 'gmres-ilu', 'jacobi', 'lu', 'lu-lagged', 'schur'\]"):
         SolveLayer(prob, "nonexistent")
     with pytest.raises(ValueError, match=r"diff must be one of \[.*'implicit'.*\], got 'bogus'"):
         SolveLayer(prob, diff="bogus")
@@ -277,7 +277,7 @@ def test_kspoptions_rejects(kwargs, exc, match):
 
 
 def test_unknown_preset_and_bad_override():
-    with pytest.raises(ValueError, match=r"unknown preset 'foo'; choose one of \['amg', 'cg', 'cholesky', 'gmres', 'gmres-ilu', 'jacobi', 'lu', 'schur'\]"):
+    with pytest.raises(ValueError, match=r"unknown preset 'foo'; choose one of \['amg', 'cg', 'cholesky', 'gmres', 'gmres-ilu', 'jacobi', 'lu', 'lu-lagged', 'schur'\]"):
         KSPOptions.preset("foo")
     with pytest.raises(ValueError, match=r"max_it must be >= 1, got 0"):
         KSPOptions.preset("jacobi", max_it=0)
