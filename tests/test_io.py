@@ -147,9 +147,17 @@ def test_write_xdmf_errors(tmp_path, poisson_p2, stokes):
 
 
 def test_plot_fields_png_and_its_refusal(tmp_path, poisson_p2, stokes):
-    u = poisson_p2.interpolate(_linear)
-    png = io.plot_fields(tmp_path / "p.png", poisson_p2, {"u": u, "kappa": poisson_p2.interpolate(smooth, "kappa"),
-                                                          "flow": ("f", np.ones(poisson_p2.control_size("f")))})
+    import matplotlib
+
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")                                # a caller's own (non-PNG) backend
+    try:
+        u = poisson_p2.interpolate(_linear)
+        png = io.plot_fields(tmp_path / "p.png", poisson_p2, {"u": u, "kappa": poisson_p2.interpolate(smooth, "kappa"),
+                                                              "flow": ("f", np.ones(poisson_p2.control_size("f")))})
+        assert matplotlib.get_backend() == "svg"         # left alone: the figure is drawn without pyplot
+    finally:
+        matplotlib.use(before)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert io.plot_fields(tmp_path / "s.png", stokes, {"w": np.ones(stokes.output_size)}).stat().st_size > 1000
     with pytest.raises(ValueError, match=r"same_scale names \['v'\], which are not labels of values \['u'\]"):

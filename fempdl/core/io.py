@@ -238,14 +238,13 @@ def plot_fields(path, problem, values: Mapping, *, title: str | None = None, sam
     unknown = sorted(set(same_scale) - set(values))
     if unknown:
         raise ValueError(f"same_scale names {unknown}, which are not labels of values {list(values)}")
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure     # drawn without pyplot: the caller's backend stays as it is
 
     panels = {label: plot_data(problem, label, value) for label, value in values.items()}
     shared = [panels[label][2] for label in same_scale]
     limits = (min(d.min() for d in shared), max(d.max() for d in shared)) if shared else (None, None)
-    fig, axes = plt.subplots(1, len(values), figsize=(4.2 * len(values), 3.8), squeeze=False)
+    fig = Figure(figsize=(4.2 * len(values), 3.8))
+    axes = fig.subplots(1, len(values), squeeze=False)
     for ax, (label, (xy, triangles, data, per_cell, vector)) in zip(axes[0], panels.items()):
         vmin, vmax = limits if label in same_scale else (None, None)
         if per_cell:
@@ -261,7 +260,6 @@ def plot_fields(path, problem, values: Mapping, *, title: str | None = None, sam
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
     return path
 
 

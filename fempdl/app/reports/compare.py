@@ -152,12 +152,11 @@ def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir:
 
 
 def _plot(scene: Scene, runs: dict[str, RunResult], split: dict, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure     # drawn without pyplot: the caller's backend stays as it is
 
     steps = steps_per_epoch(scene)
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5), sharey=True)
+    fig = Figure(figsize=(12, 5))
+    axes = fig.subplots(1, 2, sharey=True)
     for name, r in runs.items():
         label = "Adam + backprop" if name == BASELINE else f"{name.upper()}"
         style = {"color": "black", "linewidth": 2.0} if name != BASELINE else {"color": "tab:blue", "linewidth": 1.2}

@@ -189,12 +189,11 @@ def time_split(run: RunResult) -> dict[str, float]:
 def plot_time_split(runs: dict[str, RunResult], path: Path, title: str) -> None:
     """A stacked bar per run: its wall time split into solver iterations, set-up,
     assembly, adjoint operator, network, validation and the rest."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure     # drawn without pyplot: the caller's backend stays as it is
 
     labels = list(runs)
-    fig, ax = plt.subplots(figsize=(max(5.0, 1.2 * len(labels) + 3.0), 5))
+    fig = Figure(figsize=(max(5.0, 1.2 * len(labels) + 3.0), 5))
+    ax = fig.subplots()
     bottom = [0.0] * len(labels)
     for part in TIME_PARTS:
         heights = [time_split(runs[label])[part] for label in labels]
@@ -203,7 +202,9 @@ def plot_time_split(runs: dict[str, RunResult], path: Path, title: str) -> None:
     ax.set_ylabel("wall time [s]")
     ax.set_title(f"{title}: where the training time went")
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
-    plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
+    for tick in ax.get_xticklabels():
+        tick.set_rotation(20)
+        tick.set_horizontalalignment("right")
     fig.tight_layout()
     write_figure(fig, path)
 
@@ -218,11 +219,10 @@ def _sub(out_dir: Path | None, name: str) -> Path | None:
 
 
 def _plot_per_epoch(runs: dict[str, RunResult], path: Path, title: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure     # drawn without pyplot: the caller's backend stays as it is
 
-    fig, ax = plt.subplots(figsize=(8, 5))
+    fig = Figure(figsize=(8, 5))
+    ax = fig.subplots()
     for label, r in runs.items():
         style = {"linewidth": 2.5, "color": "black"} if r.mode == "prdp" else {"linewidth": 1.2}
         ax.semilogy([row["epoch"] for row in r.rows], [row["val_metric"] for row in r.rows], label=label, **style)
@@ -241,11 +241,10 @@ def _plot_per_epoch(runs: dict[str, RunResult], path: Path, title: str) -> None:
 
 
 def _plot_against_cost(runs: dict[str, RunResult], path: Path, title: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure     # drawn without pyplot: the caller's backend stays as it is
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5), sharey=True)
+    fig = Figure(figsize=(12, 5))
+    axes = fig.subplots(1, 2, sharey=True)
     for label, r in runs.items():
         style = {"linewidth": 2.5, "color": "black"} if r.mode == "prdp" else {"linewidth": 1.2}
         metric = [row["val_metric"] for row in r.rows]
@@ -288,8 +287,5 @@ def _parts_text(split: dict) -> str:
 
 
 def write_figure(fig, path: Path) -> None:
-    """Write ``fig`` as a PNG atomically (an interrupted write leaves no half file) and close it."""
-    import matplotlib.pyplot as plt
-
+    """Write ``fig`` (a matplotlib Figure) as a PNG atomically: an interrupted write leaves no half file."""
     write_atomically(path, lambda p: fig.savefig(p, format="png", dpi=120))
-    plt.close(fig)
