@@ -44,7 +44,7 @@ import time
 import torch
 
 from fempdl.layer.implicit_diff import count_on_all_ranks
-from fempdl.layer.system_layer import SystemLayer
+from fempdl.layer.system_layer import DIFF_MODES, SystemLayer, check_diff
 from fempdl.iterative.batched import BatchedEngine
 from fempdl.layer.unrolled_diff import UnrolledPath, unrolled_method
 from fempdl.solve.options import DIRECT_MAX_DOFS, KSPOptions, default_options
@@ -53,7 +53,7 @@ from fempdl.solve.linear_system import LinearSystem
 
 __all__ = ["SolveLayer", "DIFF_MODES", "default_options", "DIRECT_MAX_DOFS"]
 
-DIFF_MODES = ("implicit", "unrolled")
+
 class SolveLayer(SystemLayer):
     """Differentiable capped linear solve of a :class:`fempdl.Problem`.
 
@@ -104,8 +104,7 @@ class SolveLayer(SystemLayer):
             options = KSPOptions.preset(options)
         elif not isinstance(options, KSPOptions):
             raise TypeError(f"options must be KSPOptions or a preset name, got {type(options).__name__}")
-        if diff not in DIFF_MODES:
-            raise ValueError(f"diff must be one of {list(DIFF_MODES)}, got {diff!r}")
+        check_diff(diff)
         if diff == "unrolled":
             unrolled_method(options)  # validates
             if problem.V.mesh.comm.size > 1:

@@ -39,15 +39,13 @@ from fempdl.core.nonlinear_problem import NonlinearProblem
 from fempdl.core.resources import format_bytes, memory_budget
 from fempdl.layer.implicit_diff import count_on_all_ranks
 from fempdl.layer.newton_unrolled import UnrolledNewton, check_unrolled_newton, stored_values
-from fempdl.layer.system_layer import SystemLayer
+from fempdl.layer.system_layer import SystemLayer, check_diff
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.newton_stats import NewtonCumulativeStats
 from fempdl.solve.nonlinear_system import NonlinearSystem
 from fempdl.solve.options import default_options
 
-__all__ = ["NonlinearSolveLayer", "NEWTON_DIFF_MODES"]
-
-NEWTON_DIFF_MODES = ("implicit", "unrolled")
+__all__ = ["NonlinearSolveLayer"]
 
 
 class NonlinearSolveLayer(SystemLayer):
@@ -84,8 +82,7 @@ class NonlinearSolveLayer(SystemLayer):
             raise TypeError(f"options must be NewtonOptions, got {type(options).__name__}")
         if options.ksp is None:
             options = dataclasses.replace(options, ksp=default_options(problem))
-        if diff not in NEWTON_DIFF_MODES:
-            raise ValueError(f"diff must be one of {list(NEWTON_DIFF_MODES)}, got {diff!r}")
+        check_diff(diff)
         if diff == "unrolled":
             check_unrolled_newton(options)
         if max_unrolled_values is not None and diff != "unrolled":

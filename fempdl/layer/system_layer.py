@@ -23,7 +23,11 @@ from fempdl.solve.health import CallHealth, HealthCheck
 from fempdl.solve.linear_system import INITIAL_GUESS
 from fempdl.solve.stats import CumulativeStats, SolverWarning, warn_at_caller
 
-__all__ = ["SystemLayer", "INITIAL_GUESS"]
+__all__ = ["SystemLayer", "INITIAL_GUESS", "DIFF_MODES", "check_diff"]
+
+#: How a solve layer's backward differentiates: the implicit gradient at the returned state, or the
+#: reverse pass of the capped iteration that ran.
+DIFF_MODES = ("implicit", "unrolled")
 
 _FLOAT_DTYPES = (torch.float32, torch.float64)
 #: Refinements one call may ask for (each raises the cap; a refinement that does not lower the ratio ends them).
@@ -32,6 +36,11 @@ MAX_HEALTH_REFINES = 100
 #: from a cap too small for the inputs, which a new cap's first call shows and inputs drifting over training
 #: show within a few calls; measuring every call would cost a loop whose solves are cheap several percent.
 HEALTH_EVERY = 8
+
+
+def check_diff(diff) -> None:
+    if diff not in DIFF_MODES:
+        raise ValueError(f"diff must be one of {list(DIFF_MODES)}, got {diff!r}")
 
 
 class SystemLayer(torch.nn.Module):
