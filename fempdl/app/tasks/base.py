@@ -55,6 +55,18 @@ class Task:
         if any(states):
             raise ValueError(f"{type(self).__name__} keeps no state, got {[sorted(s) for s in states]}")
 
+    def k_eps_rhs(self) -> dict:
+        """The layer inputs (tensors, one row per sample) on which the converged cap K_eps is measured."""
+        raise NotImplementedError(f"{type(self).__name__} measures no K_eps")
+
+    def validation_fields(self, idx) -> tuple:
+        """(space name or None, prediction, reference) of the validation samples ``idx``, (len(idx), n)
+        each: what ``--save-fields`` writes (tasks whose spec says ``writes_fields``)."""
+        raise NotImplementedError(f"{type(self).__name__} writes no fields")
+
+    def close(self) -> None:
+        """Free the PETSc objects the task holds (its layers'); the runner calls it when a run ends."""
+
     def train_step(self, idx) -> float:
         """One optimizer step on the samples ``idx``; returns the loss."""
         return optimisation_step(self.optimizer, self.loss(idx))
