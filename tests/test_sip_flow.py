@@ -20,7 +20,8 @@ from fempdl.app.tasks.data import smooth_fields
 from fempdl.ksp_adjoint import KSPOptions
 from fempdl.app.tasks.marker_rollout import ENCLOSED_LU, MarkerFlow
 from fempdl.app.tasks.marker import MarkerInversionTask
-from fempdl.methods.sip import LinearisedGaussNewton, batched_cg
+from fempdl.iterative.batched_cg import matrix_free_cg
+from fempdl.methods.sip import LinearisedGaussNewton
 
 from helpers import tiny_scene
 
@@ -120,11 +121,11 @@ def test_moving_the_cap_of_the_schur_flow_step_moves_its_adjoint_cap_too():
     assert P.flow_layer.stats.backward_iterations - before == 2 * 5
 
 
-def test_batched_cg_solves_each_row_on_its_own():
+def test_matrix_free_cg_solves_each_row_on_its_own():
     gen = torch.Generator().manual_seed(1)
     mats = [a @ a.T + 3 * torch.eye(6, dtype=torch.float64) for a in torch.randn(3, 6, 6, generator=gen, dtype=torch.float64)]
     rhs = torch.randn(3, 6, generator=gen, dtype=torch.float64)
-    dx, iterations = batched_cg(lambda v: torch.stack([m @ r for m, r in zip(mats, v)]), rhs, max_it=50, rtol=1e-13)
+    dx, iterations = matrix_free_cg(lambda v: torch.stack([m @ r for m, r in zip(mats, v)]), rhs, max_it=50, rtol=1e-13)
     assert iterations <= 7
     torch.testing.assert_close(dx, torch.stack([torch.linalg.solve(m, r) for m, r in zip(mats, rhs)]))
 

@@ -16,6 +16,18 @@ after k iterations; with DIVERGED_INDEFINITE_MAT when p.Ap = 0 or changes sign,
 DIVERGED_INDEFINITE_PC when r.z changes sign, DIVERGED_NANORINF on a NaN or inf product, and
 DIVERGED_MAX_IT (KSP_DIVERGED_ITS) after ``max_it`` iterations. A stopped column is frozen: its step lengths are 0, so
 its iterate and residual stay exactly what they were when it stopped, while the other columns go on.
+
+The CGs of fempdl, and why there are four:
+
+* PETSc's KSPCG: a layer's solve on the PETSc path (``KSPOptions.preset("cg")``), one sample at a time;
+* :func:`fast_cg` and :func:`converged_cg` here: the same recurrences and stopping rules for a batch of
+  columns at once (the batched engine, :mod:`fempdl.iterative.batched`), without autograd;
+* :mod:`fempdl.iterative.unrolled`'s ``"cg"`` (autograd through K steps) and
+  :mod:`fempdl.iterative.reverse_cg` (the same K steps with a hand-written reverse pass, less
+  memory): the differentiable K-step map of ``diff="unrolled"``;
+* :func:`matrix_free_cg` here: CG on systems given only as a function of (B, n) rows, the SIP and
+  Gauss-Newton normal equations J^T J dx = J^T r whose products are autograd's
+  (:mod:`fempdl.methods.sip`); no preconditioner, no matrix to hand.
 """
 from __future__ import annotations
 
@@ -24,7 +36,7 @@ import torch
 
 from fempdl.iterative.columns import SOLVED, column_dots, guarded_ratio, spmm_into
 
-__all__ = ["fast_cg", "converged_cg", "Tolerance"]
+__all__ = ["fast_cg", "converged_cg", "matrix_free_cg", "Tolerance"]
 
 
 def fast_cg(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int) -> torch.Tensor:
@@ -144,3 +156,31 @@ def _stop(reason: np.ndarray, running: np.ndarray, nan: np.ndarray, dp=None, tto
     if dp is not None and (done := running & (dp <= ttol)).any():
         reason[done] = np.where(dp[done] < atol, _ATOL, _RTOL)
         running &= ~done
+
+
+def matrix_free_cg(normal, rhs: torch.Tensor, max_it: int, rtol: float = 0.0) -> tuple[torch.Tensor, int]:
+    """CG on independent symmetric positive systems N_b dx_b = rhs_b, one per row of ``rhs`` (B, n).
+
+    ``normal`` maps (B, n) -> (B, n) row by row; a row stops once its residual is
+    below ``rtol`` times its right-hand side. Returns dx (B, n) and the number of
+    iterations run (calls of ``normal``), at most ``max_it``."""
+    dx = torch.zeros_like(rhs)
+    r, p = rhs.clone(), rhs.clone()
+    rr = (r * r).sum(-1)
+    stop = (rtol * rhs.norm(dim=-1)) ** 2
+    iterations = 0
+    for _ in range(max_it):
+        active = rr > stop
+        if not bool(active.any()) or not bool((rr > 0).any()):
+            break
+        q = normal(p)
+        pq = (p * q).sum(-1)
+        alpha = torch.where(active & (pq > 0), rr / torch.where(pq > 0, pq, 1.0), 0.0)
+        dx += alpha[:, None] * p
+        r -= alpha[:, None] * q
+        rr_new = (r * r).sum(-1)
+        beta = torch.where(rr > 0, rr_new / torch.where(rr > 0, rr, 1.0), 0.0)
+        p = r + beta[:, None] * p
+        rr = rr_new
+        iterations += 1
+    return dx, iterations

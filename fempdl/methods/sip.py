@@ -22,6 +22,7 @@ import scipy.sparse.linalg as spla
 import torch
 
 from fempdl.bridge_torch import SolveLayer
+from fempdl.iterative.batched_cg import matrix_free_cg
 from fempdl.solve.assembly import assemble_scipy
 
 __all__ = ["ExactLinearInverse", "GaussNewtonInverse", "GradientStep", "LinearisedGaussNewton", "TikhonovInverse",
@@ -170,36 +171,8 @@ class GaussNewtonInverse(_LayerInverse):
                 return adjoint(self.physics(v) - offset) + self.damping * v
 
             rhs = adjoint(y_target.double() - self.physics(x0d))
-            dx, self.last_iterations = batched_cg(normal, rhs, self.max_it, self.rtol)
+            dx, self.last_iterations = matrix_free_cg(normal, rhs, self.max_it, self.rtol)
         return (x0d + self.eta * dx).to(x0.dtype)
-
-
-def batched_cg(normal, rhs: torch.Tensor, max_it: int, rtol: float = 0.0) -> tuple[torch.Tensor, int]:
-    """CG on independent symmetric positive systems N_b dx_b = rhs_b, one per row of ``rhs`` (B, n).
-
-    ``normal`` maps (B, n) -> (B, n) row by row; a row stops once its residual is
-    below ``rtol`` times its right-hand side. Returns dx (B, n) and the number of
-    iterations run (calls of ``normal``), at most ``max_it``."""
-    dx = torch.zeros_like(rhs)
-    r, p = rhs.clone(), rhs.clone()
-    rr = (r * r).sum(-1)
-    stop = (rtol * rhs.norm(dim=-1)) ** 2
-    iterations = 0
-    for _ in range(max_it):
-        active = rr > stop
-        if not bool(active.any()) or not bool((rr > 0).any()):
-            break
-        q = normal(p)
-        pq = (p * q).sum(-1)
-        alpha = torch.where(active & (pq > 0), rr / torch.where(pq > 0, pq, 1.0), 0.0)
-        dx += alpha[:, None] * p
-        r -= alpha[:, None] * q
-        rr_new = (r * r).sum(-1)
-        beta = torch.where(rr > 0, rr_new / torch.where(rr > 0, rr, 1.0), 0.0)
-        p = r + beta[:, None] * p
-        rr = rr_new
-        iterations += 1
-    return dx, iterations
 
 
 class LinearisedGaussNewton:
@@ -263,7 +236,7 @@ class LinearisedGaussNewton:
                 return adjoint(tangent(v)) + (self.damping + self.prior) * v
 
             rhs = adjoint(y_target.double() - y0.detach()) - self.prior * x
-            dx, self.last_iterations = batched_cg(normal, rhs, self.max_it, self.rtol)
+            dx, self.last_iterations = matrix_free_cg(normal, rhs, self.max_it, self.rtol)
         return (x + self.eta * dx).to(x0.dtype)
 
 
