@@ -109,7 +109,7 @@ class NonlinearSolveLayer(SystemLayer):
         options = self.system.options.with_inner_max_it(value)      # validates
         if self.diff == "unrolled":
             check_unrolled_newton(options)
-        self.system.inner_max_it = value
+        self.system.options = options                               # built once, checked once
 
     def _caps(self) -> tuple:
         return self.max_it, self.inner_max_it

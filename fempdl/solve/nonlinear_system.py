@@ -160,10 +160,6 @@ class NonlinearSystem(NewtonReversePass):
     def inner_max_it(self) -> int | None:
         return self._options.ksp.max_it
 
-    @inner_max_it.setter
-    def inner_max_it(self, value: int | None) -> None:
-        self.options = self._options.with_inner_max_it(value)
-
     def _build(self, options: NewtonOptions) -> None:
         p = self.problem
         ksp_options: KSPOptions = options.ksp
