@@ -7,9 +7,11 @@ Public names, in one line::
 
 They load on first use, so ``import fempdl`` (and ``fempdl --help``) does not pay
 for DOLFINx and torch until a name needs them. The package's floors, bottom to
-top: ``core`` and ``forms`` (FEniCSx), ``solve`` and ``ksp_adjoint`` (PETSc),
-``iterative`` (torch-only K-step maths), ``layer`` and ``bridge_torch`` (the
-torch layer), ``methods`` (PRDP, SIP, HIG), ``app`` (scenes and the command).
+top: ``core`` and ``forms`` (FEniCSx), ``solve`` (PETSc), ``iterative``
+(torch-only K-step maths), ``layer`` (the torch layers), ``methods`` (PRDP, SIP,
+HIG), ``app`` (scenes and the command). ``fempdl.ksp_adjoint``,
+``fempdl.bridge_torch`` and ``fempdl.prdp`` are the documented import paths:
+re-exports of those floors.
 """
 import importlib
 import logging
@@ -30,12 +32,12 @@ __version__ = "0.1.0"
 # Public name -> the module that defines it (imported on first access).
 _PUBLIC = {
     "Problem": "fempdl.core.problem",
-    "SolveLayer": "fempdl.bridge_torch",
+    "SolveLayer": "fempdl.layer.solve_layer",
     "NonlinearProblem": "fempdl.core.nonlinear_problem",
     "NonlinearSolveLayer": "fempdl.layer.newton_layer",
     "NewtonOptions": "fempdl.solve.newton_options",
     "KSPOptions": "fempdl.solve.options",
-    "CappedSolver": "fempdl.ksp_adjoint",
+    "CappedSolver": "fempdl.solve.capped_solver",
     "SolveStats": "fempdl.solve.stats",
     "CumulativeStats": "fempdl.solve.stats",
     "SolverFailedError": "fempdl.solve.stats",

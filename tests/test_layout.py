@@ -1,8 +1,8 @@
 """The package's floors: imports point down only, and inside a floor from a later room to an earlier one.
 
 A module's floor and room come from its package path (:data:`FLOORS`): ``fempdl/core/`` is the
-bottom floor, ``fempdl/app/`` the top one; the design card's named files (``ksp_adjoint.py``,
-``bridge_torch.py``, the ``prdp.py``, ``mesh.py`` and ``io.py`` import paths) are placed by name.
+bottom floor, ``fempdl/app/`` the top one; the design card's import paths (``ksp_adjoint.py``,
+``bridge_torch.py``, ``prdp.py``, ``mesh.py`` and ``io.py``) are placed by name.
 Every ``import`` of a fempdl module, at module level or inside a function, is an edge; the test
 reads the sources' ASTs, so it
 sees imports that never run. A module may import its own room (no cycle), the earlier rooms of its
@@ -21,6 +21,8 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parent.parent / "fempdl"
 
+# The design card's module paths: re-exports for users; nothing inside the package imports them.
+PUBLIC_PATHS = ["fempdl.ksp_adjoint", "fempdl.bridge_torch", "fempdl.prdp"]
 # Floors bottom to top, each a list of rooms in order; a room is a list of module prefixes.
 FLOORS = [
     ("core", [["fempdl.core._dolfinx", "fempdl.core.checks", "fempdl.core.resources", "fempdl.core.parallel",
@@ -29,16 +31,17 @@ FLOORS = [
     ("solve", [["fempdl.solve.options", "fempdl.solve.option_checks", "fempdl.solve.newton_options"],
                ["fempdl.solve.stats", "fempdl.solve.petsc", "fempdl.solve.newton_stats", "fempdl.solve.snes",
                 "fempdl.solve.newton_stop", "fempdl.solve.health"],
-               ["fempdl.ksp_adjoint"],
+               ["fempdl.solve.capped_solver"],
                ["fempdl.solve.assembly", "fempdl.solve.control_forms", "fempdl.solve.call_state"],
                ["fempdl.solve.linear_system", "fempdl.solve.newton_reverse", "fempdl.solve.nonlinear_system"],
                ["fempdl.solve"]]),
     ("iterative", [["fempdl.iterative"]]),
     ("layer", [["fempdl.layer.implicit_diff", "fempdl.layer.unrolled_diff", "fempdl.layer.observation"],
                ["fempdl.layer.system_layer", "fempdl.layer.newton_unrolled"], ["fempdl.layer.newton_layer", "fempdl.layer.rollout_checkpoint"], ["fempdl.layer.rollout"],
-               ["fempdl.bridge_torch"], ["fempdl.layer"]]),
-    ("methods", [["fempdl.methods"], ["fempdl.prdp"]]),
-    ("public", [["fempdl"]]),                    # __init__: the public names
+               ["fempdl.layer.solve_layer"], ["fempdl.layer"]]),
+    ("methods", [["fempdl.methods"]]),
+    # __init__ (the public names, lazily) and the card's import paths, thin re-exports of the floors below
+    ("public", [["fempdl"], PUBLIC_PATHS]),
     ("app", [["fempdl.app.schema", "fempdl.app.scenes", "fempdl.app.scene_budget"], ["fempdl.app.tasks"], ["fempdl.app.scene"],
              ["fempdl.app.runs"], ["fempdl.app.reports"], ["fempdl.app.cli", "fempdl.app.commands"], ["fempdl.app"]]),
 ]
@@ -128,6 +131,13 @@ def test_imports_point_down_only(graph):
     assert not wrong, "\n".join(wrong)
 
 
+def test_nothing_inside_imports_the_card_paths(graph):
+    """``fempdl.ksp_adjoint``, ``fempdl.bridge_torch`` and ``fempdl.prdp`` are the users' doors: a module of the
+    package importing one would reach down through the public floor instead of the room that defines the name."""
+    inside = {a: sorted(set(targets) & set(PUBLIC_PATHS)) for a, targets in graph.items() if a not in PUBLIC_PATHS}
+    assert not {a: t for a, t in inside.items() if t}
+
+
 def test_no_import_cycle(graph):
     # The package module fempdl runs its __init__ before any submodule: importing
     # "fempdl.x" does not import the names __init__ re-exports, so edges to the
@@ -189,9 +199,10 @@ def test_the_checker_sees_wrong_way_imports_cycles_and_dolfinx(tmp_path):
     assert "a floor above" in wrong_way("fempdl.solve.linear_system", "fempdl.app.runs.runner")
     assert "later room of the app floor" in wrong_way("fempdl.app.scene", "fempdl.app.runs.runner")
     assert "later room of the app floor" in wrong_way("fempdl.app.schema", "fempdl.app.tasks.base")
-    assert "later room of the solve floor" in wrong_way("fempdl.solve.options", "fempdl.ksp_adjoint")
+    assert "later room of the solve floor" in wrong_way("fempdl.solve.options", "fempdl.solve.capped_solver")
+    assert "a floor above" in wrong_way("fempdl.solve.linear_system", "fempdl.ksp_adjoint")
     assert wrong_way("fempdl.app.runs.runner", "fempdl.app.scene") is None
-    assert wrong_way("fempdl.bridge_torch", "fempdl.layer.implicit_diff") is None
+    assert wrong_way("fempdl.bridge_torch", "fempdl.layer.solve_layer") is None
     (tmp_path / "b.py").write_text("from . import linear_system\n")
     assert imports_of(tmp_path / "b.py", "fempdl.core.problem", {"fempdl.core.linear_system"}) \
         == {"fempdl.core.linear_system"}
@@ -209,8 +220,10 @@ def test_one_line_import_of_the_public_names():
 
     from fempdl import CappedSolver, KSPOptions, PRDP, Problem, SolveLayer, SolverFailedError, forms, mesh
     assert (Problem.__module__, SolveLayer.__module__, CappedSolver.__module__) \
-        == ("fempdl.core.problem", "fempdl.bridge_torch", "fempdl.ksp_adjoint")
+        == ("fempdl.core.problem", "fempdl.layer.solve_layer", "fempdl.solve.capped_solver")
     assert KSPOptions is importlib.import_module("fempdl.ksp_adjoint").KSPOptions
+    assert SolveLayer is importlib.import_module("fempdl.bridge_torch").SolveLayer
+    assert CappedSolver is importlib.import_module("fempdl.ksp_adjoint").CappedSolver
     assert PRDP is importlib.import_module("fempdl.prdp").PRDP
     assert issubclass(SolverFailedError, RuntimeError) and callable(mesh.load) and forms.poisson.problem
     for name in fempdl.__all__:

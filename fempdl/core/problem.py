@@ -64,7 +64,7 @@ class Problem(ProblemBase):
         nullspace: orthonormal (k, n) array spanning the null space of A and of
             A^T (owned DOF values), e.g. the pressure constant of an enclosed
             flow; (0, n) when A is regular. Solves return the solution
-            orthogonal to it (see :class:`fempdl.ksp_adjoint.CappedSolver`).
+            orthogonal to it (see :class:`fempdl.solve.capped_solver.CappedSolver`).
         near_nullspace: orthonormal (k, n) array of the near null space handed
             to algebraic multigrid; (0, n) when none was given.
 

@@ -349,7 +349,7 @@ def _steps(method: str, A, P, R: torch.Tensor, K: int, omega, checkpointed: bool
     if not checkpointed:
         return run(K, *state)[0]
     # The operands that need gradients pass through _Segment as inputs; an operator's
-    # differentiable entries are its ``values`` (fempdl.bridge_torch's matrix controls).
+    # differentiable entries are its ``values`` (the linear layer's matrix controls).
     operands = {"R": R, "P": P, "omega": omega, "values": getattr(A, "values", None)}
     varying = [name for name, t in operands.items() if isinstance(t, torch.Tensor) and t.requires_grad]
 

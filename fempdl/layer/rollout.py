@@ -1,6 +1,6 @@
 """A time loop as a layer: N steps u_{k+1} = S(u_k; m_k, c_k) of a step layer whose previous state is a control.
 
-:class:`Rollout` wraps a :class:`~fempdl.bridge_torch.SolveLayer` or a
+:class:`Rollout` wraps a :class:`~fempdl.layer.solve_layer.SolveLayer` or a
 :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` whose problem takes the
 previous state as the control ``state`` (``"u0"`` in the bundled heat and
 nonlinear-diffusion steps) and runs

@@ -1,7 +1,7 @@
 """What fempdl's solve layers share: controls as keyword tensors, checks, collective calls, the cap in
 ``state_dict``, the health check of capped training solves, and the PETSc objects' lifetime.
 
-:class:`SystemLayer` is the base of :class:`~fempdl.bridge_torch.SolveLayer` (a linear system) and
+:class:`SystemLayer` is the base of :class:`~fempdl.layer.solve_layer.SolveLayer` (a linear system) and
 :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (a Newton solve). A subclass calls
 :meth:`SystemLayer._init_system` with its problem and system; the system has ``stats``,
 ``options``/``max_it``, ``solve``/``adjoint`` on arrays and ``destroy``.

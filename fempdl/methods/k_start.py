@@ -19,7 +19,7 @@ import dataclasses
 
 import torch
 
-from fempdl.bridge_torch import SolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.core.checks import check_int
 from fempdl.layer.newton_layer import NonlinearSolveLayer
 from fempdl.methods.newton_caps import NewtonCaps
@@ -32,7 +32,7 @@ def k_start(target, *, tolerance: float = 0.5, k_max: int = 100_000, rtol: float
     """The smallest cap K whose solves of ``inputs`` are within ``tolerance`` of converged solves.
 
     Args:
-        target: a :class:`~fempdl.bridge_torch.SolveLayer`, a
+        target: a :class:`~fempdl.layer.solve_layer.SolveLayer`, a
             :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (its Newton cap), or a
             :class:`~fempdl.methods.newton_caps.NewtonCaps` (the cap its rule moves): what PRDP moves.
         tolerance: the largest acceptable relative error e(K) (module docstring), in (0, 1].

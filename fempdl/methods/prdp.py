@@ -26,7 +26,7 @@ from typing import Callable, Iterable
 
 import torch
 
-from fempdl.bridge_torch import SolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.core.checks import check_int
 from fempdl.core.ranks import Ranks, training_ranks
 from fempdl.layer.system_layer import SystemLayer

@@ -29,7 +29,7 @@ from typing import Callable
 
 import torch
 
-from fempdl.bridge_torch import SolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.core.checks import check_int
 from fempdl.layer.newton_layer import NonlinearSolveLayer
 from fempdl.methods.k_start import close_probes, k_start, probe_layers
@@ -82,7 +82,7 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
         step: runs one training step of the loop (forward, backward, optimizer step) through the
             target's layers; called ``steps + 1`` times at K_eps (the first call warms caches up and is
             not timed). These are real steps: the model trains.
-        target: what PRDP will move: a :class:`~fempdl.bridge_torch.SolveLayer`, a
+        target: what PRDP will move: a :class:`~fempdl.layer.solve_layer.SolveLayer`, a
             :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (its Newton cap) or a
             :class:`~fempdl.methods.newton_caps.NewtonCaps`. Its layers' caps are put back afterwards.
         steps: timed steps (>= 1).

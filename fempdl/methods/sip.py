@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 import torch
 
-from fempdl.bridge_torch import SolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.iterative.batched_cg import matrix_free_cg
 from fempdl.solve.assembly import assemble_scipy
 

@@ -29,7 +29,7 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 from fempdl.core import _dolfinx
-from fempdl.ksp_adjoint import CappedSolver
+from fempdl.solve.capped_solver import CappedSolver
 from fempdl.solve.assembly import (SYMMETRIC_PC_TYPES, ControlValues, KeptMatrices, Timer, attach_nullspace,
                                     check_operator, check_symmetric, check_symmetric_factor, fingerprint,
                                     fingerprint_matches, set_owned, without_bc_entries)

@@ -2,7 +2,7 @@
 
 :class:`NonlinearSystem` owns the PETSc objects of one :class:`~fempdl.core.nonlinear_problem.NonlinearProblem`
 for one :class:`~fempdl.solve.newton_options.NewtonOptions` (Jacobian, residual and solution vectors, a
-PETSc SNES whose KSP is the inner solve, and a :class:`~fempdl.ksp_adjoint.CappedSolver` for transposed
+PETSc SNES whose KSP is the inner solve, and a :class:`~fempdl.solve.capped_solver.CappedSolver` for transposed
 solves), and works on NumPy arrays of owned DOF values, one row per sample:
 
 * :meth:`solve` — per sample: set the controls, put the boundary values into the initial guess (zero or
@@ -42,7 +42,7 @@ from petsc4py import PETSc
 from fempdl.core import _dolfinx
 from fempdl.core.nonlinear_problem import NonlinearProblem
 from fempdl.core.tuning import LAGGED_REFRESH_ITERATIONS
-from fempdl.ksp_adjoint import PC_FAILED, CappedSolver, set_interrupt_checks
+from fempdl.solve.capped_solver import PC_FAILED, CappedSolver, set_interrupt_checks
 from fempdl.solve.assembly import (ControlValues, Timer, attach_nullspace, check_operator, check_symmetric_factor,
                                    operator_defect, set_owned, without_bc_entries)
 from fempdl.solve.control_forms import ControlForms

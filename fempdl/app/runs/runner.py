@@ -32,7 +32,7 @@ from fempdl.app.tasks import SPECS, spec_of, task_class
 from fempdl.app.tasks.nonlinear_emulator import newton_options
 from fempdl.app.runs.training import CHECKPOINT_EVERY, Trainer
 from fempdl.app.tasks.base import cap_target, set_cap
-from fempdl.bridge_torch import SolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.solve.options import MAX_PETSC_INT, KSPOptions
 from fempdl.core.checks import check_int
 from fempdl.core.parallel import shard

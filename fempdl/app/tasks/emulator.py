@@ -12,7 +12,7 @@ from fempdl.app.schema import NetworkConfig, Scene, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer, operator_pattern
 from fempdl.app.tasks.data import smooth_fields
 from fempdl.app.tasks.metrics import nmse, sample_nmse
-from fempdl.bridge_torch import SolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.solve.options import KSPOptions
 
 __all__ = ["EmulatorTask", "emulator_spec"]

@@ -45,7 +45,7 @@ from fempdl.app.schema import PdeConfig, Scene, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import smooth_fields
 from fempdl.app.tasks.metrics import sample_nmse
-from fempdl.bridge_torch import SolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.solve.options import KSPOptions
 
 __all__ = ["HybridTask", "channel_problem", "VelocityTransfer"]

@@ -12,7 +12,7 @@ from fempdl.app.schema import Scene, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import source_modes
 from fempdl.app.tasks.metrics import nmse
-from fempdl.bridge_torch import SolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.solve.options import KSPOptions
 
 __all__ = ["InverseTask"]

@@ -56,7 +56,7 @@ from fempdl.app.schema import NONLINEAR_PDES, Scene, SipConfig, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import rectangle_fields, smooth_fields
 from fempdl.app.tasks.metrics import sample_nmse
-from fempdl.bridge_torch import SolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.layer.newton_layer import NonlinearSolveLayer
 from fempdl.methods.hig import HIG
 from fempdl.methods.sip_nonlinear import ExactNonlinearInverse

@@ -36,7 +36,7 @@ import ufl
 
 from fempdl.core import _dolfinx
 from fempdl import forms
-from fempdl.bridge_torch import SolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.solve.options import KSPOptions
 from fempdl.core.mesh import as_tagged
 from fempdl.solve.assembly import assemble_scipy
