@@ -15,7 +15,7 @@ endif
 PYTHON := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: setup run test bench clean
+.PHONY: setup run test lint bench clean
 
 setup:
 	@bash $(SETUP) $(VENV)
@@ -25,6 +25,10 @@ run: setup
 
 test: setup
 	$(PYTHON) -m pytest -q $(PYTEST_ARGS)
+
+# The linter's rules are pyproject.toml's [tool.ruff]; CI runs this before the tests.
+lint: setup
+	$(VENV)/bin/ruff check .
 
 bench: setup
 	$(PYTHON) scripts/bench_layer.py

@@ -1,9 +1,8 @@
 """Your own UFL problem as a layer inside an nn.Module, trained with Adam.
 
-Reaction-diffusion -div(kappa grad u) + c u = f on the L-shape, u = 0 on the
-boundary. The model holds log(kappa) as a parameter field and solves the PDE
-for a batch of sources f; Adam fits kappa so that the solutions match
-observations made with a true kappa (converged solves: exact gradients).
+Reaction-diffusion -div(kappa grad u) + c u = f on the L-shape, u = 0 on the boundary. The model holds
+log(kappa) as a parameter field and solves the PDE for a batch of sources f; Adam fits kappa so that the
+solutions match observations made with a true kappa (converged solves: exact gradients).
 """
 import os
 
@@ -12,6 +11,7 @@ import dolfinx
 import torch
 import ufl
 from petsc4py import PETSc
+
 from fempdl import Problem, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
@@ -50,7 +50,7 @@ with torch.no_grad():
     observed = layer(kappa=true_kappa, f=sources)
 model = Model(layer, problem.control_size("kappa"))
 optimizer, losses = torch.optim.Adam(model.parameters(), lr=0.05), []
-for step in range(40 if small else 200):
+for _step in range(40 if small else 200):
     optimizer.zero_grad()
     loss = ((model(sources) - observed) ** 2).sum() / (observed ** 2).sum()
     loss.backward()

@@ -9,9 +9,11 @@ hold the same parameters (parallel.check_same_parameters). One process gives the
 """
 import argparse
 import json
+
+from mpi4py import MPI
 import numpy as np
 import torch
-from mpi4py import MPI
+
 from fempdl import PRDP, KSPOptions, SolveLayer, forms, mesh
 from fempdl.core import parallel
 
@@ -26,10 +28,8 @@ x = problem.dof_coordinates()
 modes = torch.from_numpy(np.stack([np.sin(i * x[:, 0] + 1.0) * np.cos(j * x[:, 1])
                                    for i in range(1, 4) for j in range(1, 4)], axis=1))   # (n, 9)
 data = torch.Generator().manual_seed(0)            # the same data, network and batches on every rank
-a_train, a_val = torch.randn(32, 9, dtype=torch.float64, generator=data), torch.randn(8, 9, dtype=torch.float64,
-                                                                                      generator=data)
-with torch.no_grad():
-    u_train, u_val = SolveLayer(problem)(u0=a_train @ modes.T), SolveLayer(problem)(u0=a_val @ modes.T)
+a_train, a_val = (torch.randn(m, 9, dtype=torch.float64, generator=data) for m in (32, 8))
+u_train, u_val = (SolveLayer(problem)(u0=a @ modes.T) for a in (a_train, a_val))     # converged: the targets
 layer = SolveLayer(problem, KSPOptions.preset("jacobi", max_it=1))
 ctrl = PRDP(layer, k0=1, dk=2, delta=2, ema_window=2, k_cap=40, comm=comm)
 torch.manual_seed(0)
@@ -41,7 +41,7 @@ def error_sum(u, ref):                             # sum over samples of ||u_i -
     return (((u - ref) ** 2).sum(1) / (ref ** 2).sum(1)).sum()
 
 
-for epoch in range(args.epochs):
+for _epoch in range(args.epochs):
     for batch in torch.randperm(32, generator=order).split(8):
         mine = parallel.shard(batch, comm)         # this rank's samples; the loss is the batch mean's share
         optimizer.zero_grad()

@@ -4,17 +4,19 @@
 
 Every process holds the whole problem (MPI.COMM_SELF), DDP averages the gradients, the validation metric is
 all-reduced, and PRDP (finding the torch.distributed group itself) checks that every rank steps with the same
-metric, so the ranks refine K together. ``--local-metric`` steps PRDP on each rank's own metric, as a first
-DDP loop often does: PRDP refuses it on every rank. Prints one line of JSON per rank.
+metric, so the ranks refine K together. ``--local-metric`` steps PRDP on each rank's own metric, as a first DDP loop
+often does: PRDP refuses it on every rank. Prints one line of JSON per rank.
 """
 import argparse
 import json
-import sys
+import os
+
+from mpi4py import MPI
 import numpy as np
 import torch
 import torch.distributed as dist
-from mpi4py import MPI
 from torch.nn.parallel import DistributedDataParallel
+
 from fempdl import PRDP, KSPOptions, SolveLayer, forms, mesh
 
 parser = argparse.ArgumentParser()
@@ -30,8 +32,7 @@ modes = torch.from_numpy(np.stack([np.sin(i * x[:, 0] + 1.0) * np.cos(j * x[:, 1
                                    for i in range(1, 4) for j in range(1, 4)], axis=1))   # (n, 9)
 data = torch.Generator().manual_seed(0)                 # one data set; each rank trains on its shard
 a_train, a_val = (torch.randn(m, 9, dtype=torch.float64, generator=data) for m in (32, 8))
-with torch.no_grad():
-    u_train, u_val = SolveLayer(problem)(u0=a_train @ modes.T), SolveLayer(problem)(u0=a_val @ modes.T)
+u_train, u_val = (SolveLayer(problem)(u0=a @ modes.T) for a in (a_train, a_val))     # converged: the targets
 layer = SolveLayer(problem, KSPOptions.preset("jacobi", max_it=1))
 ctrl = PRDP(layer, k0=1, dk=2, delta=2, ema_window=2, k_cap=40)
 torch.manual_seed(0)
@@ -40,7 +41,7 @@ net = DistributedDataParallel(torch.nn.Sequential(
 optimizer, order = torch.optim.Adam(net.parameters(), lr=3e-2), torch.Generator().manual_seed(1)
 error_sum = lambda u, ref: (((u - ref) ** 2).sum(1) / (ref ** 2).sum(1)).sum()   # noqa: E731
 try:
-    for epoch in range(args.epochs):
+    for _epoch in range(args.epochs):
         for batch in torch.randperm(32, generator=order).split(8):
             mine = batch[rank::size]                    # this rank's samples of the batch
             optimizer.zero_grad()
@@ -55,6 +56,5 @@ try:
     line = {"rank": rank, "k": layer.max_it, "ks": [r.k for r in ctrl.history], "metric": ctrl.history[-1].metric}
 except ValueError as err:
     line = {"rank": rank, "error": str(err)}
-sys.stdout.write(json.dumps(line) + "\n")        # one write: the ranks share the pipe
-sys.stdout.flush()
+os.write(1, (json.dumps(line) + "\n").encode())   # one unbuffered write: the ranks share the pipe
 dist.destroy_process_group()

@@ -12,12 +12,13 @@ OMPI_ALLOW_RUN_AS_ROOT=1 and OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1.)
 """
 import argparse
 
+from mpi4py import MPI
 import numpy as np
 import torch
-from mpi4py import MPI
+
 from fempdl import forms, mesh
-from fempdl.core import parallel
 from fempdl.bridge_torch import SolveLayer
+from fempdl.core import parallel
 from fempdl.ksp_adjoint import KSPOptions
 
 parser = argparse.ArgumentParser()
@@ -39,7 +40,7 @@ ref_norm = parallel.allreduce_sum((u_ref ** 2).sum(), comm)
 
 theta = torch.nn.Parameter(torch.full((3,), 3.0, dtype=torch.float64))    # the same on every rank
 optimizer = torch.optim.SGD([theta], lr=3.0)
-for step in range(1, args.steps + 1):
+for _step in range(1, args.steps + 1):
     optimizer.zero_grad()
     loss = parallel.allreduce_sum(((layer(f=modes @ theta) - u_ref) ** 2).sum(), comm) / ref_norm
     loss.backward()

@@ -11,6 +11,7 @@ import os
 
 from mpi4py import MPI  # noqa: F401  (first: PyPI's DOLFINx finds libmpi once mpi4py has loaded it)
 import torch
+
 from fempdl import NewtonOptions, NonlinearSolveLayer, forms, mesh
 
 small = os.environ.get("FEMPDL_EXAMPLE_SMALL") == "1"
@@ -29,7 +30,7 @@ with torch.no_grad():
 net = torch.nn.Sequential(torch.nn.Linear(2, 32), torch.nn.Tanh(), torch.nn.Linear(32, 32), torch.nn.Tanh(),
                           torch.nn.Linear(32, 1)).double()
 optimizer, losses = torch.optim.Adam(net.parameters(), lr=0.03), []
-for step in range(80 if small else 300):
+for _step in range(80 if small else 300):
     optimizer.zero_grad()
     kappa = net(x).squeeze(-1).exp()
     loss = ((layer(kappa=kappa, f=sources) - observed) ** 2).sum() / (observed ** 2).sum()

@@ -10,6 +10,7 @@ import os
 
 import numpy as np
 import torch
+
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
@@ -39,7 +40,7 @@ def nmse(u, ref):
 
 
 schedule = []
-for epoch in range(30 if small else 100):
+for _epoch in range(30 if small else 100):
     for batch in torch.randperm(32).split(8):
         optimizer.zero_grad()
         loss = nmse(layer(u0=net(a_train[batch])), u_train[batch])

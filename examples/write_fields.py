@@ -15,9 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
 from fempdl import forms, mesh
-from fempdl.core import io
 from fempdl.bridge_torch import SolveLayer
+from fempdl.core import io
 from fempdl.ksp_adjoint import KSPOptions
 
 small = os.environ.get("FEMPDL_EXAMPLE_SMALL") == "1"

@@ -33,15 +33,16 @@ import sys
 import time
 from pathlib import Path
 
-import torch
 from mpi4py import MPI
+import torch
 
-from bench_common import comma_list, machine_info, write_json_atomically
 from fempdl import forms, mesh
+from fempdl.bridge_torch import SolveLayer
 from fempdl.core import tuning
 from fempdl.iterative import unrolled
-from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
+
+from bench_common import comma_list, machine_info, write_json_atomically
 
 MIB = 2.0 ** 20
 BATCH = 8

@@ -13,7 +13,6 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from mpi4py import MPI  # before DOLFINx: PyPI's DOLFINx needs the MPI library mpi4py loads
-
 import dolfinx
 import numpy as np
 import petsc4py
@@ -21,8 +20,8 @@ import torch
 from petsc4py import PETSc
 
 import fempdl
-from fempdl.core import _dolfinx
 from fempdl.app.runs.training import write_atomically
+from fempdl.core import _dolfinx
 
 
 def machine_info() -> dict:

@@ -38,12 +38,12 @@ TARGET_SPEEDUP = 2.0
 def workload(steps: int, warmup: int, batched: bool) -> dict:
     """Run the SIMP loop in this process (fempdl from sys.path); per-step seconds and the last compliance."""
     from mpi4py import MPI
-    import dolfinx
     import dolfinx.fem
     import dolfinx.mesh
     import numpy as np
     import torch
     import ufl
+
     from fempdl import Problem, SolveLayer
     from fempdl.core import _dolfinx
 
@@ -122,8 +122,9 @@ def main() -> int:
         print(json.dumps(workload(args.steps, args.warmup, args.batched)))
         return 0
     sys.path.insert(0, str(ROOT / "scripts"))
-    from bench_common import machine_info, write_json_atomically
     import numpy as np
+
+    from bench_common import machine_info, write_json_atomically
 
     variants = {"current lu": (ROOT, "lu"), "current cholesky": (ROOT, "cholesky")}
     scratch = None

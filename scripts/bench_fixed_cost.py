@@ -37,6 +37,7 @@ def child(out: Path) -> None:
     """One run of each mode in this process (fempdl from PYTHONPATH); a JSON record to ``out``."""
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from mpi4py import MPI  # noqa: F401  (before DOLFINx)
+
     import fempdl
     from fempdl.app import scene
     from fempdl.app.runs import runner, training

@@ -35,14 +35,14 @@ import datetime
 import time
 from pathlib import Path
 
-from bench_common import machine_info, write_json_atomically  # noqa: E402  (loads MPI first)
-
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import fempdl  # noqa: E402
 from fempdl.bridge_torch import SolveLayer  # noqa: E402
 from fempdl.ksp_adjoint import KSPOptions  # noqa: E402
+
+from bench_common import machine_info, write_json_atomically  # noqa: E402  (loads MPI first)
 
 TARGET = 2.0
 STREAM_ELEMENTS = 2 ** 25
@@ -117,10 +117,11 @@ def main(argv=None) -> int:
     print(f"stream triad {stream / 1e9:.1f} GB/s (before the calls {stream_before / 1e9:.1f}, after "
           f"{stream_after / 1e9:.1f}; in cache at the iterate's size: {in_cache / 1e9:.1f} GB/s)")
     print(f"floor {floor:.3f} s, batched call {best['batched']:.3f} s (iterations {iterations:.3f} s): "
-          f"{ratio:.2f}x the floor (target <= {TARGET}); per right-hand side {1e3 * best['batched'] / args.batch:.1f} ms "
+          f"{ratio:.2f}x the floor (target <= {TARGET}); "
+          f"per right-hand side {1e3 * best['batched'] / args.batch:.1f} ms "
           f"against {1e3 * floor / args.batch:.1f} ms; PETSc loop {best['petsc']:.3f} s "
           f"({best['petsc'] / best['batched']:.2f}x slower)")
-    data = {"benchmark": "bench_floor", "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
+    data = {"benchmark": "bench_floor", "date": datetime.datetime.now(datetime.UTC).isoformat(),
             "machine": machine_info(), "torch_threads": torch.get_num_threads(),
             "problem": "poisson on lshape, control f, g = 1 + x*y; Richardson + Jacobi, batched engine; "
                        "one call = B forward + B transposed capped solves",

@@ -35,9 +35,9 @@ import sys
 import time
 from pathlib import Path
 
+from mpi4py import MPI
 import numpy as np
 import torch
-from mpi4py import MPI
 
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer

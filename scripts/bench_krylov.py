@@ -28,14 +28,14 @@ import datetime
 import time
 from pathlib import Path
 
-from bench_common import comma_list, machine_info, write_json_atomically  # noqa: E402  (loads MPI first)
-
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import fempdl  # noqa: E402
 from fempdl.bridge_torch import SolveLayer  # noqa: E402
 from fempdl.ksp_adjoint import KSPOptions  # noqa: E402
+
+from bench_common import comma_list, machine_info, write_json_atomically  # noqa: E402  (loads MPI first)
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}
 TARGET = 2.0
@@ -86,7 +86,8 @@ def bench(size: str, args, rng) -> list:
         best = {e: min(t) for e, t in times.items()}
         converged = solver == "cg-rtol"
         its = {e: layers[e].stats.total_iterations for e in ("petsc", "batched")}
-        row = {"size": size, "dofs": prob.output_size, "solver": f"{solver}+jacobi" + ("(30)" if solver == "gmres" else ""),
+        row = {"size": size, "dofs": prob.output_size,
+               "solver": f"{solver}+jacobi" + ("(30)" if solver == "gmres" else ""),
                "K": None if converged else args.k, "rtol": CONVERGED_RTOL if converged else None,
                "iterations_fwd_plus_bwd_per_call": {e: n // (1 + args.repeats) for e, n in its.items()},
                "B": batch, "seconds_min": best, "seconds_all": times,
@@ -120,7 +121,7 @@ def main(argv=None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     rng = np.random.default_rng(0)
-    data = {"benchmark": "bench_krylov", "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
+    data = {"benchmark": "bench_krylov", "date": datetime.datetime.now(datetime.UTC).isoformat(),
             "machine": machine_info(), "target_speedup": TARGET, "statistic": "min over interleaved repeats",
             "problem": "poisson on lshape, control f, g = 1 + x*y; one call = B forward + B transposed solves",
             "results": []}

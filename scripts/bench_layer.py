@@ -68,8 +68,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mpi4py import MPI  # before DOLFINx: PyPI's DOLFINx needs the MPI library mpi4py loads
-
-import dolfinx
 import dolfinx.fem
 import dolfinx.fem.petsc
 import dolfinx.mesh
@@ -80,8 +78,9 @@ from petsc4py import PETSc
 
 import fempdl
 from fempdl.bridge_torch import SolveLayer
-from bench_common import apply_defaults, comma_list, machine_info, write_json_atomically
 from fempdl.ksp_adjoint import KSPOptions
+
+from bench_common import apply_defaults, comma_list, machine_info, write_json_atomically
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.core.meshgen)
 TARGET_OVERHEAD = 1.15
@@ -422,7 +421,7 @@ def main(argv=None) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     rng = np.random.default_rng(args.seed)
-    started = datetime.datetime.now(datetime.timezone.utc)
+    started = datetime.datetime.now(datetime.UTC)
     report = {
         "benchmark": "bench_layer",
         "timestamp": started.isoformat(timespec="seconds"),
@@ -445,7 +444,7 @@ def main(argv=None) -> int:
         report["meshes"][size] = mesh_info
         report["results"].extend(rows)
     report["load_average_end"] = os.getloadavg()
-    report["duration_s"] = (datetime.datetime.now(datetime.timezone.utc) - started).total_seconds()
+    report["duration_s"] = (datetime.datetime.now(datetime.UTC) - started).total_seconds()
     write_json_atomically(report, args.out)
     print(f"overhead = layer (engine='petsc') / raw loop (target <= {TARGET_OVERHEAD}); engine, auto s = "
           f"the default engine's choice and its batched call; speedup = B single calls / that batched call "

@@ -38,16 +38,17 @@ from pathlib import Path
 
 import numpy as np
 
-from bench_common import comma_list, machine_info, run_mpi_worker, write_json_atomically
 from fempdl.core import _dolfinx
+
+from bench_common import comma_list, machine_info, run_mpi_worker, write_json_atomically
 
 RANKS = (1, 2)
 
 
 # ---------------------------------------------------------------- workers (inside mpirun)
 def layer_worker(args) -> dict:
-    import torch
     from mpi4py import MPI
+    import torch
 
     from fempdl import forms, mesh
     from fempdl.bridge_torch import SolveLayer
@@ -83,12 +84,11 @@ def layer_worker(args) -> dict:
 
 
 def training_worker(args) -> dict:
-    from mpi4py import MPI
+    from mpi4py import MPI  # noqa: F401  (loaded before fempdl.app imports DOLFINx)
 
-    from fempdl.app.runs import runner
     from fempdl.app import scene
+    from fempdl.app.runs import runner
 
-    comm = MPI.COMM_WORLD
     sc = scene.load(args.scene)
     run = runner.run(sc, "fixed", args.k, epochs=args.epochs, parallel="data", k_eps_value=args.k)
     wall = run.wall_time - run.rows[0]["wall_time"]
@@ -161,7 +161,7 @@ def main(argv=None) -> int:
         **{f"training_throughput/{name}": runs[2]["samples_per_second"] / runs[1]["samples_per_second"]
            for name, runs in training.items()},
     }
-    for name, runs in training.items():
+    for runs in training.values():
         loss1, loss2 = np.array(runs[1]["train_loss"]), np.array(runs[2]["train_loss"])
         runs["loss_max_relative_difference"] = float(np.abs(loss1 - loss2).max() / np.abs(loss1).max())
     write_json_atomically(results, args.out)

@@ -41,20 +41,19 @@ import sys
 import time
 from pathlib import Path
 
-from bench_common import machine_info, write_json_atomically
-
-import dolfinx
+from mpi4py import MPI
 import dolfinx.fem
 import dolfinx.fem.petsc
 import dolfinx.mesh
 import numpy as np
 import torch
 import ufl
-from mpi4py import MPI
 from petsc4py import PETSc
 
 from fempdl import NewtonOptions, NonlinearProblem, NonlinearSolveLayer
 from fempdl.core import _dolfinx
+
+from bench_common import machine_info, write_json_atomically
 
 TARGET = 1.15
 RTOL, ATOL = 1e-10, 1e-12
@@ -263,7 +262,7 @@ def main() -> int:
     args = parser.parse_args()
     out = args.out or Path(f"bench-results/bench_nonlinear_{_dolfinx.STACK}.json")
     rng = np.random.default_rng(args.seed)
-    started = datetime.datetime.now(datetime.timezone.utc)
+    started = datetime.datetime.now(datetime.UTC)
     report = {"machine": machine_info(), "load_average_start": os.getloadavg(),
               "settings": {"rtol": RTOL, "atol": ATOL, "repeats": args.repeats, "statistic": "min",
                            "inner": "MUMPS LU both sides", "loss": "sum(u * W), W standard normal"},
@@ -276,11 +275,12 @@ def main() -> int:
                 row = bench_case(case, size, snes_type, args.repeats, rng)
                 report["results"].append(row)
                 steps = row["newton_steps"]
-                print(f"{case:13s} {size:6s} {snes_type:9s} {row['dofs']:7d} {steps['fempdl']:4d}/{steps['dolfinx']:<4d} "
+                print(f"{case:13s} {size:6s} {snes_type:9s} {row['dofs']:7d} "
+                      f"{steps['fempdl']:4d}/{steps['dolfinx']:<4d} "
                       f"{row['min_s']['fempdl']:9.4f} {row['min_s']['dolfinx']:9.4f} {row['ratio']:6.3f} "
                       f"{row['max_rel_diff']['solution']:8.1e} {row['max_rel_diff']['gradient']:8.1e}", flush=True)
     report["load_average_end"] = os.getloadavg()
-    report["duration_s"] = (datetime.datetime.now(datetime.timezone.utc) - started).total_seconds()
+    report["duration_s"] = (datetime.datetime.now(datetime.UTC) - started).total_seconds()
     write_json_atomically(report, out)
     print(f"ratio = fempdl / DOLFINx Newton + hand adjoint, minima over {args.repeats} interleaved repeats "
           f"(target <= {TARGET}); wrote {out}")

@@ -39,14 +39,14 @@ import time
 from pathlib import Path
 
 from mpi4py import MPI  # before DOLFINx (PyPI's DOLFINx needs the MPI library loaded)
-
 import numpy as np
 from petsc4py import PETSc
 
-from bench_common import machine_info, write_json_atomically
-from fempdl.core import _dolfinx
 from fempdl import forms, mesh
+from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import CappedSolver, KSPOptions, SolverFailedError
+
+from bench_common import machine_info, write_json_atomically
 
 RTOL = 1e-10
 HEIGHT = 0.41

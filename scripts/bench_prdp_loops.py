@@ -55,19 +55,28 @@ import sys
 import time
 from pathlib import Path
 
-from bench_common import comma_list, machine_info, write_json_atomically
-
+from mpi4py import MPI
+import dolfinx.fem
 import torch
 import torch.distributed as dist
 import ufl
-from mpi4py import MPI
 
-import dolfinx.fem
-from fempdl import (PRDP, KSPOptions, NewtonOptions, NonlinearProblem, NonlinearSolveLayer, PointObservation,
-                    SolveLayer, forms, mesh)
+from fempdl import (
+    PRDP,
+    KSPOptions,
+    NewtonOptions,
+    NonlinearProblem,
+    NonlinearSolveLayer,
+    PointObservation,
+    SolveLayer,
+    forms,
+    mesh,
+)
 from fempdl.core import _dolfinx
 from fempdl.methods.newton_caps import NewtonCaps, newton_k_eps
 from fempdl.prdp import k_eps, k_start
+
+from bench_common import comma_list, machine_info, write_json_atomically
 
 SETTINGS = ("readme", "warm-linear", "newton-cold", "newton-warm", "nonlinear-heat", "ddp")
 STRICT = ("newton-cold", "newton-warm")

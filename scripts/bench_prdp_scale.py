@@ -48,13 +48,13 @@ import statistics
 import sys
 from pathlib import Path
 
-from bench_common import comma_list, machine_info, write_json_atomically
-from bench_scenes import summary
-
 import torch
+from bench_scenes import summary
 
 from fempdl.app import scene
 from fempdl.app.runs import runner
+
+from bench_common import comma_list, machine_info, write_json_atomically
 
 # Per dimension: the bundled scene, what changes in it, and the mesh sizes (about 1.5k to 150k DOFs).
 DIMENSIONS = {
@@ -71,7 +71,7 @@ QUICK_H = {"2d": [0.08, 0.05], "3d": [0.15, 0.1], "2d-mlp": [0.08]}
 
 def common_settings(args) -> list[str]:
     """What every size shares: network, data, optimizer, stopping rule (the epochs)."""
-    return [f"network.type=graph", f"network.hidden={args.hidden}", f"network.layers={args.layers}",
+    return ["network.type=graph", f"network.hidden={args.hidden}", f"network.layers={args.layers}",
             f"data.train={args.train}", f"data.validation={args.validation}", f"optimizer.batch={args.batch}",
             f"optimizer.epochs={args.epochs}", "solver.warm_start=true"]
 

@@ -312,7 +312,7 @@ def main() -> None:
         row = {"dofs": (n + 1) ** 2, "steps": args.steps, "sides": compare(best)}
         rows.append(row)
         print(json.dumps(row, indent=1), flush=True)
-    data = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    data = {"date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "machine": machine_info(), "schedule": args.schedule, "repeats": args.repeats, "rounds": args.rounds,
             "rows": rows}
     write_json_atomically(data, ROOT / "bench-results" / "bench_rollout.json")

@@ -33,12 +33,12 @@ RANKS = (1, 2)
 
 
 def worker(args) -> int:
-    import torch
     from mpi4py import MPI
+    import torch
 
     from fempdl import forms, mesh
-    from fempdl.core import parallel
     from fempdl.bridge_torch import SolveLayer
+    from fempdl.core import parallel
     from fempdl.ksp_adjoint import KSPOptions
 
     parallel.abort_on_error()

@@ -29,13 +29,13 @@ import statistics
 import sys
 from pathlib import Path
 
-from bench_common import comma_list, machine_info, write_json_atomically
-
 import torch
 
-from fempdl.app.runs import runner
 from fempdl.app import scene
 from fempdl.app.reports import tradeoff
+from fempdl.app.runs import runner
+
+from bench_common import comma_list, machine_info, write_json_atomically
 
 PRDP_SCENES = ["heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
                "burgers-emulator", "ns-hybrid"]

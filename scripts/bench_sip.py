@@ -37,9 +37,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")    # before torch starts its
 
 import torch  # noqa: E402
 
-from fempdl.app.reports import compare
 from fempdl.app import scene  # noqa: E402
 from fempdl.app.cli import positive_int  # noqa: E402
+from fempdl.app.reports import compare
 
 from bench_common import comma_list, machine_info, write_json_atomically  # noqa: E402
 

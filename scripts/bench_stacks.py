@@ -40,16 +40,16 @@ import time
 from pathlib import Path
 
 from mpi4py import MPI  # before DOLFINx (PyPI's DOLFINx needs the MPI library loaded)
-
 import numpy as np
 import torch
 from petsc4py import PETSc
 
-from bench_common import machine_info, write_json_atomically
-from fempdl.core import _dolfinx
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
+from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import KSPOptions
+
+from bench_common import machine_info, write_json_atomically
 
 ROOT = Path(__file__).resolve().parent.parent
 VENVS = {"debian": ROOT / ".venv", "current": ROOT / ".venv-pypi"}

@@ -135,17 +135,18 @@ _OMP_POLICY_ARG = _omp_policy_arg(sys.argv[1:])
 if _OMP_POLICY_ARG == "passive":
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import numpy as np
-import torch
-from mpi4py import MPI
+from mpi4py import MPI  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
-import fempdl
-import fempdl.core.meshgen
-from fempdl.iterative import unrolled
-from fempdl.bridge_torch import SolveLayer
-from bench_common import apply_defaults, comma_list, machine_info, write_json_atomically
-from fempdl.ksp_adjoint import KSPOptions
-from fempdl.core.resources import available_memory
+import fempdl  # noqa: E402
+import fempdl.core.meshgen  # noqa: E402
+from fempdl.bridge_torch import SolveLayer  # noqa: E402
+from fempdl.core.resources import available_memory  # noqa: E402
+from fempdl.iterative import unrolled  # noqa: E402
+from fempdl.ksp_adjoint import KSPOptions  # noqa: E402
+
+from bench_common import apply_defaults, comma_list, machine_info, write_json_atomically  # noqa: E402
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.core.meshgen)
 SOLVERS = ("jacobi", "cg")                      # Richardson+Jacobi, CG+Jacobi
@@ -595,7 +596,7 @@ def main(argv=None) -> int:
         return 2
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    started = datetime.datetime.now(datetime.timezone.utc)
+    started = datetime.datetime.now(datetime.UTC)
     report = {
         "benchmark": "bench_unrolled",
         "timestamp": started.isoformat(timespec="seconds"),
@@ -633,7 +634,7 @@ def main(argv=None) -> int:
             report["meshes"][size] = mesh_info
             report["results"].extend(rows)
     report["load_average_end"] = os.getloadavg()
-    report["duration_s"] = (datetime.datetime.now(datetime.timezone.utc) - started).total_seconds()
+    report["duration_s"] = (datetime.datetime.now(datetime.UTC) - started).total_seconds()
     write_json_atomically(report, args.out)
     print(f"t u/i = unrolled / implicit time (default engine); m u/i = their peak-RSS increases (MiB columns), "
           f"stored = theoretical stored iterates (MiB); p/b = implicit engine='petsc' / engine='batched' time; "

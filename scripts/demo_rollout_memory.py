@@ -27,8 +27,8 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 from mpi4py import MPI  # noqa: F401  (the PyPI stack needs MPI loaded before dolfinx)
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 DT = 2e-4
@@ -94,7 +94,7 @@ def main() -> None:
         out.unlink()
         print(json.dumps(runs[schedule], indent=1), flush=True)
     diff = float(np.abs(grads["revolve"] - grads["all"]).max() / np.abs(grads["all"]).max())
-    data = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    data = {"date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "machine": machine_info(), "runs": runs, "grad_rel_diff_revolve_vs_all": diff,
             "target": "revolve: at most 1024 MiB above set-up; gradient equal to 'all' to 1e-12",
             "met": runs["revolve"]["peak_above_setup_mib"] <= 1024 and diff <= 1e-12}

@@ -25,7 +25,8 @@ fi
 
 stamp="$venv/.fempdl-installed"
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] \
-   || ! "$venv/bin/python" -c "import torch, fempdl, pytest, tensorboard" >/dev/null 2>&1; then
+   || ! "$venv/bin/python" -c "import torch, fempdl, pytest, tensorboard" >/dev/null 2>&1 \
+   || [ ! -x "$venv/bin/ruff" ]; then
     echo "[setup] installing torch and fempdl into $venv"
     # torch==2.13.0 is the CPU wheel available locally; an unpinned torch would pull a CUDA build.
     "$venv/bin/python" -m pip install -q --disable-pip-version-check torch==2.13.0

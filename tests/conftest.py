@@ -1,9 +1,9 @@
 """Session fixtures: meshes and problems. Shared helpers and constants live in helpers.py."""
 from __future__ import annotations
 
+from mpi4py import MPI
 import pytest
 import torch
-from mpi4py import MPI
 
 from fempdl import mesh
 

@@ -10,10 +10,10 @@ import ctypes.util
 import gc
 import json
 
-import numpy as np
-import torch
 from mpi4py import MPI
 import dolfinx.fem
+import numpy as np
+import torch
 
 from fempdl import forms
 from fempdl.app import cli as _cli

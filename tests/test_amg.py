@@ -1,9 +1,9 @@
 """The "amg" preset: CG + algebraic multigrid, with adjoints that match LU's to the solve's tolerance."""
 from __future__ import annotations
 
+from mpi4py import MPI
 import pytest
 import torch
-from mpi4py import MPI
 from petsc4py import PETSc
 
 from fempdl import mesh

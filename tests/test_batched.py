@@ -78,7 +78,8 @@ def test_engine_choice_per_call(lshape):
 
 def test_engine_batched_refuses_what_it_cannot_run(lshape):
     prob = build("poisson", lshape)
-    with pytest.raises(ValueError, match=r"engine='batched' cannot run these options: it implements Richardson, CG and GMRES"):
+    with pytest.raises(ValueError,
+                       match=r"engine='batched' cannot run these options: it implements Richardson, CG and GMRES"):
         SolveLayer(prob, KSPOptions(ksp_type="bcgs", pc_type="jacobi", max_it=5, engine="batched"))
     with pytest.raises(ValueError, match=r"pure iteration cap"):
         SolveLayer(prob, jacobi(5, "batched", rtol=1e-3))

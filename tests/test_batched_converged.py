@@ -93,7 +93,8 @@ def test_a_cap_with_rtol_stops_each_column_at_the_first_of_the_two(lshape):
     full = SolveLayer(prob, KSPOptions.preset("cg", rtol=RTOL, engine="batched"))
     its = [st.iterations for _, st in (lambda s: (full(f=f), s)[1])(recorded(full))]
     cap = max(its) - 1                               # the hardest column is capped, the zero one is not
-    layers = {e: SolveLayer(prob, KSPOptions.preset("cg", rtol=RTOL, max_it=cap, engine=e)) for e in ("batched", "petsc")}
+    layers = {e: SolveLayer(prob, KSPOptions.preset("cg", rtol=RTOL, max_it=cap, engine=e))
+              for e in ("batched", "petsc")}
     seen = {e: recorded(layer) for e, layer in layers.items()}
     u = {e: layer(f=f) for e, layer in layers.items()}
     for (_, got), (_, want) in zip(seen["batched"], seen["petsc"]):
@@ -124,7 +125,8 @@ def test_a_failing_column_fails_as_petsc_and_leaves_the_others(lshape):
     messages, values = {}, {}
     for engine in ("batched", "petsc"):
         opts = KSPOptions.preset("cg", pc_type="none", rtol=RTOL, engine=engine)
-        with pytest.raises(SolverFailedError, match=r"stopped with DIVERGED_INDEFINITE_MAT after \d+ iterations") as err:
+        with pytest.raises(SolverFailedError,
+                           match=r"stopped with DIVERGED_INDEFINITE_MAT after \d+ iterations") as err:
             SolveLayer(prob, opts)(f=f, kappa=kappa, initial_guess=x0)
         messages[engine] = str(err.value).split(" (residual norm")[0]
         warn = SolveLayer(prob, KSPOptions.preset("cg", pc_type="none", rtol=RTOL, engine=engine, on_failure="warn"))
@@ -134,7 +136,8 @@ def test_a_failing_column_fails_as_petsc_and_leaves_the_others(lshape):
         assert [st.ok for _, st in seen] == [True, False, True]
     assert messages["batched"] == messages["petsc"]
     ok = [0, 2]
-    assert (values["batched"][ok] - values["petsc"][ok]).norm(dim=1).max() <= 1e-6 * values["petsc"][ok].norm(dim=1).max()
+    assert ((values["batched"][ok] - values["petsc"][ok]).norm(dim=1).max()
+            <= 1e-6 * values["petsc"][ok].norm(dim=1).max())
 
 
 def test_auto_runs_converged_cg_batched_from_the_measured_batch(lshape):

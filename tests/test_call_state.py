@@ -5,15 +5,14 @@ The reference is central differences of the same two-call loss with each call's 
 loop sets them; before the fix, step 1's adjoint was solved with step 2's dt (84-120% off)."""
 from __future__ import annotations
 
-import numpy as np
+import dolfinx.fem
 import pytest
 import torch
 import ufl
 
-import dolfinx.fem
 from fempdl import NonlinearProblem, forms
-from fempdl.core import _dolfinx
 from fempdl.bridge_torch import SolveLayer
+from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import KSPOptions
 from fempdl.layer.newton_layer import NonlinearSolveLayer
 from fempdl.solve.newton_options import NewtonOptions

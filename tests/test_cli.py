@@ -496,9 +496,10 @@ def test_save_fields_writes_predictions_references_and_a_png(tiny, tmp_path):
 
 def test_validation_fields_are_what_the_metric_measures(tiny):
     import torch
+
     from fempdl.app.runs import runner
-    from fempdl.ksp_adjoint import KSPOptions
     from fempdl.app.tasks.metrics import sample_nmse
+    from fempdl.ksp_adjoint import KSPOptions
     sc = scene.load(tiny)
     assert sc.data.rollout == 1
     task = runner.build_task(sc, KSPOptions(max_it=2))

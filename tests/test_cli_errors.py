@@ -4,6 +4,7 @@ from __future__ import annotations
 import pytest
 
 from fempdl.app import cli
+
 from helpers import one_line_error, tiny_scene
 
 

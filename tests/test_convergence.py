@@ -5,20 +5,20 @@ data, DOF ordering of inputs/outputs and the layer together.
 """
 from __future__ import annotations
 
+from mpi4py import MPI
+import dolfinx.fem
 import numpy as np
 import pytest
 import sympy
 import torch
 import ufl
-from mpi4py import MPI
 
-import dolfinx.fem
-from fempdl.core import _dolfinx
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
+from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import KSPOptions
-from helpers import integral
 
+from helpers import integral
 
 X, Y = sympy.symbols("x y")
 U_EXACT = sympy.sin(sympy.pi * X) * sympy.cos(sympy.pi * Y / 2) + X * Y

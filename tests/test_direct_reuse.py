@@ -6,12 +6,12 @@ version (and PETSc's state, which decides whether the factor is rebuilt) where t
 """
 from __future__ import annotations
 
+from mpi4py import MPI
 import dolfinx.mesh
 import numpy as np
 import pytest
 import torch
 import ufl
-from mpi4py import MPI
 
 from fempdl import KSPOptions, Problem, SolveLayer, forms
 from fempdl.core import _dolfinx

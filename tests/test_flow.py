@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import warnings
 
+from mpi4py import MPI
 import dolfinx.fem
 import dolfinx.mesh
 import numpy as np
@@ -10,14 +11,14 @@ import pytest
 import sympy
 import torch
 import ufl
-from mpi4py import MPI
 
-from fempdl.core import _dolfinx
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
-from fempdl.ksp_adjoint import KSPOptions
-from helpers import integral
+from fempdl.core import _dolfinx
 from fempdl.core.mesh import TaggedMesh
+from fempdl.ksp_adjoint import KSPOptions
+
+from helpers import integral
 
 CONVERGED_SCHUR = KSPOptions.preset("schur", rtol=1e-12)
 X, Y = sympy.symbols("x y")
@@ -80,8 +81,8 @@ def stokes_errors(h: float):
     area = integral(_dolfinx.compile_form(1.0 * ufl.dx(domain=prob.V.mesh)), comm)
     p_mean = integral(_dolfinx.compile_form((ph - p_ex) * ufl.dx), comm) / area
     e = uh - u_ex
-    return (comm.allreduce(prob.output_size), norm(ufl.inner(e, e), comm), norm(ufl.inner(ufl.grad(e), ufl.grad(e)), comm),
-            norm((ph - p_ex - p_mean) ** 2, comm))
+    return (comm.allreduce(prob.output_size), norm(ufl.inner(e, e), comm),
+            norm(ufl.inner(ufl.grad(e), ufl.grad(e)), comm), norm((ph - p_ex - p_mean) ** 2, comm))
 
 
 def _ufl(expr, x):

@@ -7,19 +7,19 @@ untrained (or uncorrected) model.
 """
 from __future__ import annotations
 
+from mpi4py import MPI
 import numpy as np
 import pytest
 import torch
-from mpi4py import MPI
 
 from fempdl import mesh
-from fempdl.app.runs import runner
 from fempdl.app import scene
+from fempdl.app.runs import runner
 from fempdl.app.schema import PdeConfig
 from fempdl.app.tasks.data import smooth_fields
 from fempdl.app.tasks.hybrid import HybridTask, VelocityTransfer, channel_problem
-from fempdl.ksp_adjoint import KSPOptions
 from fempdl.app.tasks.networks import ResidualMLP
+from fempdl.ksp_adjoint import KSPOptions
 
 from helpers import tiny_scene
 
@@ -125,7 +125,8 @@ def test_transfer_between_different_domains_is_an_error():
     from fempdl import forms
     source = forms.burgers.problem(lshape, controls=()).V
     target = channel_problem(mesh.load("obstacle", MPI.COMM_SELF, h=0.15),
-                             PdeConfig(type="oseen", nu=1e-3, dt=0.02, inflow=1.0, degree=2), controls=()).field_space("u")
+                             PdeConfig(type="oseen", nu=1e-3, dt=0.02, inflow=1.0, degree=2),
+                             controls=()).field_space("u")
     with pytest.raises(ValueError, match="lie outside the source mesh.*do not cover the same domain"):
         VelocityTransfer(source, target)
 
@@ -151,7 +152,7 @@ def test_burgers_validation_rolls_out_and_capped_chain_counts_iterations(burgers
         task.train_step(torch.arange(4))
         # Four samples, forward and adjoint, each exactly K = 4 GMRES iterations.
         assert task.layer.stats.forward_iterations == task.layer.stats.backward_iterations == 16
-        keps = runner.k_eps(task, runner.solver_options(burgers, None, burgers.data.k_eps_rtol))
+        keps = runner.measure_k_eps(task, burgers)
         assert keps > 8
     finally:
         task.close()

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from fempdl.core import _dolfinx
 from fempdl.bridge_torch import SolveLayer
+from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import KSPOptions
 
 from helpers import CAPPED, CONVERGED, FORM_CONTROL_PAIRS, build, control_values

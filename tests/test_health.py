@@ -3,10 +3,10 @@ or not shrunk below the limit) refines PRDP's K at once and is solved again befo
 import dataclasses
 import warnings
 
+from mpi4py import MPI
 import numpy as np
 import pytest
 import torch
-from mpi4py import MPI
 
 from fempdl import PRDP, KSPOptions, NewtonOptions, NonlinearSolveLayer, PRDPSettings, SolveLayer, forms, mesh
 from fempdl.layer.system_layer import HEALTH_EVERY

@@ -1,14 +1,14 @@
 """HIG: the exact limits (gradient descent, Gauss-Newton), truncation, the memory bound, and the toy problem."""
 from __future__ import annotations
 
+from mpi4py import MPI
 import pytest
 import torch
-from mpi4py import MPI
 
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
-from fempdl.methods.hig import HIG, half_inverse_update
 from fempdl.ksp_adjoint import KSPOptions
+from fempdl.methods.hig import HIG, half_inverse_update
 
 
 @pytest.fixture(scope="module")

@@ -13,16 +13,13 @@ import sys
 import time
 from pathlib import Path
 
+from mpi4py import MPI
 import pytest
 import torch
-from mpi4py import MPI
 
 from fempdl import forms, mesh
-from fempdl.app.runs import checkpoints
-from fempdl.app import cli
-from fempdl.app.runs import runner
-from fempdl.app.runs import rundir
-from fempdl.app import scene
+from fempdl.app import cli, scene
+from fempdl.app.runs import checkpoints, rundir, runner
 from fempdl.app.runs.checkpoints import CheckpointError
 from fempdl.ksp_adjoint import KSPOptions
 
@@ -315,8 +312,8 @@ def test_max_unrolled_values_bounds_what_the_forward_pass_keeps(coarse_problems,
     """With max_unrolled_values at the least checkpointed size, the floats saved for the backward
     pass (saved-tensor hooks) stay within it, where the unbounded solve keeps K steps' worth
     (measured RSS: scripts/bench_bounds.py); the gradient is unchanged."""
-    from fempdl.iterative import unrolled
     from fempdl.bridge_torch import SolveLayer
+    from fempdl.iterative import unrolled
     prob = coarse_problems["poisson"]
     K, batch = 400, 2
     n = prob.output_size
@@ -331,7 +328,7 @@ def test_max_unrolled_values_bounds_what_the_forward_pass_keeps(coarse_problems,
         x = m.clone().requires_grad_()
         seen = {}
 
-        def pack(t):
+        def pack(t, seen=seen):
             if t.dim() == 2 and t.shape[0] >= n:           # (n, B) blocks and matrix-entry blocks
                 seen[t.untyped_storage().data_ptr()] = t.untyped_storage().nbytes() // 8
             return t
@@ -346,8 +343,8 @@ def test_max_unrolled_values_bounds_what_the_forward_pass_keeps(coarse_problems,
 
 
 def test_an_unrolled_solve_beyond_the_memory_budget_is_refused_up_front(coarse_problems):
-    from fempdl.iterative import unrolled
     from fempdl.bridge_torch import SolveLayer
+    from fempdl.iterative import unrolled
     prob = coarse_problems["poisson"]
     f = torch.ones(2, prob.control_size("f"), dtype=torch.float64, requires_grad=True)
     layer = SolveLayer(prob, KSPOptions.preset("cg", max_it=2 * 10 ** 9), diff="unrolled")

@@ -11,6 +11,7 @@ import torch
 
 from fempdl.app import cli, scene
 from fempdl.app.runs import checkpoints, rundir, runner
+
 from helpers import one_line_error, tiny_scene
 
 SCENE = tiny_scene("inverse", name="hostile-app", optimizer={"epochs": 2})

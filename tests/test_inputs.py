@@ -8,17 +8,17 @@ Functions) and the layer's state after a failure. Small meshes only.
 import re
 import warnings
 
+from mpi4py import MPI
 import dolfinx.fem
 import dolfinx.mesh
 import numpy as np
 import pytest
 import torch
 import ufl
-from mpi4py import MPI
 
 from fempdl import Problem, forms, mesh
-from fempdl.core import _dolfinx
 from fempdl.bridge_torch import SolveLayer
+from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import KSPOptions, SolverFailedError
 
 COMM = MPI.COMM_WORLD
@@ -173,7 +173,8 @@ def test_non_float_dtype(layer, nf, dtype):
 @pytest.mark.parametrize("value, type_name", [(np.ones(81), "ndarray"), ([1.0] * 81, "list"), (1.0, "float")])
 def test_non_tensor(layer, nf, value, type_name):
     assert nf == 81
-    with pytest.raises(TypeError, match=rf"control 'f' must be a torch\.Tensor, got {type_name}; wrap arrays with torch\.as_tensor"):
+    with pytest.raises(TypeError, match=rf"control 'f' must be a torch\.Tensor, got {type_name}; "
+                                        r"wrap arrays with torch\.as_tensor"):
         layer(f=value)
 
 
@@ -224,7 +225,8 @@ def test_layer_constructor_errors(prob):
         SolveLayer("poisson")
     with pytest.raises(TypeError, match=r"options must be KSPOptions or a preset name, got int"):
         SolveLayer(prob, 5)
-    with pytest.raises(ValueError, match=r"unknown preset 'nonexistent'; choose one of \['amg', 'cg', 'cholesky', 'gmres', 'gmres-ilu', 'jacobi', 'lu', 'lu-lagged', 'schur'\]"):
+    with pytest.raises(ValueError, match=r"unknown preset 'nonexistent'; choose one of \['amg', 'cg', 'cholesky', "
+                                         r"'gmres', 'gmres-ilu', 'jacobi', 'lu', 'lu-lagged', 'schur'\]"):
         SolveLayer(prob, "nonexistent")
     with pytest.raises(ValueError, match=r"diff must be one of \[.*'implicit'.*\], got 'bogus'"):
         SolveLayer(prob, diff="bogus")
@@ -277,7 +279,8 @@ def test_kspoptions_rejects(kwargs, exc, match):
 
 
 def test_unknown_preset_and_bad_override():
-    with pytest.raises(ValueError, match=r"unknown preset 'foo'; choose one of \['amg', 'cg', 'cholesky', 'gmres', 'gmres-ilu', 'jacobi', 'lu', 'lu-lagged', 'schur'\]"):
+    with pytest.raises(ValueError, match=r"unknown preset 'foo'; choose one of \['amg', 'cg', 'cholesky', 'gmres', "
+                                         r"'gmres-ilu', 'jacobi', 'lu', 'lu-lagged', 'schur'\]"):
         KSPOptions.preset("foo")
     with pytest.raises(ValueError, match=r"max_it must be >= 1, got 0"):
         KSPOptions.preset("jacobi", max_it=0)
@@ -390,7 +393,8 @@ def test_dirichlet_unknown_tag_name_names_dirichlet(lshape):
 
 
 def test_dirichlet_unknown_integer_tag(lshape):
-    with pytest.raises(ValueError, match=r"dirichlet facet tag\(s\) \[99\] do not occur in the mesh; tags present: \[1, 2\]"):
+    with pytest.raises(ValueError,
+                       match=r"dirichlet facet tag\(s\) \[99\] do not occur in the mesh; tags present: \[1, 2\]"):
         forms.heat.problem(lshape, dirichlet=(1, 99))
 
 
@@ -437,9 +441,11 @@ def test_control_name_not_identifier(raw, name):
 
 
 def test_a_given_as_linear_form(raw):
-    with pytest.raises(TypeError, match=r"a must be a bilinear UFL form \(two arguments\), got a form with 1 argument\(s\)"):
+    with pytest.raises(TypeError,
+                       match=r"a must be a bilinear UFL form \(two arguments\), got a form with 1 argument\(s\)"):
         Problem(raw["L"], raw["L"], (), controls={"f": raw["f"]})
-    with pytest.raises(TypeError, match=r"L must be a linear UFL form \(one argument\), got a form with 2 argument\(s\)"):
+    with pytest.raises(TypeError,
+                       match=r"L must be a linear UFL form \(one argument\), got a form with 2 argument\(s\)"):
         Problem(raw["a"], raw["a"], (), controls={"f": raw["f"]})
     with pytest.raises(TypeError, match=r"a must be a bilinear UFL form \(two arguments\), got float"):
         Problem(1.0, raw["L"])
@@ -696,7 +702,7 @@ def test_nan_incoming_gradient_is_named(prob, nf):
 def test_float32_overflow_not_silent(prob, nf, nk):
     lay = SolveLayer(prob, KSPOptions(max_it=50))
     try:
-        with warnings.catch_warnings(record=True) as caught:
+        with warnings.catch_warnings(record=True):
             warnings.simplefilter("always")
             with pytest.raises(OverflowError, match="overflows torch.float32; pass float64 controls"):
                 lay(f=torch.full((nf,), 1e10), kappa=torch.full((nk,), 1e-30))
@@ -728,6 +734,7 @@ def test_problem_constants_are_declared_and_a_change_reaches_the_next_solve(msh)
 
 
 def test_problem_constants_must_be_dolfinx_constants(raw):
-    with pytest.raises(TypeError, match=r"constants\['dt'\] must be a dolfinx.fem.Constant under a str name, got float"):
+    with pytest.raises(TypeError,
+                       match=r"constants\['dt'\] must be a dolfinx.fem.Constant under a str name, got float"):
         Problem(raw["a"], raw["L"], (), controls={"f": raw["f"]}, constants={"dt": 0.1})
     assert not Problem(raw["a"], raw["L"], (), controls={"f": raw["f"]}).enclosed

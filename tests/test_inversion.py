@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import torch
 
+from fempdl.app import scene, tasks
 from fempdl.app.reports import compare
 from fempdl.app.runs import runner
-from fempdl.app import tasks
-from fempdl.app import scene
-from fempdl.app.tasks.data import rectangle_fields
-from fempdl.app.tasks.inversion import InversionTask
+from fempdl.app.runs.settings import RunSettings
 from fempdl.app.runs.training import Trainer
+from fempdl.app.tasks.data import rectangle_fields
+from fempdl.app.tasks.learned_inverse import InversionTask
 
 from helpers import tiny_scene
 
@@ -253,7 +253,7 @@ def test_an_interrupted_run_resumes_to_the_same_metrics(tmp_path, method):
 def test_the_trainer_stops_at_a_training_time():
     task = InversionTask(sip_scene(), "sip")
     try:
-        rows = Trainer(task, epochs=1000, batch=16, stop_at_time=0.05).run()
+        rows = Trainer(task, batch=16, settings=RunSettings(epochs=1000, stop_at_time=0.05)).run()
     finally:
         task.close()
     assert rows[-1]["train_time"] >= 0.05 and (len(rows) == 1 or rows[-2]["train_time"] < 0.05)

@@ -10,18 +10,25 @@ from __future__ import annotations
 import subprocess
 import sys
 
+from mpi4py import MPI
 import dolfinx.mesh
 import numpy as np
 import pytest
 import torch
-from mpi4py import MPI
+from test_mpi import mpirun
 
-from fempdl import (KSPOptions, MassInner, NewtonOptions, NonlinearSolveLayer, PointObservation, Problem,
-                    SolveLayer, forms)
+from fempdl import (
+    KSPOptions,
+    MassInner,
+    NewtonOptions,
+    NonlinearSolveLayer,
+    PointObservation,
+    Problem,
+    SolveLayer,
+    forms,
+)
 from fempdl.core import _dolfinx, parallel
 from fempdl.layer import newton_layer
-
-from test_mpi import mpirun
 
 F64 = torch.float64
 LU = NewtonOptions(rtol=1e-12, atol=1e-14, ksp="lu")

@@ -1,6 +1,8 @@
 """CappedSolver: exact iteration counts, exact Jacobi iterates, transposes, options handling."""
 from __future__ import annotations
 
+import dolfinx.fem
+import dolfinx.fem.petsc
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -8,8 +10,6 @@ import scipy.sparse.linalg  # noqa: F401  (sp.linalg)
 import ufl
 from petsc4py import PETSc
 
-import dolfinx.fem
-import dolfinx.fem.petsc
 from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import CappedSolver, KSPOptions, SolverFailedError, SolverWarning
 

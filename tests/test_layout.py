@@ -26,24 +26,29 @@ PUBLIC_PATHS = ["fempdl.ksp_adjoint", "fempdl.bridge_torch", "fempdl.prdp"]
 # Floors bottom to top, each a list of rooms in order; a room is a list of module prefixes.
 FLOORS = [
     ("core", [["fempdl.core._dolfinx", "fempdl.core.checks", "fempdl.core.resources", "fempdl.core.parallel",
-               "fempdl.core.meshgen", "fempdl.core.nullspaces", "fempdl.core.locks", "fempdl.core.ranks"], ["fempdl.core.mesh", "fempdl.core.problem_base"], ["fempdl.core.problem", "fempdl.core.nonlinear_problem", "fempdl.core.io"],
+               "fempdl.core.meshgen", "fempdl.core.nullspaces", "fempdl.core.locks", "fempdl.core.ranks"],
+              ["fempdl.core.mesh", "fempdl.core.problem_base"],
+              ["fempdl.core.problem", "fempdl.core.nonlinear_problem", "fempdl.core.io"],
               ["fempdl.forms"], ["fempdl.core"], ["fempdl.mesh", "fempdl.io"]]),
     ("solve", [["fempdl.solve.options", "fempdl.solve.option_checks", "fempdl.solve.newton_options"],
                ["fempdl.solve.stats", "fempdl.solve.petsc", "fempdl.solve.newton_stats", "fempdl.solve.snes",
                 "fempdl.solve.newton_stop", "fempdl.solve.health"],
                ["fempdl.solve.capped_solver"],
-               ["fempdl.solve.assembly", "fempdl.solve.control_forms", "fempdl.solve.call_state"],
+               ["fempdl.solve.assembly", "fempdl.solve.control_forms", "fempdl.solve.call_state",
+                "fempdl.solve.newton_solvers"],
                ["fempdl.solve.linear_system", "fempdl.solve.newton_reverse", "fempdl.solve.nonlinear_system"],
                ["fempdl.solve"]]),
     ("iterative", [["fempdl.iterative"]]),
     ("layer", [["fempdl.layer.implicit_diff", "fempdl.layer.unrolled_diff", "fempdl.layer.observation"],
-               ["fempdl.layer.system_layer", "fempdl.layer.newton_unrolled"], ["fempdl.layer.newton_layer", "fempdl.layer.rollout_checkpoint"], ["fempdl.layer.rollout"],
+               ["fempdl.layer.system_layer", "fempdl.layer.newton_unrolled"],
+               ["fempdl.layer.newton_layer", "fempdl.layer.rollout_checkpoint"], ["fempdl.layer.rollout"],
                ["fempdl.layer.solve_layer"], ["fempdl.layer"]]),
     ("methods", [["fempdl.methods"]]),
     # __init__ (the public names, lazily) and the card's import paths, thin re-exports of the floors below
     ("public", [["fempdl"], PUBLIC_PATHS]),
-    ("app", [["fempdl.app.schema", "fempdl.app.scenes", "fempdl.app.scene_budget"], ["fempdl.app.tasks"], ["fempdl.app.scene"],
-             ["fempdl.app.runs"], ["fempdl.app.reports"], ["fempdl.app.cli", "fempdl.app.commands"], ["fempdl.app"]]),
+    ("app", [["fempdl.app.schema", "fempdl.app.scenes", "fempdl.app.scene_budget"], ["fempdl.app.tasks"],
+             ["fempdl.app.scene"], ["fempdl.app.runs"], ["fempdl.app.reports"],
+             ["fempdl.app.cli", "fempdl.app.commands"], ["fempdl.app"]]),
 ]
 # Third-party packages the torch-only floor must not reach.
 FEM_PACKAGES = ("dolfinx", "ufl", "basix", "ffcx")
@@ -92,7 +97,8 @@ def imports_of(path: Path, name: str, known: set[str], *, external: bool = False
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
-                base = ".".join(package.split(".")[:len(package.split(".")) - node.level + 1] + ([base] if base else []))
+                base = ".".join(package.split(".")[:len(package.split(".")) - node.level + 1]
+                                + ([base] if base else []))
             for alias in node.names:
                 candidate = f"{base}.{alias.name}"
                 found.add(candidate if candidate in known else base)
@@ -217,8 +223,7 @@ def test_the_checker_sees_wrong_way_imports_cycles_and_dolfinx(tmp_path):
 def test_one_line_import_of_the_public_names():
     """``from fempdl import ...`` gives every public name, from the module that defines it."""
     import fempdl
-
-    from fempdl import CappedSolver, KSPOptions, PRDP, Problem, SolveLayer, SolverFailedError, forms, mesh
+    from fempdl import PRDP, CappedSolver, KSPOptions, Problem, SolveLayer, SolverFailedError, forms, mesh
     assert (Problem.__module__, SolveLayer.__module__, CappedSolver.__module__) \
         == ("fempdl.core.problem", "fempdl.layer.solve_layer", "fempdl.solve.capped_solver")
     assert KSPOptions is importlib.import_module("fempdl.ksp_adjoint").KSPOptions
@@ -229,7 +234,7 @@ def test_one_line_import_of_the_public_names():
     for name in fempdl.__all__:
         assert getattr(fempdl, name) is not None
     with pytest.raises(AttributeError, match="has no attribute 'Nothing'"):
-        fempdl.Nothing
+        _ = fempdl.Nothing
 
 
 def test_no_module_is_too_long_to_hold_in_one_head():

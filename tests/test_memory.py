@@ -15,15 +15,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+from mpi4py import MPI
 import dolfinx.mesh
 import pytest
 import torch
-from mpi4py import MPI
 from petsc4py import PETSc
 
 from fempdl import forms
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
+
 from helpers import settled_rss
 
 pytestmark = pytest.mark.skipif(
@@ -37,6 +38,7 @@ WARMUP_CALLS = 300
 CALLS = 5000
 BATCH = 4
 K = 5
+
 
 def live_petsc_objects() -> int:
     """petsc4py objects reachable by the garbage collector."""
@@ -141,12 +143,12 @@ def test_measurement_detects_a_leak():
     Measured in a fresh process: here, the heap freed by earlier tests would
     serve the arrays from free chunks without moving VmRSS (2.4 MiB seen), and
     the self-test would measure the heap's history instead of the method."""
-    code = ("import sys; sys.path.insert(0, %r)\n"
+    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
             "import numpy as np\n"
             "from helpers import settled_rss\n"
             "before = settled_rss()\n"
             "kept = [np.ones(128) for _ in range(8192)]\n"
-            "print(settled_rss() - before, sum(a.size for a in kept))\n") % str(Path(__file__).parent)
+            "print(settled_rss() - before, sum(a.size for a in kept))\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     growth, size = map(int, done.stdout.split())

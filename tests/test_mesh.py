@@ -7,13 +7,13 @@ import sys
 import zipfile
 from pathlib import Path
 
+from mpi4py import MPI
 import dolfinx.fem
 import dolfinx.mesh
 import gmsh
 import numpy as np
 import pytest
 import ufl
-from mpi4py import MPI
 from petsc4py import PETSc
 
 from fempdl import mesh

@@ -4,10 +4,9 @@ from __future__ import annotations
 import re
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 import torch
-
-import pytest
 
 from fempdl.app.tasks.networks import GraphConvNet, Standardize, normalised_adjacency
 

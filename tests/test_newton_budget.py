@@ -39,7 +39,8 @@ def test_a_capped_implicit_solve_stops_at_its_tolerance(coarse_lshape):
     direction = torch.rand(prob.control_size("f"), dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     eps = 1e-5
     with torch.no_grad():
-        expected = ((w * converged(f=f + eps * direction)).sum() - (w * converged(f=f - eps * direction)).sum()) / (2 * eps)
+        expected = ((w * converged(f=f + eps * direction)).sum()
+                    - (w * converged(f=f - eps * direction)).sum()) / (2 * eps)
     assert torch.dot(f.grad, direction).item() == pytest.approx(expected.item(), rel=1e-7)
 
 

@@ -1,10 +1,10 @@
 """A Newton solve's lagged factorisation (KSPOptions.preset("lu-lagged")): every step solves its own
 Jacobian to rtol by GMRES preconditioned with an earlier LU, so the iterates, the states and the implicit
 gradients are those of LU Newton, with fewer factorisations."""
+from mpi4py import MPI
 import numpy as np
 import pytest
 import torch
-from mpi4py import MPI
 
 from fempdl import KSPOptions, NewtonOptions, NonlinearSolveLayer, Rollout, forms, mesh
 from fempdl.core.tuning import LAGGED_REFRESH_ITERATIONS

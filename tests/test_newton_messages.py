@@ -7,14 +7,14 @@ condition (a singular J) as "raise converged_max_it"; a failed line search as a 
 """
 from __future__ import annotations
 
+from mpi4py import MPI
+import dolfinx.fem
+import dolfinx.mesh
 import numpy as np
 import pytest
 import torch
 import ufl
-from mpi4py import MPI
 from petsc4py import PETSc
-import dolfinx.fem
-import dolfinx.mesh
 
 from fempdl import KSPOptions, NewtonOptions, NonlinearProblem, NonlinearSolveLayer, SolverFailedError
 from fempdl.core import _dolfinx

@@ -15,25 +15,29 @@ What is checked, against numbers the mathematics fixes:
 """
 from __future__ import annotations
 
-import subprocess
 import warnings
 
-import numpy as np
-import pytest
-import torch
 from mpi4py import MPI
-import dolfinx
 import dolfinx.fem
 import dolfinx.fem.petsc
 import dolfinx.mesh
 import dolfinx.nls.petsc
+import numpy as np
+import pytest
+import torch
 import ufl
-
-from fempdl import (KSPOptions, NewtonOptions, NonlinearProblem, NonlinearSolveLayer, SolverFailedError,
-                    SolverWarning, forms)
-from fempdl.core import _dolfinx
-
 from test_mpi import mpirun
+
+from fempdl import (
+    KSPOptions,
+    NewtonOptions,
+    NonlinearProblem,
+    NonlinearSolveLayer,
+    SolverFailedError,
+    SolverWarning,
+    forms,
+)
+from fempdl.core import _dolfinx
 
 COMM = MPI.COMM_WORLD
 F64 = torch.float64
@@ -174,7 +178,8 @@ def test_forward_equals_dolfinx_newton(square8, case):
     reference = u_ref.x.array[:prob.output_size]
     assert rel(u, reference) <= 1e-10
     g = prob.interpolate(g_bc)
-    # The boundary values are g exactly: BC rows of J are identity rows with zeroed columns, so every step leaves u = g there
+    # The boundary values are g exactly: BC rows of J are identity rows with zeroed columns,
+    # so every step leaves u = g there
     np.testing.assert_array_equal(u.numpy()[prob.bc_dofs], g[prob.bc_dofs])
     layer.close()
 
@@ -330,7 +335,7 @@ def test_central_differences_on_a_finer_mesh(prob8, control):
     other = {"alpha": values(prob8, "alpha", seed=9)} if control == "f" else {"f": values(prob8, "f", seed=9)}
     for options, diff in ((CONVERGED, "implicit"), (capped(2), "unrolled")):
         layer = NonlinearSolveLayer(prob8, options, diff=diff)
-        slope, fd = directional(lambda x: layer(**{control: x}, **other), prob8, control, w)
+        slope, fd = directional(lambda x, layer=layer: layer(**{control: x}, **other), prob8, control, w)
         assert abs(fd) > 1e-3
         assert abs(slope - fd) <= 1e-6 * abs(fd), (diff, slope, fd)
         layer.close()
@@ -443,12 +448,26 @@ def test_capped_inner_solves_run_exactly_k_iterations_per_step(prob8, inner):
     assert s.last_newton.inner_iterations == N * K and s.last_newton.capped
     # The implicit adjoint is one capped transposed solve per sample, at the same cap.
     assert s.backward_solves == batch and s.backward_iterations == K * batch
-    # Both caps move.
+    # Both caps move; the inner cap in place: the same SNES, KSP and adjoint solver, new tolerances.
+    solvers = layer.system._solvers
+    handles = (solvers.snes.handle, solvers.ksp.handle, solvers.adjoint.ksp.handle)
     layer.max_it, layer.inner_max_it = 2, 7
-    layer(f=f.detach(), alpha=alpha)
+    layer(f=f.detach().requires_grad_(), alpha=alpha).sum().backward()
     assert s.newton_steps == N * batch + 2 * batch
     assert s.forward_iterations == N * K * batch + 2 * 7 * batch
+    assert s.backward_iterations == K * batch + 7 * batch          # the adjoint's cap moved with it
     assert layer.options.ksp.max_it == 7 and layer.options.max_it == 2
+    assert layer.system._solvers is solvers
+    assert (solvers.snes.handle, solvers.ksp.handle, solvers.adjoint.ksp.handle) == handles
+    assert solvers.ksp.getTolerances()[3] == 7
+    # Off the cap (converged inner solves, to the preset's rtol) and back onto one, still in place.
+    layer.inner_max_it = None
+    converged = layer(f=f.detach(), alpha=alpha)
+    assert s.last_newton.inner_iterations > 2 * 7 and solvers.ksp.getTolerances()[0] > 0
+    layer.inner_max_it = 3
+    layer(f=f.detach(), alpha=alpha)
+    assert s.last_newton.inner_iterations == 2 * 3 and layer.system._solvers is solvers
+    assert torch.isfinite(converged).all()
     layer.close()
 
 

@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import time
 
+from mpi4py import MPI
+import dolfinx.mesh
 import numpy as np
 import pytest
 import torch
-from mpi4py import MPI
-import dolfinx.mesh
 
 from fempdl import NewtonOptions, NonlinearProblem, NonlinearSolveLayer, SolverFailedError, SolverWarning, forms
 
@@ -64,7 +64,9 @@ def test_unrolled_gradient_from_a_solution_is_the_derivative_of_the_map(prob, st
         grads[diff] = x.grad
         if diff == "unrolled":
             assert layer.stats.last_newton.steps == 1
-            loss = lambda y: (layer(f=y, kappa=kappa, initial_guess=guess) * w).sum()  # noqa: E731
+
+            def loss(y, layer=layer):   # the unrolled layer, bound now: the loop rebinds `layer`
+                return (layer(f=y, kappa=kappa, initial_guess=guess) * w).sum()
     assert grads["unrolled"].norm() > 1e-3
     np.testing.assert_allclose(grads["unrolled"], grads["implicit"], rtol=1e-9, atol=1e-14)
     direction = torch.sin(torch.arange(len(f), dtype=F64))

@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import warnings
 
-import numpy as np
-import pytest
-import torch
-import ufl
 from mpi4py import MPI
 import dolfinx.fem
 import dolfinx.fem.petsc
 import dolfinx.mesh
 import dolfinx.nls.petsc
+import numpy as np
+import pytest
+import torch
+import ufl
 from petsc4py import PETSc
 
 from fempdl import NewtonOptions, NonlinearSolveLayer, SolveLayer, SolverFailedError, forms
@@ -274,7 +274,8 @@ NAN_REASONS = {"DIVERGED_FNORM_NAN", "DIVERGED_FUNCTION_NANORINF"} & set(SNES_RE
 
 @pytest.mark.parametrize("options, reasons", [
     (NewtonOptions(snes_type="newton"), NAN_REASONS),          # the full step inverts elements: ln J of J < 0
-    (NewtonOptions(snes_type="newtonls", converged_max_it=5), {"DIVERGED_MAX_IT", "DIVERGED_LINE_SEARCH"}),   # short bt steps
+    # short bt steps
+    (NewtonOptions(snes_type="newtonls", converged_max_it=5), {"DIVERGED_MAX_IT", "DIVERGED_LINE_SEARCH"}),
 ])
 def test_hyperelastic_overload_raises_with_snes_reason(beam, options, reasons):
     prob = hyper(beam)

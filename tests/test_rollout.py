@@ -1,9 +1,9 @@
 """Rollout (fempdl/layer/rollout.py): N steps of a step layer as one layer; per-step controls and constants,
 a differentiable initial state, gradients against central differences, linear and Newton steps."""
+from mpi4py import MPI
 import numpy as np
 import pytest
 import torch
-from mpi4py import MPI
 
 from fempdl import PRDP, KSPOptions, NewtonOptions, NonlinearSolveLayer, Rollout, SolveLayer, forms, mesh
 

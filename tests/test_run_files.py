@@ -7,6 +7,7 @@ import torch
 
 from fempdl.app import scene
 from fempdl.app.runs import checkpoints, rundir, runner
+
 from helpers import tiny_scene
 
 

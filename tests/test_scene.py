@@ -68,7 +68,8 @@ def test_bundled_scene_loads_with_its_tasks_sections(name):
     assert sc.description.strip()
     assert sc.task in ("emulator", "inverse", "hybrid", "sip", "hig")
     assert sc.mesh.name
-    sections = ("mesh", "pde", "data", "optimizer") + (("network", "baseline") if tasks.spec_of(sc.task).trains == "method"
+    sections = ("mesh", "pde", "data", "optimizer") + (("network", "baseline")
+                                                       if tasks.spec_of(sc.task).trains == "method"
                                                        else ("solver", "prdp"))
     for section in sections:
         assert set(sc.as_dict()[section]) == _keys_for(sc, section), section
@@ -148,12 +149,15 @@ def test_parse_fills_the_schema_defaults():
     sc = scene.parse(toml())
     assert (sc.name, sc.task, sc.description, sc.source) == ("t", "emulator", "", "<string>")
     assert sc.as_dict()["mesh"] == {"name": "lshape", "h": None}
-    assert sc.as_dict()["pde"] == {"type": "heat", "dt": 0.01, "theta": 1.0, "kappa": 1.0, "degree": 1}   # nu, inflow: not heat
-    assert sc.as_dict()["data"] == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "k_eps_rtol": 1e-5, "rollout": 1,
-                                       "train_rollout": 1}
+    # nu, inflow: not heat
+    assert sc.as_dict()["pde"] == {"type": "heat", "dt": 0.01, "theta": 1.0, "kappa": 1.0, "degree": 1}
+    assert sc.as_dict()["data"] == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "k_eps_rtol": 1e-5,
+                                    "rollout": 1, "train_rollout": 1}
     assert sc.as_dict()["network"] == {"type": "mlp", "hidden": 128, "layers": 2}
-    assert sc.as_dict()["optimizer"] == {"type": "adam", "lr": 1e-3, "decay": 1.0, "epochs": 30, "batch": 16, "stop_at": None}
-    assert sc.as_dict()["solver"] == {"preset": "jacobi", "diff": "implicit", "warm_start": False, "lag_preconditioner": False}
+    assert sc.as_dict()["optimizer"] == {"type": "adam", "lr": 1e-3, "decay": 1.0, "epochs": 30, "batch": 16,
+                                         "stop_at": None}
+    assert sc.as_dict()["solver"] == {"preset": "jacobi", "diff": "implicit", "warm_start": False,
+                                      "lag_preconditioner": False}
     assert sc.as_dict()["prdp"] == {"k0": 1, "dk": 1, "tau_step": 0.95, "tau_stop": 0.9, "delta": 3, "ema_window": 6,
                        "k_cap": None, "guard": None, "growth": 1.0, "health": 1.0}
     assert sc.inverse is None
@@ -177,8 +181,8 @@ def test_method_scene_defaults():
     assert sip.as_dict()["baseline"] == {"lr": 0.02, "decay": 0.99}          # the method's schedule unless given
     own = scene.parse(toml({"optimizer": "lr = 0.02\ndecay = 0.99", "baseline": "lr = 0.1\ndecay = 1.0"}, base=SIP))
     assert own.as_dict()["baseline"] == {"lr": 0.1, "decay": 1.0}
-    assert sip.as_dict()["data"] == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "truths": "smooth", "noise": 0.0,
-                        "resample": False}
+    assert sip.as_dict()["data"] == {"train": 64, "validation": 16, "modes": 4, "seed": 0, "truths": "smooth",
+                                     "noise": 0.0, "resample": False}
     assert sip.as_dict()["network"] == {"type": "mlp", "hidden": 128, "layers": 2} and sip.pde.degree == 1
     hig = scene.parse(toml({"network": "layers = 0"}, base=HIG))
     assert hig.as_dict()["baseline"] == {"lr": 1e-3, "decay": 1.0} and hig.network.layers == 0
@@ -190,7 +194,8 @@ def test_method_scene_defaults():
 def test_given_values_override_only_their_keys():
     sc = scene.parse(toml({"optimizer": "epochs = 5\nlr = 2", "mesh": "h = 0.2"}), source="mine.toml")
     assert sc.source == "mine.toml"
-    assert sc.as_dict()["optimizer"] == {"type": "adam", "lr": 2.0, "decay": 1.0, "epochs": 5, "batch": 16, "stop_at": None}
+    assert sc.as_dict()["optimizer"] == {"type": "adam", "lr": 2.0, "decay": 1.0, "epochs": 5, "batch": 16,
+                                         "stop_at": None}
     assert type(sc.optimizer.lr) is float  # an int is accepted where a float is expected
     assert sc.as_dict()["mesh"] == {"name": "lshape", "h": 0.2}
 
@@ -271,7 +276,8 @@ BAD = {
     "hybrid-zero-steps": (toml({"hybrid": "steps = 0"}, base=HYBRID), ["[hybrid] steps must be >= 1, got 0"]),
     "hybrid-on-emulator": (toml({"hybrid": "fine_h = 0.1"}), ["section(s) ['hybrid'] do not apply to task 'emulator'"]),
     "nu-for-heat": (toml({"pde": "nu = 0.1"}), ["[pde] nu do(es) not apply to pde 'heat'"]),
-    "kappa-for-burgers": (toml({"pde": "kappa = 2.0"}, base=BURGERS), ["[pde] kappa do(es) not apply to pde 'burgers'"]),
+    "kappa-for-burgers": (toml({"pde": "kappa = 2.0"}, base=BURGERS),
+                          ["[pde] kappa do(es) not apply to pde 'burgers'"]),
     "inflow-for-burgers": (toml({"pde": "inflow = 2.0"}, base=BURGERS),
                            ["[pde] inflow do(es) not apply to pde 'burgers'"]),
     "theta-for-oseen": (toml({"pde": "theta = 0.5"}, base=HYBRID), ["[pde] theta do(es) not apply to pde 'oseen'"]),
@@ -282,14 +288,16 @@ BAD = {
                          ["[optimizer] type must be one of ['adam', 'sgd'], got 'rmsprop'"]),
     "graph-without-convolutions": (toml({"network": 'type = "graph"\nlayers = 0'}),
                                    ["[network] layers must be >= 1 for a graph network", "got 0"]),
-    "network-choice": (toml({"network": 'type = "cnn"'}), ["[network] type must be one of ['mlp', 'graph'], got 'cnn'"]),
+    "network-choice": (toml({"network": 'type = "cnn"'}),
+                       ["[network] type must be one of ['mlp', 'graph'], got 'cnn'"]),
     "solver-choice": (toml({"solver": 'diff = "adjoint"'}),
                       ["[solver] diff must be one of ['implicit', 'unrolled'], got 'adjoint'"]),
     "unrolled-gmres": (toml({"solver": 'preset = "gmres"\ndiff = "unrolled"'}),
                        ["[solver] diff = 'unrolled' needs preset 'jacobi' or 'cg', got 'gmres'"]),
     "task-choice": ('[scene]\nname = "t"\ntask = "forward"\n',
                     ["[scene] task must be one of ['emulator', 'inverse', 'hybrid', 'sip', 'hig'], got 'forward'"]),
-    "choice-is-case-sensitive": (toml({"optimizer": 'type = "Adam"'}), ["[optimizer] type must be one of ['adam', 'sgd'], got 'Adam'"]),
+    "choice-is-case-sensitive": (toml({"optimizer": 'type = "Adam"'}),
+                                 ["[optimizer] type must be one of ['adam', 'sgd'], got 'Adam'"]),
     # minimum
     "negative-lr": (toml({"optimizer": "lr = -0.1"}), ["[optimizer] lr must be > 0, got -0.1"]),
     "zero-lr": (toml({"optimizer": "lr = 0"}), ["[optimizer] lr must be > 0, got 0.0"]),
@@ -344,7 +352,8 @@ BAD = {
     "sip-negative-damping": (toml(base={**SIP, "sip": 'inverse = "gauss-newton"\ndamping = -1.0'}),
                              ["[sip] damping must be >= 0, got -1.0"]),
     "sip-oseen": (toml(base={**SIP, "pde": 'type = "oseen"'}),
-                  ["[pde] type 'oseen' does not apply to task 'sip'", "['poisson', 'heat', 'nonlinear-poisson', 'marker']"]),
+                  ["[pde] type 'oseen' does not apply to task 'sip'",
+                   "['poisson', 'heat', 'nonlinear-poisson', 'marker']"]),
     "sip-graph": (toml({"network": 'type = "graph"'}, base=SIP), ["[network] type must be 'mlp' for the sip task"]),
     "sip-solver": (toml({"solver": 'preset = "cg"'}, base=SIP), ["section(s) ['solver'] do not apply to task 'sip'"]),
     "sip-prdp": (toml({"prdp": "k0 = 2"}, base=SIP), ["section(s) ['prdp'] do not apply to task 'sip'"]),
@@ -361,7 +370,8 @@ BAD = {
     "hig-tau-above-1": (toml(base={**HIG, "hig": "tau = 2.0"}), ["[hig] tau must be <= 1, got 2.0"]),
     "hig-method-choice": (toml(base={**HIG, "hig": 'method = "qr"'}),
                           ["[hig] method must be one of ['auto', 'svd', 'gram'], got 'qr'"]),
-    "baseline-on-emulator": (toml({"baseline": "lr = 0.1"}), ["section(s) ['baseline'] do not apply to task 'emulator'"]),
+    "baseline-on-emulator": (toml({"baseline": "lr = 0.1"}),
+                             ["section(s) ['baseline'] do not apply to task 'emulator'"]),
     # theta lists
     "theta-lengths": (toml(base={**INVERSE, "inverse": "theta_ref = [1.0, 2.0]\ntheta_init = [1.0]"}),
                       ["[inverse] theta_ref and theta_init must have the same length", "got [1.0, 2.0] and [1.0]"]),

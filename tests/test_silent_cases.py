@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from fempdl import KSPOptions, SolveLayer, forms
-from fempdl.solve.options import DIRECT_MAX_DOFS, default_options
 from fempdl.layer.implicit_diff import SECOND_DERIVATIVE_MESSAGE
+from fempdl.solve.options import DIRECT_MAX_DOFS, default_options
 
 F64 = torch.float64
 

@@ -1,16 +1,23 @@
 """SIP: the proxy loss, Theorem 1 of the physical-gradients paper, and the inverse updates on FEM layers."""
 from __future__ import annotations
 
+from mpi4py import MPI
 import numpy as np
 import pytest
 import torch
-from mpi4py import MPI
 
 from fempdl import forms, mesh
-from fempdl.bridge_torch import SolveLayer
 from fempdl.app.tasks.data import smooth_fields
+from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.methods.sip import ExactLinearInverse, GaussNewtonInverse, GradientStep, TikhonovInverse, proxy_loss, sip_step
+from fempdl.methods.sip import (
+    ExactLinearInverse,
+    GaussNewtonInverse,
+    GradientStep,
+    TikhonovInverse,
+    proxy_loss,
+    sip_step,
+)
 
 LU = KSPOptions.preset("lu")
 
@@ -162,6 +169,7 @@ def test_damped_heat_inverse_stays_bounded_where_the_exact_one_amplifies_noise(l
     x0 = torch.zeros_like(u0_true)
     exact = ExactLinearInverse(layer, "u0")(x0, y_noisy)
     damped = GaussNewtonInverse(layer, "u0", damping=1e-2, max_it=200, rtol=1e-10)(x0, y_noisy)
+
     def error(x):
         return float((x - u0_true).norm() / u0_true.norm())
 

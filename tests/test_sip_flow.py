@@ -5,22 +5,22 @@ import dataclasses
 import sys
 from pathlib import Path
 
+from mpi4py import MPI
+import dolfinx.fem
 import numpy as np
 import pytest
 import torch
 import ufl
-from mpi4py import MPI
 
-import dolfinx.fem
-from fempdl.core import _dolfinx
 from fempdl import mesh
-from fempdl.app.reports import compare
 from fempdl.app import scene
+from fempdl.app.reports import compare
 from fempdl.app.tasks.data import smooth_fields
-from fempdl.ksp_adjoint import KSPOptions
-from fempdl.app.tasks.marker_rollout import ENCLOSED_LU, MarkerFlow
 from fempdl.app.tasks.marker import MarkerInversionTask
+from fempdl.app.tasks.marker_rollout import ENCLOSED_LU, MarkerFlow
+from fempdl.core import _dolfinx
 from fempdl.iterative.batched_cg import matrix_free_cg
+from fempdl.ksp_adjoint import KSPOptions
 from fempdl.methods.sip import LinearisedGaussNewton
 
 from helpers import tiny_scene
@@ -123,7 +123,8 @@ def test_moving_the_cap_of_the_schur_flow_step_moves_its_adjoint_cap_too():
 
 def test_matrix_free_cg_solves_each_row_on_its_own():
     gen = torch.Generator().manual_seed(1)
-    mats = [a @ a.T + 3 * torch.eye(6, dtype=torch.float64) for a in torch.randn(3, 6, 6, generator=gen, dtype=torch.float64)]
+    mats = [a @ a.T + 3 * torch.eye(6, dtype=torch.float64)
+            for a in torch.randn(3, 6, 6, generator=gen, dtype=torch.float64)]
     rhs = torch.randn(3, 6, generator=gen, dtype=torch.float64)
     dx, iterations = matrix_free_cg(lambda v: torch.stack([m @ r for m, r in zip(mats, v)]), rhs, max_it=50, rtol=1e-13)
     assert iterations <= 7
@@ -265,7 +266,10 @@ def test_drawing_new_marker_data_counts_no_training_solve(tiny_flow_scene):
     data's, so the counters a run reports (iterations, solves, times) stay where training left them."""
     resampled = dataclasses.replace(tiny_flow_scene, data=dataclasses.replace(tiny_flow_scene.data, resample=True))
     task = MarkerInversionTask(resampled, "backprop")
-    counters = lambda: [dataclasses.asdict(layer.stats) for layer in task.layers]
+
+    def counters():
+        return [dataclasses.asdict(layer.stats) for layer in task.layers]
+
     task.train_step(torch.arange(4))
     trained, y = counters(), task.train["y"]
     assert all(c["forward_solves"] > 0 and c["backward_solves"] > 0 for c in trained)

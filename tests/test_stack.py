@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import os
 
+from mpi4py import MPI
 import dolfinx
 import numpy as np
 import pytest
-from mpi4py import MPI
 from petsc4py import PETSc
 
-from fempdl.core import _dolfinx
 from fempdl import forms, mesh
+from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import KSPOptions
 
 COMM = MPI.COMM_WORLD

@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from fempdl.app.runs import runner
 from fempdl.app import scene
+from fempdl.app.runs import runner
 
 from helpers import tiny_scene
 
@@ -96,6 +96,7 @@ def test_files_are_written_on_their_cadence_and_after_the_last_epoch(tiny, tmp_p
     """With a long checkpoint_every the files are written once, after the call's last epoch (all
     its rows); with 0 after every epoch (the previous checkpoint is then the epoch before)."""
     import torch
+
     from fempdl.app.runs import checkpoints
     runner.run(tiny, "fixed", 2, out_dir=tmp_path / "rare", k_eps_value=10, stop_after=3, checkpoint_every=1e9)
     state = checkpoints.load(tmp_path / "rare" / checkpoints.CHECKPOINT)

@@ -3,18 +3,19 @@ from __future__ import annotations
 
 import warnings
 
+from mpi4py import MPI
+import dolfinx.fem
 import numpy as np
 import pytest
 import sympy
 import torch
 import ufl
-from mpi4py import MPI
 
-import dolfinx.fem
-from fempdl.core import _dolfinx
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
+from fempdl.core import _dolfinx
 from fempdl.ksp_adjoint import KSPOptions
+
 from helpers import integral
 
 X, Y = sympy.symbols("x y")
@@ -46,7 +47,8 @@ def transport_error(h: float, degree: int, supg: bool) -> tuple[int, float]:
         warnings.simplefilter("ignore")             # cell Péclet ~ 1 on the coarsest mesh without SUPG
         prob = forms.transport.problem(msh, controls=("w", "m_prev", "f"), kappa=KAPPA, dt=DT, degree=degree,
                                        supg=supg, g=scalar_callable(M_EXACT), dirichlet=None)
-    inputs = {"w": prob.interpolate(vector_callable(W_EXACT), "w"), "m_prev": prob.interpolate(scalar_callable(M_EXACT), "m_prev"),
+    inputs = {"w": prob.interpolate(vector_callable(W_EXACT), "w"),
+              "m_prev": prob.interpolate(scalar_callable(M_EXACT), "m_prev"),
               "f": prob.interpolate(scalar_callable(f), "f")}
     m = SolveLayer(prob, KSPOptions.preset("lu"))(**{k: torch.as_tensor(v) for k, v in inputs.items()}).numpy()
     mh = dolfinx.fem.Function(prob.V)

@@ -6,11 +6,11 @@ import pytest
 import scipy.sparse as sp
 import torch
 
+from fempdl.bridge_torch import SolveLayer
 from fempdl.iterative import unrolled
 from fempdl.iterative.sparse import sparse_to_torch
-from fempdl.layer.unrolled_diff import matrix_jacobian
-from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
+from fempdl.layer.unrolled_diff import matrix_jacobian
 
 from helpers import CONVERGED, build, control_values
 

@@ -14,6 +14,7 @@ from fempdl.app import scene
 from fempdl.app.reports import compare, tradeoff
 from fempdl.app.runs import rundir, runner
 from fempdl.app.runs.checkpoints import CheckpointError, remove_stale_temporaries
+from fempdl.app.runs.settings import RunSettings
 from fempdl.app.runs.training import CHECKPOINT
 from fempdl.app.tasks import spec_of
 from fempdl.core import parallel
@@ -214,17 +215,17 @@ def _command(args, sc, out: Path) -> int:
     runs = {}
     baseline = None
     # The command checked its directory (_output_directory): what is there may be replaced.
-    common = {"progress": progress, "parallel": args.parallel, "seed": args.seed, "save": args.save_fields,
-              "tensorboard": args.tensorboard, "overwrite": True}
+    common = RunSettings(progress=progress, parallel=args.parallel, seed=args.seed, save=args.save_fields,
+                         tensorboard=args.tensorboard, overwrite=True)
     if not args.no_baseline or args.converged:
-        baseline = runner.run(sc, "converged", out_dir=out / "converged",
-                                   resume=_can_resume(args, out / "converged"), **common)
+        baseline = runner.run(sc, "converged", None, common, out_dir=out / "converged",
+                              resume=_can_resume(args, out / "converged"))
     if not args.converged:
         mode, k, label = ("fixed", args.k, f"K={args.k}") if args.k else ("prdp", None, "PRDP")
         sub = out / (f"k{args.k}" if args.k else "prdp")
-        runs[label] = runner.run(sc, mode, k, out_dir=sub, resume=_can_resume(args, sub),
-                                      k_eps_value=None if baseline is None else baseline.k_eps,
-                                      converged_caps=None if baseline is None else baseline.converged_caps, **common)
+        runs[label] = runner.run(sc, mode, k, common, out_dir=sub, resume=_can_resume(args, sub),
+                                 k_eps_value=None if baseline is None else baseline.k_eps,
+                                 converged_caps=None if baseline is None else baseline.converged_caps)
     if baseline is not None:
         runs[f"K_eps={baseline.k_eps}"] = baseline
     if MPI.COMM_WORLD.rank == 0:
@@ -252,8 +253,8 @@ def _methods(args, sc, progress: bool, out: Path) -> int:
                   f"the {sc.task} scene {sc.name!r} solves with LU on one process", file=sys.stderr)
             return 2
         names = [sc.task] + ([] if args.no_baseline else [compare.BASELINE])
-        runs = {name: runner.run_method(sc, name, out_dir=out / name, progress=progress, overwrite=True,
-                                        resume=_can_resume(args, out / name), tensorboard=args.tensorboard)
+        common = RunSettings(progress=progress, overwrite=True, tensorboard=args.tensorboard)
+        runs = {name: runner.run_method(sc, name, common, out_dir=out / name, resume=_can_resume(args, out / name))
                 for name in names}
         print(f"scene {sc.name}: {sc.description}")
         print(compare.table(sc, runs))

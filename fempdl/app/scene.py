@@ -13,10 +13,20 @@ import tomllib
 from importlib import resources
 from pathlib import Path
 
-from fempdl.app.schema import (NONLINEAR_PDES, POSITIVE, PDE_UNUSED, REQUIRED, SECTIONS, Scene, SceneError, Spec,
-                               check_slug, specs)
-from fempdl.app.tasks import SPECS
 from fempdl.app.scene_budget import check_mesh, check_size
+from fempdl.app.schema import (
+    NONLINEAR_PDES,
+    PDE_UNUSED,
+    POSITIVE,
+    REQUIRED,
+    SECTIONS,
+    Scene,
+    SceneError,
+    Spec,
+    check_slug,
+    specs,
+)
+from fempdl.app.tasks import SPECS
 
 # The presets of a Newton step's inner solve: LU or a Krylov method for a nonsymmetric Jacobian (no cg).
 NEWTON_PRESETS = ("lu", "jacobi", "gmres", "gmres-ilu")
@@ -31,7 +41,6 @@ def unused_keys(task: str, pde: str) -> dict[str, frozenset]:
         for name, keys in by_section.items():
             out[name] = out.get(name, frozenset()) | keys
     return out
-
 
 
 def schema_text() -> str:
@@ -374,4 +383,5 @@ def _check_inverse(section: dict, source: str) -> None:
         lengths.add(len(values))
     if len(lengths) != 1:
         raise SceneError(f"{source}: [inverse] theta_ref and theta_init must have the same length "
-                         f"(the number of source modes P), got {list(section['theta_ref'])} and {list(section['theta_init'])}")
+                         f"(the number of source modes P), got {list(section['theta_ref'])} "
+                         f"and {list(section['theta_init'])}")

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from fempdl.methods.newton_caps import REFINE
 from fempdl.methods.prdp import PRDPSettings
@@ -44,6 +45,7 @@ def check_slug(name, what: str = "name") -> str:
         raise ValueError(f"{what} must be 1-128 letters, digits, '-', '_' or '.' (and not '.' or '..'), "
                          f"got {name!r}; it becomes a directory name")
     return name
+
 
 @dataclasses.dataclass(frozen=True)
 class Spec:

@@ -25,7 +25,6 @@ from pathlib import Path
 
 # mpi4py's MPI first: PyPI's DOLFINx finds libmpi only once mpi4py has loaded it.
 from mpi4py import MPI
-
 import dolfinx
 import dolfinx.fem
 import dolfinx.fem.petsc

@@ -20,8 +20,8 @@ import contextlib
 import fcntl
 import math
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import dolfinx.fem
 import dolfinx.io
@@ -238,7 +238,7 @@ def plot_fields(path, problem, values: Mapping, *, title: str | None = None, sam
     unknown = sorted(set(same_scale) - set(values))
     if unknown:
         raise ValueError(f"same_scale names {unknown}, which are not labels of values {list(values)}")
-    from matplotlib.figure import Figure     # drawn without pyplot: the caller's backend stays as it is
+    from matplotlib.figure import Figure  # drawn without pyplot: the caller's backend stays as it is
 
     panels = {label: plot_data(problem, label, value) for label, value in values.items()}
     shared = [panels[label][2] for label in same_scale]

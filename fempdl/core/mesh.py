@@ -31,20 +31,20 @@ tag. ``TaggedMesh.facet_tag("inlet")`` turns a boundary name into its tag::
 from __future__ import annotations
 
 import hashlib
-
 import importlib.resources
 import os
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, Callable, Iterator, Mapping, TypeVar
+from typing import Any, TypeVar
 
+from mpi4py import MPI
 import dolfinx.mesh
 import numpy as np
-from mpi4py import MPI
 
 from fempdl.core import _dolfinx, meshgen
-from fempdl.core._dolfinx import gmsh      # imported there with Python's SIGINT handler kept
+from fempdl.core._dolfinx import gmsh  # imported there with Python's SIGINT handler kept
 from fempdl.core.resources import DEFAULT_MAX_CELLS, GEOMETRIES, bundled_meshes, estimated_cells
 
 __all__ = ["TaggedMesh", "as_tagged", "available", "load"]

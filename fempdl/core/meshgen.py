@@ -20,10 +20,10 @@ Every cell has tag ``CELL_TAG``; every exterior facet one tag of
 ``z = 1``, "sides" the four vertical faces. Every exterior facet carries
 exactly one facet tag; interior facets carry none.
 
-Cell and DOF counts per h are in docs/meshes.md. Regenerate the committed files with ``python scripts/regenerate_meshes.py`` (options
-``--out DIR``, ``--name NAME``, ``--h H``). Meshing runs on one thread with
-the user's gmsh configuration files ignored, so the output is reproducible
-for a given gmsh version.
+Cell and DOF counts per h are in docs/meshes.md. Regenerate the committed files with
+``python scripts/regenerate_meshes.py`` (options ``--out DIR``, ``--name NAME``, ``--h H``). Meshing runs
+on one thread with the user's gmsh configuration files ignored, so the output is reproducible for a
+given gmsh version.
 """
 from __future__ import annotations
 
@@ -33,14 +33,14 @@ import math
 import numbers
 import signal
 import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
 
 from mpi4py import MPI
 
 from fempdl.core import _dolfinx
-from fempdl.core._dolfinx import gmsh      # imported there with Python's SIGINT handler kept
+from fempdl.core._dolfinx import gmsh  # imported there with Python's SIGINT handler kept
 
 CELL_TAG = 1
 #: The gmsh release (major, minor) that wrote the committed files: Debian

@@ -34,9 +34,9 @@ import os
 import sys
 import traceback
 
+from mpi4py import MPI
 import numpy as np
 import torch
-from mpi4py import MPI
 
 __all__ = ["abort_on_error", "allreduce_sum", "check_identical", "check_same_parameters", "fit_threads",
            "parameter_fingerprint", "shard", "sum_gradients"]
@@ -83,6 +83,13 @@ def shard(indices: torch.Tensor, comm: MPI.Comm) -> torch.Tensor:
     """This rank's contiguous part of ``indices``; the parts' sizes differ by at most one (some may be empty)."""
     bounds = np.linspace(0, len(indices), comm.size + 1).round().astype(int)
     return indices[bounds[comm.rank]:bounds[comm.rank + 1]]
+
+
+def shard_inputs(inputs: dict[str, torch.Tensor], comm: MPI.Comm) -> dict[str, torch.Tensor]:
+    """This rank's :func:`shard` of a batch of keyword inputs (each (B, n) or (n,), one sample), as (b, n)."""
+    inputs = {name: torch.atleast_2d(value) for name, value in inputs.items()}
+    idx = shard(torch.arange(next(iter(inputs.values())).shape[0]), comm)
+    return {name: value[idx] for name, value in inputs.items()}
 
 
 def sum_gradients(parameters, comm: MPI.Comm) -> None:

@@ -27,7 +27,7 @@ The module knows DOLFINx and UFL but nothing of torch or of solvers.
 """
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import dolfinx.fem
 import ufl

@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import keyword
 import math
+from collections.abc import Callable, Mapping
 from types import MappingProxyType
-from typing import Callable, Mapping
 
+from mpi4py import MPI
 import dolfinx.fem
 import numpy as np
 import ufl
-
-from mpi4py import MPI
 
 from fempdl.core import _dolfinx
 from fempdl.core.nullspaces import orthonormal

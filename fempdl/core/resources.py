@@ -20,8 +20,8 @@ import importlib.resources
 import os
 from pathlib import Path
 
-__all__ = ["msh_size", "bundled_meshes", "DEFAULT_MEMORY_FRACTION", "DEFAULT_MAX_CELLS", "GEOMETRIES", "available_memory", "memory_budget",
-           "format_bytes", "estimated_cells", "estimated_dofs", "Geometry"]
+__all__ = ["msh_size", "bundled_meshes", "DEFAULT_MEMORY_FRACTION", "DEFAULT_MAX_CELLS", "GEOMETRIES",
+           "available_memory", "memory_budget", "format_bytes", "estimated_cells", "estimated_dofs", "Geometry"]
 
 DEFAULT_MEMORY_FRACTION = 0.5
 
@@ -31,6 +31,7 @@ def bundled_meshes():
     checkout (or an editable install), ``fempdl/meshes/`` inside an installed wheel."""
     checkout = Path(__file__).resolve().parents[2] / "meshes"
     return checkout if checkout.is_dir() else importlib.resources.files("fempdl") / "meshes"
+
 
 # About 1M P1 DOFs in 2D; gmsh takes about a minute and a few GB for it.
 DEFAULT_MAX_CELLS = 2_000_000

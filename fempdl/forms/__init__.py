@@ -14,8 +14,18 @@
   a :class:`fempdl.NonlinearProblem` (Newton), controls f (body force), nu (viscosity field).
 * :mod:`fempdl.forms.transport` — one implicit advection-diffusion step of a scalar marker, controls w, m_prev, f.
 """
-from fempdl.forms import (burgers, elasticity, heat, hyperelasticity, navier_stokes, nonlinear_diffusion, oseen,
-                          poisson, stokes, transport)
+from fempdl.forms import (
+                          burgers,
+                          elasticity,
+                          heat,
+                          hyperelasticity,
+                          navier_stokes,
+                          nonlinear_diffusion,
+                          oseen,
+                          poisson,
+                          stokes,
+                          transport,
+)
 
 __all__ = ["burgers", "elasticity", "heat", "hyperelasticity", "navier_stokes", "nonlinear_diffusion", "oseen",
            "poisson", "stokes", "transport"]

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import math
 
+from mpi4py import MPI
 import dolfinx.fem
 import numpy as np
-from mpi4py import MPI
 
 from fempdl.core import _dolfinx
 from fempdl.core.mesh import TaggedMesh

@@ -6,17 +6,16 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import Mapping
+from collections.abc import Mapping
 
+from mpi4py import MPI
 import numpy as np
 import ufl
 
-from mpi4py import MPI
-
 from fempdl.core import _dolfinx
-from fempdl.forms._common import make_function, positive_constant, tagged_facets
 from fempdl.core.mesh import TaggedMesh
 from fempdl.core.problem import Problem
+from fempdl.forms._common import make_function, positive_constant, tagged_facets
 
 _MAX = MPI.MAX
 
@@ -29,7 +28,10 @@ def vector_function(space, value, name: str):
         dim = space.dofmap.index_map_bs
         if len(components) != dim or not all(math.isfinite(c) for c in components):
             raise ValueError(f"{name} must have {dim} finite components, got {value!r}")
-        value = lambda x, c=np.array(components)[:, None]: np.repeat(c, x.shape[1], axis=1)  # noqa: E731
+        column = np.array(components)[:, None]
+
+        def value(x):
+            return np.repeat(column, x.shape[1], axis=1)
     return make_function(space, value, name)
 
 

@@ -25,11 +25,10 @@ from __future__ import annotations
 import ufl
 
 from fempdl.core import _dolfinx
-from fempdl.forms._common import check_controls, check_degree, positive_constant
-from fempdl.forms._flow import (supg_measure, supg_tau, vector_function, velocity_bcs,
-                               warn_if_convection_dominated)
 from fempdl.core.mesh import as_tagged
 from fempdl.core.problem import Problem
+from fempdl.forms._common import check_controls, check_degree, positive_constant
+from fempdl.forms._flow import supg_measure, supg_tau, vector_function, velocity_bcs, warn_if_convection_dominated
 
 CONTROLS = ("w", "u_prev", "f")
 

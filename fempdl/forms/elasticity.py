@@ -21,8 +21,15 @@ from fempdl.core import _dolfinx
 from fempdl.core.mesh import as_tagged
 from fempdl.core.nullspaces import rigid_body_modes
 from fempdl.core.problem import Problem
-from fempdl.forms._common import (COEFFICIENT_SPACES, check_controls, check_degree, coefficient_space, dirichlet_bcs,
-                                  make_function, nonnegative_constant)
+from fempdl.forms._common import (
+    COEFFICIENT_SPACES,
+    check_controls,
+    check_degree,
+    coefficient_space,
+    dirichlet_bcs,
+    make_function,
+    nonnegative_constant,
+)
 from fempdl.forms._flow import vector_function
 
 CONTROLS = ("f", "E")

@@ -25,10 +25,16 @@ import math
 import ufl
 
 from fempdl.core import _dolfinx
-from fempdl.forms._common import (check_controls, check_degree, coefficient_space, dirichlet_bcs,
-                                  make_function, positive_constant)
 from fempdl.core.mesh import as_tagged
 from fempdl.core.problem import Problem
+from fempdl.forms._common import (
+    check_controls,
+    check_degree,
+    coefficient_space,
+    dirichlet_bcs,
+    make_function,
+    positive_constant,
+)
 
 CONTROLS = ("u0", "f", "kappa")
 

@@ -34,24 +34,31 @@ Newton: from u = 0 the first step is the linear-elastic solution. On slender bod
 bending the full step raises ||F|| while it approaches the solution (the axial strain of a
 rotated section), so a backtracking line search (``snes_type="newtonls"``), whose merit is
 ||F||, takes many short steps; plain Newton (the default of
-:class:`~fempdl.solve.newton_options.NewtonOptions`) converges in a few while no element inverts. A full step that inverts an element makes ln J undefined: SNES stops with a
-NaN residual and the layer raises. For large loads, load in increments (``initial_guess=`` the
-previous solution).
+:class:`~fempdl.solve.newton_options.NewtonOptions`) converges in a few while no element inverts.
+A full step that inverts an element makes ln J undefined: SNES stops with a NaN residual and the
+layer raises. For large loads, load in increments (``initial_guess=`` the previous solution).
 """
 from __future__ import annotations
 
+from mpi4py import MPI
 import dolfinx.fem
 import dolfinx.mesh
 import numpy as np
 import ufl
-from mpi4py import MPI
 
 from fempdl.core import _dolfinx
 from fempdl.core.mesh import TaggedMesh, as_tagged
 from fempdl.core.nonlinear_problem import NonlinearProblem
 from fempdl.core.nullspaces import rigid_body_modes
-from fempdl.forms._common import (COEFFICIENT_SPACES, check_controls, check_degree, coefficient_space,
-                                  make_function, nonnegative_constant, tagged_facets)
+from fempdl.forms._common import (
+    COEFFICIENT_SPACES,
+    check_controls,
+    check_degree,
+    coefficient_space,
+    make_function,
+    nonnegative_constant,
+    tagged_facets,
+)
 from fempdl.forms._flow import vector_function
 
 CONTROLS = ("T", "B", "E")

@@ -22,8 +22,14 @@ import ufl
 from fempdl.core import _dolfinx
 from fempdl.core.mesh import as_tagged
 from fempdl.core.nonlinear_problem import NonlinearProblem
-from fempdl.forms._common import (check_controls, check_degree, coefficient_space, dirichlet_bcs, make_function,
-                                  positive_constant)
+from fempdl.forms._common import (
+    check_controls,
+    check_degree,
+    coefficient_space,
+    dirichlet_bcs,
+    make_function,
+    positive_constant,
+)
 
 CONTROLS = ("f", "kappa", "alpha", "u0")
 

@@ -32,11 +32,17 @@ from __future__ import annotations
 
 import ufl
 
-from fempdl.forms._common import check_controls, nonnegative_constant, positive_constant
-from fempdl.forms._flow import (flow_problem, supg_measure, supg_tau, taylor_hood, vector_function,
-                               warn_if_convection_dominated)
 from fempdl.core.mesh import as_tagged
 from fempdl.core.problem import Problem
+from fempdl.forms._common import check_controls, nonnegative_constant, positive_constant
+from fempdl.forms._flow import (
+    flow_problem,
+    supg_measure,
+    supg_tau,
+    taylor_hood,
+    vector_function,
+    warn_if_convection_dominated,
+)
 
 CONTROLS = ("w", "u_prev", "f")
 
@@ -57,7 +63,8 @@ def problem(msh, controls=("w", "u_prev"), *, nu: float = 1e-2, dt: float = 0.1,
 
     Returns:
         A :class:`fempdl.Problem` with fields ``"u"``, ``"p"``; ``problem.constants``
-        holds ``nu``, ``dt`` and ``grad_div``, and ``problem.enclosed`` says whether the pressure constant is projected out.
+        holds ``nu``, ``dt`` and ``grad_div``, and ``problem.enclosed`` says whether the pressure
+        constant is projected out.
     """
     controls = check_controls(controls, CONTROLS, "oseen")
     if not isinstance(supg, bool):

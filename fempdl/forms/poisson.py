@@ -17,9 +17,9 @@ from __future__ import annotations
 import ufl
 
 from fempdl.core import _dolfinx
-from fempdl.forms._common import check_controls, check_degree, coefficient_space, dirichlet_bcs, make_function
 from fempdl.core.mesh import as_tagged
 from fempdl.core.problem import Problem
+from fempdl.forms._common import check_controls, check_degree, coefficient_space, dirichlet_bcs, make_function
 
 CONTROLS = ("f", "kappa")
 

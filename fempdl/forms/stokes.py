@@ -22,10 +22,10 @@ from __future__ import annotations
 
 import ufl
 
-from fempdl.forms._common import check_controls
-from fempdl.forms._flow import flow_problem, taylor_hood, vector_function
 from fempdl.core.mesh import as_tagged
 from fempdl.core.problem import Problem
+from fempdl.forms._common import check_controls
+from fempdl.forms._flow import flow_problem, taylor_hood, vector_function
 
 CONTROLS = ("f",)
 

@@ -37,11 +37,17 @@ from __future__ import annotations
 import ufl
 
 from fempdl.core import _dolfinx
-from fempdl.forms._common import (check_controls, check_degree, dirichlet_bcs, make_function,
-                                  nonnegative_constant, positive_constant)
-from fempdl.forms._flow import supg_tau, vector_function, warn_if_convection_dominated
 from fempdl.core.mesh import as_tagged
 from fempdl.core.problem import Problem
+from fempdl.forms._common import (
+    check_controls,
+    check_degree,
+    dirichlet_bcs,
+    make_function,
+    nonnegative_constant,
+    positive_constant,
+)
+from fempdl.forms._flow import supg_tau, vector_function, warn_if_convection_dominated
 
 CONTROLS = ("w", "m_prev", "f")
 

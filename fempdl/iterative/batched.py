@@ -36,10 +36,10 @@ from petsc4py import PETSc
 from fempdl.core import tuning
 from fempdl.iterative.batched_cg import Tolerance, converged_cg, fast_cg
 from fempdl.iterative.columns import spmm_into
-from fempdl.solve.petsc import petsc_to_scipy
-from fempdl.solve.options import KSPOptions
 from fempdl.iterative.sparse import sparse_to_torch, torch_to_scipy
 from fempdl.iterative.sweeps import column_groups, richardson, sweep_matrix, threads_for, torch_threads
+from fempdl.solve.options import KSPOptions
+from fempdl.solve.petsc import petsc_to_scipy
 
 __all__ = ["BatchedEngine", "fast_cg", "converged_cg", "fast_gmres"]
 
@@ -127,7 +127,8 @@ class BatchedEngine:
             return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0, None
         # A warm start is the solve of the residual equation, as in PETSc. CG's small groups may
         # run on one thread; GMRES's batched Gram-Schmidt keeps them all.
-        threads = threads_for(op.values().numel(), min(tuning.CG_GROUP, rhs.shape[1])) if options.ksp_type == "cg" else None
+        threads = (threads_for(op.values().numel(), min(tuning.CG_GROUP, rhs.shape[1]))
+                   if options.ksp_type == "cg" else None)
         outcome = None
         with torch.no_grad(), torch_threads(threads):
             res = rhs if start is None else rhs - op @ start
@@ -209,8 +210,9 @@ def fast_gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int,
             pad = broken
             broken = broken | newly
             H[:, :j + 1, j] = torch.where(pad[:, None], torch.zeros_like(h), h)
-            H[:, j + 1, j] = torch.where(pad, torch.ones_like(h_next), torch.where(broken, torch.zeros_like(h_next), h_next))
-            scale = torch.where(broken, torch.zeros_like(h_next), 1.0 / torch.where(broken, torch.ones_like(h_next), h_next))
+            zero, one = torch.zeros_like(h_next), torch.ones_like(h_next)
+            H[:, j + 1, j] = torch.where(pad, one, torch.where(broken, zero, h_next))
+            scale = torch.where(broken, zero, 1.0 / torch.where(broken, one, h_next))
             torch.mul(wt, scale[:, None], out=V[:, j + 1])
         rhs = torch.zeros(batch, steps + 1, 1, dtype=dtype)
         rhs[:, 0, 0] = beta

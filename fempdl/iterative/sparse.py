@@ -69,6 +69,6 @@ class SparseOperator:
         return torch_to_scipy(self.A)
 
     @classmethod
-    def from_scipy(cls, M: sp.spmatrix) -> "SparseOperator":
+    def from_scipy(cls, M: sp.spmatrix) -> SparseOperator:
         M = sp.csr_matrix(M)
         return cls(sparse_to_torch(M), sparse_to_torch(M.T.tocsr()))

@@ -24,7 +24,6 @@ from fempdl.core import tuning
 __all__ = ["sweep_matrix", "richardson", "column_groups", "torch_threads", "threads_for"]
 
 
-
 def sweep_matrix(S: sp.csr_matrix, omega: float, dinv: np.ndarray | None) -> sp.csr_matrix:
     """M = I - omega P S (scipy CSR, sorted indices) for P = diag(dinv) (n,), or I when ``dinv`` is None."""
     scale = omega * (np.ones(S.shape[0]) if dinv is None else dinv)

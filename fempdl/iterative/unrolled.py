@@ -45,11 +45,11 @@ import weakref
 
 import torch
 
+from fempdl.core.resources import format_bytes, memory_budget
 from fempdl.iterative import sweeps
 from fempdl.iterative.columns import SOLVED, guarded_ratio
 from fempdl.iterative.reverse_cg import ConstantOperatorCG
 from fempdl.iterative.sparse import SparseOperator, sparse_to_torch
-from fempdl.core.resources import format_bytes, memory_budget
 
 __all__ = ["solve", "METHODS", "stored_values", "checkpointed_values"]
 
@@ -207,7 +207,7 @@ class _LinearRichardson(torch.autograd.Function):
 
 
 # SparseOperator -> (P, omega, M, M^T): the sweep matrices of a constant operator, for its latest P and omega.
-_SWEEP_MATRICES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_SWEEP_MATRICES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _sweep_pair(A: SparseOperator, P: torch.Tensor | None, omega: float) -> tuple:

@@ -32,8 +32,8 @@ from __future__ import annotations
 
 import dataclasses
 
-import torch
 from mpi4py import MPI
+import torch
 
 from fempdl.core.nonlinear_problem import NonlinearProblem
 from fempdl.core.resources import format_bytes, memory_budget

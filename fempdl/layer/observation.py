@@ -17,12 +17,12 @@ meshes (straight-sided triangles and tetrahedra), where the pull-back to the ref
 """
 from __future__ import annotations
 
+from mpi4py import MPI
 import basix
 import numpy as np
 import scipy.sparse as sp
 import torch
 import ufl
-from mpi4py import MPI
 
 from fempdl.core import _dolfinx, parallel
 from fempdl.core.problem_base import ProblemBase
@@ -84,7 +84,8 @@ class PointObservation(torch.nn.Module):
         msh = space.mesh
         tdim = msh.topology.dim
         cell_name = _dolfinx.cell_name(msh)
-        if (cell_name, tdim) not in _REFERENCE_CELLS or msh.geometry.dim != tdim or _dolfinx.coordinate_degree(msh) != 1:
+        affine = msh.geometry.dim == tdim and _dolfinx.coordinate_degree(msh) == 1
+        if (cell_name, tdim) not in _REFERENCE_CELLS or not affine:
             raise NotImplementedError(f"point observations need an affine simplex mesh (straight triangles or "
                                       f"tetrahedra), got {cell_name} cells in {msh.geometry.dim}D")
         degree = _dolfinx.element_degree(space)

@@ -35,8 +35,8 @@ the result (B, T, n), or (T, n) when nothing is batched, for the T indices
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from contextlib import contextmanager
-from typing import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -261,7 +261,8 @@ class _Plan:
         self.per_step = frozenset(step_names)
         self.dtypes = [initial.dtype, *(t.dtype for t in tensors)]
         self.dtype = initial.dtype if all(t.dtype == initial.dtype for t in tensors) else torch.float64
-        shapes = [initial.dim() == 2] + [t.dim() == (3 if n in self.per_step else 2) for n, t in zip(self.names, tensors)]
+        shapes = [initial.dim() == 2] + [t.dim() == (3 if n in self.per_step else 2)
+                                         for n, t in zip(self.names, tensors)]
         sizes = {t.shape[0] for t, batched in zip([initial, *tensors], shapes) if batched}
         if len(sizes) > 1:
             raise ValueError(f"the initial state and the controls have different batch sizes {sorted(sizes)}")

@@ -12,7 +12,7 @@ Shapes: each control tensor is (B, n_m) or (n_m,) with n_m = ``problem.control_s
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 
@@ -150,12 +150,11 @@ class SystemLayer(torch.nn.Module):
             raise RuntimeError(f"this {kind} was closed (close() freed its PETSc objects); "
                                f"create a new {kind} to solve again")
         return self._system
+
     @property
     def stats(self) -> CumulativeStats:
         """Cumulative counters of every solve of this layer."""
         return self.system.stats
-
-
 
     def _inputs(self, positional, initial_guess, controls: dict):
         """Checked call inputs: (names, tensors, batch, batched, dtype, device), the ranks' calls compared."""
@@ -237,7 +236,6 @@ class SystemLayer(torch.nn.Module):
         else:
             raise OverflowError(message)
 
-
     def get_extra_state(self) -> dict:
         """The cap travels with ``state_dict()``: a saved model reloads at the K it was trained at."""
         return {"max_it": self.max_it}
@@ -248,10 +246,10 @@ class SystemLayer(torch.nn.Module):
         self.max_it = state["max_it"]
 
     def __getstate__(self):
-        raise TypeError(f"a {type(self).__name__} holds DOLFINx and PETSc objects, which cannot be pickled or deep-copied "
-                        "(torch.save(model), copy.deepcopy, AveragedModel); save model.state_dict() instead (it "
-                        "carries each layer's max_it) and rebuild the model, with its layers, from its Problem")
-
+        raise TypeError(f"a {type(self).__name__} holds DOLFINx and PETSc objects, which cannot be pickled or "
+                        "deep-copied (torch.save(model), copy.deepcopy, AveragedModel); save model.state_dict() "
+                        "instead (it carries each layer's max_it) and rebuild the model, with its layers, from its "
+                        "Problem")
 
     def close(self) -> None:
         """Free the PETSc objects now (otherwise when the system is garbage collected: a system still
@@ -259,7 +257,6 @@ class SystemLayer(torch.nn.Module):
         if getattr(self, "_system", None) is not None:
             self._system.destroy()
             self._system = None
-
 
     def _validate(self, controls: dict):
         sizes = self._sizes

@@ -22,9 +22,9 @@ from fempdl.iterative import unrolled
 from fempdl.iterative.sparse import SparseOperator
 from fempdl.solve.assembly import fingerprint, fingerprint_matches
 from fempdl.solve.health import CallHealth
+from fempdl.solve.linear_system import INITIAL_GUESS, LinearSystem
 from fempdl.solve.options import KSPOptions
 from fempdl.solve.stats import capped_solve_stats
-from fempdl.solve.linear_system import INITIAL_GUESS, LinearSystem
 
 __all__ = ["UnrolledPath", "unrolled_method", "matrix_jacobian"]
 
@@ -207,8 +207,6 @@ def _distance_two_colors(m_cells: np.ndarray, v_cells: np.ndarray, n_m: int) -> 
         free = np.setdiff1d(np.arange(len(used) + 1), used[used >= 0])
         colors[k] = free[0]
     return colors
-
-
 
 
 def _measure_health(system: LinearSystem, A, R: torch.Tensor, X0: torch.Tensor | None, X: torch.Tensor) -> None:

@@ -21,7 +21,7 @@ above ``max_jacobian_bytes``.
 """
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch.func import functional_call, jacrev, vmap

@@ -19,9 +19,9 @@ import dataclasses
 
 import torch
 
-from fempdl.layer.solve_layer import SolveLayer
 from fempdl.core.checks import check_int
 from fempdl.layer.newton_layer import NonlinearSolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.methods.newton_caps import NewtonCaps
 from fempdl.solve.stats import SolverFailedError
 

@@ -25,9 +25,11 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from mpi4py import MPI
 import torch
 
 from fempdl.core.checks import check_int
+from fempdl.core.parallel import shard_inputs
 from fempdl.layer.newton_layer import NonlinearSolveLayer
 from fempdl.layer.newton_unrolled import check_unrolled_newton
 
@@ -149,10 +151,20 @@ def converged_caps(layer: NonlinearSolveLayer, *, rtol: float = 1e-8, **controls
     return ConvergedCaps(max(steps, 1), max(per_step, 1))
 
 
-def newton_k_eps(caps: NewtonCaps, *, rtol: float = 1e-8, **controls) -> int:
+def newton_k_eps(caps: NewtonCaps, *, rtol: float = 1e-8, shard_over: MPI.Comm = MPI.COMM_SELF,
+                 **controls) -> int:
     """K_eps of a Newton layer under ``caps``' rule: the least K at which converged solves of
     ``controls`` need no more than the caps allow (:attr:`NewtonCaps.k_eps`), from the
     :func:`converged_caps` of its first layer, which it records as ``caps.converged`` (under
-    ``"both"`` they bound the caps from then on). Use it as PRDP's ``k_cap``."""
-    caps.converged = converged_caps(caps.layers[0], rtol=rtol, **controls)
+    ``"both"`` they bound the caps from then on). Use it as PRDP's ``k_cap``.
+
+    ``shard_over``: the samples are spread over its ranks (data-parallel training; all of them
+    call) and each converged count is the maximum over the ranks."""
+    if not controls:
+        raise ValueError("give the inputs to measure K_eps on as keyword arguments")
+    mine = shard_inputs(controls, shard_over)
+    local = (converged_caps(caps.layers[0], rtol=rtol, **mine) if next(iter(mine.values())).shape[0]
+             else ConvergedCaps(1, 1))
+    caps.converged = ConvergedCaps(*(shard_over.allreduce(count, op=MPI.MAX)
+                                     for count in (local.newton_steps, local.inner_iterations)))
     return caps.k_eps

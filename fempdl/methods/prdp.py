@@ -22,13 +22,15 @@ import dataclasses
 import logging
 import math
 import weakref
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
+from mpi4py import MPI
 import torch
 
-from fempdl.layer.solve_layer import SolveLayer
 from fempdl.core.checks import check_int
+from fempdl.core.parallel import shard_inputs
 from fempdl.core.ranks import Ranks, training_ranks
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.layer.system_layer import SystemLayer
 from fempdl.solve.health import HealthCheck
 
@@ -301,12 +303,18 @@ class PRDP:
         return f"PRDP(k={self.k}, {settings}, steps={len(self.history)})"
 
 
-def k_eps(layer: SolveLayer, *, rtol: float = 1e-8, **controls) -> int:
+def k_eps(layer: SolveLayer, *, rtol: float = 1e-8, shard_over: MPI.Comm = MPI.COMM_SELF,
+          batch: int | None = None, **controls) -> int:
     """K_eps: the most iterations ``layer``'s solver needs to reach ``rtol`` on
     ``controls`` (the layer's keyword inputs, (B, n) or (n,), e.g. validation
     samples), found by converged solves of a probe layer with the same
     solver and preconditioner (PETSc; ``layer`` itself and its counters are
     left as they are). Use it as PRDP's ``k_cap``.
+
+    ``shard_over``: the samples are spread over its ranks (data-parallel training, every rank
+    holding the whole problem; all of them call) and K_eps is the maximum over the ranks.
+    ``batch``: probe in calls of that many samples, as training calls the layer (a lagged
+    preconditioner is set up once a call); ``None``: one call.
 
     Example:
         ``ctrl = PRDP(layer, k0=1, dk=1, k_cap=k_eps(layer, f=f_val, rtol=1e-6))``
@@ -320,13 +328,17 @@ def k_eps(layer: SolveLayer, *, rtol: float = 1e-8, **controls) -> int:
         raise ValueError(f"layer solves directly (ksp_type={layer.options.ksp_type!r}): it has no iteration cap")
     options = dataclasses.replace(layer.options, max_it=None, rtol=rtol, atol=None, divtol=None, adjoint=None,
                                   engine="petsc", options_prefix=None)
+    mine = shard_inputs(controls, shard_over)
+    samples = next(iter(mine.values())).shape[0]
     probe = SolveLayer(layer.problem, options)
     try:
         with torch.no_grad():
-            probe(**controls)
-        return probe.stats.max_forward_iterations
+            for start in range(0, samples, batch or max(samples, 1)):
+                probe(**{name: value[start:start + (batch or samples)] for name, value in mine.items()})
+        most = probe.stats.max_forward_iterations
     finally:
         probe.close()
+    return shard_over.allreduce(most, op=MPI.MAX)
 
 
 def _layers_comm(target):

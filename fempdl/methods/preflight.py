@@ -25,13 +25,13 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 
-from fempdl.layer.solve_layer import SolveLayer
 from fempdl.core.checks import check_int
 from fempdl.layer.newton_layer import NonlinearSolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.methods.k_start import close_probes, k_start, probe_layers
 from fempdl.methods.newton_caps import NewtonCaps, newton_k_eps
 from fempdl.methods.prdp import k_eps
@@ -101,7 +101,8 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
     elif isinstance(target, SolveLayer):
         layers, k_cap, parts = [target], k_eps(target, rtol=rtol, **inputs), ("iterations",)
     else:
-        raise TypeError(f"target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps, got {type(target).__name__}")
+        raise TypeError("target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps, "
+                        f"got {type(target).__name__}")
     k0 = min(k_start(target, tolerance=tolerance, rtol=rtol, k_max=k_cap, **inputs), k_cap)
     cost_ratio = _solve_cost(target, k0, parts, inputs) / max(_solve_cost(target, k_cap, parts, inputs), 1)
     saved = [layer.get_extra_state() for layer in layers]      # every cap, as state_dict carries them

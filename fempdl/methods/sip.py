@@ -21,12 +21,12 @@ import numpy as np
 import scipy.sparse.linalg as spla
 import torch
 
-from fempdl.layer.solve_layer import SolveLayer
 from fempdl.iterative.batched_cg import matrix_free_cg
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.solve.assembly import assemble_scipy
 
 __all__ = ["ExactLinearInverse", "GaussNewtonInverse", "GradientStep", "LinearisedGaussNewton", "TikhonovInverse",
-           "batched_cg", "proxy_loss", "sip_step"]
+           "proxy_loss", "sip_step"]
 
 
 def proxy_loss(x0: torch.Tensor, x_star: torch.Tensor) -> torch.Tensor:
@@ -184,7 +184,7 @@ class LinearisedGaussNewton:
 
         (J^T J + (alpha + beta) I) dx = J^T (y* - P(x0)) - beta x0,    x* = x0 + eta dx,
 
-    J = dP/dx at x0, solved by ``max_it`` CG iterations (:func:`batched_cg`,
+    J = dP/dx at x0, solved by ``max_it`` CG iterations (:func:`~fempdl.iterative.batched_cg.matrix_free_cg`,
     every sample on its own). J^T w is one backward pass through the kept graph
     of P(x0) (the layers' adjoint solves); J v is the forward difference
     (P(x0 + eps v) - P(x0)) / eps with eps = ``fd_step`` (1 + ||x0||) / ||v||

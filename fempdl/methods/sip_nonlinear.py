@@ -77,7 +77,8 @@ class ExactNonlinearInverse(_LayerInverse):
         """The control m with P(m) = y (off the boundary), given its values at the Dirichlet DOFs."""
         m = np.zeros(self.layer.problem.control_size(self.control))
         m[self.layer.problem.bc_dofs] = boundary_values
-        m[self.free] = self._solve_control_matrix(self.operator(y)[self.free] - self._boundary_columns @ boundary_values)
+        free_rhs = self.operator(y)[self.free] - self._boundary_columns @ boundary_values
+        m[self.free] = self._solve_control_matrix(free_rhs)
         return m
 
     def __call__(self, x0: torch.Tensor, y_target: torch.Tensor) -> torch.Tensor:

@@ -11,18 +11,19 @@
 from __future__ import annotations
 
 import time
-from typing import Mapping
+from collections.abc import Mapping
 
+from mpi4py import MPI
 import numpy as np
 import scipy.sparse as sp
-from mpi4py import MPI
 from petsc4py import PETSc
 
 from fempdl.core import _dolfinx
 from fempdl.core.problem import Problem
 from fempdl.solve.petsc import petsc_to_scipy
 
-__all__ = ["check_operator", "operator_defect", "check_symmetric_factor", "check_symmetric", "SYMMETRIC_PC_TYPES", "ControlValues", "KeptMatrices", "Timer", "attach_nullspace", "set_owned", "fingerprint",
+__all__ = ["check_operator", "operator_defect", "check_symmetric_factor", "check_symmetric", "SYMMETRIC_PC_TYPES",
+           "ControlValues", "KeptMatrices", "Timer", "attach_nullspace", "set_owned", "fingerprint",
            "fingerprint_matches", "assemble_scipy"]
 
 
@@ -39,7 +40,7 @@ class KeptMatrices:
         self._calls, self._max_bytes = calls, max_bytes
         self._entries: list[KeptCall] = []
 
-    def start(self, controls: Mapping[str, np.ndarray], batch: int) -> "KeptCall | None":
+    def start(self, controls: Mapping[str, np.ndarray], batch: int) -> KeptCall | None:
         if self._calls == 0:
             return None
         key = {n: np.array(v) for n, v in controls.items() if n in self._names}
@@ -48,7 +49,7 @@ class KeptMatrices:
         self._entries.append(entry)
         return entry
 
-    def find(self, controls: Mapping[str, np.ndarray], batch: int) -> "KeptCall | None":
+    def find(self, controls: Mapping[str, np.ndarray], batch: int) -> KeptCall | None:
         for entry in reversed(self._entries):
             if entry.matches(controls, batch):
                 return entry

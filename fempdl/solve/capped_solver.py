@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 from petsc4py import PETSc
@@ -313,7 +313,8 @@ class CappedSolver:
                            residual_norm=rnorm, time=elapsed, capped=capped, ok=ok, setup_time=t1 - t0)
         return self.record(direction, stats, finite=finite)
 
-    _set_interrupt_checks = staticmethod(set_interrupt_checks)     # the rule NonlinearSystem applies to its inner KSP too
+    # The rule NonlinearSystem applies to its inner KSP too.
+    _set_interrupt_checks = staticmethod(set_interrupt_checks)
 
     def record(self, direction: str, stats: SolveStats, *, finite: bool = True) -> SolveStats:
         """Count a solve (also one run outside this KSP, e.g. by the batched

@@ -8,9 +8,10 @@ each was assembled with detects a user's edit and triggers reassembly.
 """
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
+import scipy.sparse as sp
 from petsc4py import PETSc
 
 from fempdl.core import _dolfinx
@@ -34,7 +35,7 @@ class ControlForms:
         self._scipy: dict = {}                 # name -> (fingerprint, scipy C_m, C_m^T)
         self._gradients: dict = {}             # name -> ghosted Vec on M
 
-    def base_rhs(self, names: frozenset, ctl: "ControlValues") -> PETSc.Vec:
+    def base_rhs(self, names: frozenset, ctl: ControlValues) -> PETSc.Vec:
         """b with the passed affine controls set to zero (lifting and BC values included)."""
         p = self.problem
         with ctl.zeroed(names):
@@ -75,6 +76,44 @@ class ControlForms:
             C = petsc_to_scipy(entry[0])
             cached = self._scipy[name] = (entry[3], C, C.T.tocsr())   # CSR both ways: no conversion per product
         return cached[2] if transpose else cached[1]
+
+    def affine_parts(self, names: frozenset) -> tuple[np.ndarray, dict]:
+        """The pieces of b(m) = b_base + sum_m C_m m for affine right-hand-side controls ``names``:
+        (b_base (n,), {name: C_m scipy CSR (n, n_m)}), the Dirichlet rows of each C_m zeroed."""
+        p = self.problem
+        not_affine = sorted(names - p.affine_rhs_controls)
+        if not_affine:
+            raise NotImplementedError(
+                f"controls {not_affine} enter the matrix or the right-hand side non-affinely "
+                f"(affine controls of this problem: {sorted(p.affine_rhs_controls)})")
+        with ControlValues(p, dict.fromkeys(names)) as ctl:
+            b_base = self.base_rhs(names, ctl).getArray(readonly=True).copy()
+        keep = np.ones(p.output_size)
+        keep[p.bc_dofs] = 0.0  # BC rows of b come from the boundary data alone
+        return b_base, {name: (sp.diags(keep) @ self.rhs_matrix_scipy(name)).tocsr() for name in sorted(names)}
+
+    def affine_rhs_into(self, b: PETSc.Vec, b_base: PETSc.Vec, rhs_mats: dict, controls, i: int) -> None:
+        """b = b_base + sum_m C_m m_i for sample ``i`` (``rhs_mats``: :meth:`rhs_matrix` of each control),
+        the Dirichlet rows of the control part zeroed."""
+        b_base.copy(b)
+        bc = self.problem.bc_dofs
+        for name, (C, vin, out, _) in rhs_mats.items():
+            vin.setArray(controls[name][i])
+            C.mult(vin, out)
+            if len(bc):
+                out.array_w[bc] = 0.0
+            b.axpy(1.0, out)
+
+    def affine_rhs_block(self, b_base: PETSc.Vec, controls, batch: int) -> np.ndarray:
+        """(batch, n) right-hand sides b_base + sum_m C_m m_i, the Dirichlet rows of the control part zeroed."""
+        n = self.problem.output_size
+        R = np.zeros((n, batch))
+        for name in sorted(controls):
+            R += self.rhs_matrix_scipy(name) @ np.asarray(controls[name]).T
+        if len(self.problem.bc_dofs):
+            R[self.problem.bc_dofs] = 0.0
+        R += b_base.getArray(readonly=True)[:n, None]
+        return np.ascontiguousarray(R.T)
 
     def gradient(self, name: str) -> np.ndarray:
         """The assembled gradient form of control ``name`` (owned values; u and lam set by the caller)."""

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from petsc4py import PETSc
@@ -78,7 +78,6 @@ class CallHealth:
             rho = 0.0
         self.ratio = rho if self.ratio is None else max(self.ratio, rho)
 
-
     def add_rows(self, finals, starts, x_norms, b_norms, a_norm: Callable[[], float]) -> None:
         """Many samples' residual norms at once (sequences of floats); ``a_norm()``, ||A||_inf, is computed
         at most once, for the first ratio above the limit."""
@@ -90,7 +89,7 @@ class CallHealth:
             return round_off_floor(norm[0], x, b)
 
         for final, start, x, b in zip(finals, starts, x_norms, b_norms):
-            self.add(float(final), float(start), lambda: floor(float(x), float(b)))
+            self.add(float(final), float(start), lambda x=x, b=b: floor(float(x), float(b)))
 
 
 def round_off_floor(A: PETSc.Mat | float, x_norm: float, b_norm: float = 0.0) -> float:

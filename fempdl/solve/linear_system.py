@@ -22,23 +22,22 @@ incoming gradients and adjoints are (B, n) with n = ``problem.output_size``.
 from __future__ import annotations
 
 import functools
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
 from fempdl.core import _dolfinx
+from fempdl.core.problem import Problem
+from fempdl.solve import assembly
+from fempdl.solve.assembly import ControlValues, Timer
 from fempdl.solve.capped_solver import CappedSolver
-from fempdl.solve.assembly import (SYMMETRIC_PC_TYPES, ControlValues, KeptMatrices, Timer, attach_nullspace,
-                                    check_operator, check_symmetric, check_symmetric_factor, fingerprint,
-                                    fingerprint_matches, set_owned, without_bc_entries)
-from fempdl.solve.petsc import petsc_to_scipy
 from fempdl.solve.control_forms import ControlForms
 from fempdl.solve.health import CallHealth, round_off_floor
 from fempdl.solve.options import KSPOptions
+from fempdl.solve.petsc import petsc_to_scipy
 from fempdl.solve.stats import CumulativeStats, record_batch
-from fempdl.core.problem import Problem
 
 __all__ = ["LinearSystem", "INITIAL_GUESS"]
 
@@ -66,25 +65,25 @@ class LinearSystem:
             if reason is not None:
                 raise ValueError(f"engine='batched' cannot run these options: {reason}; "
                                  "use engine='auto' or engine='petsc'")
-        check_symmetric_factor(options, problem)
+        assembly.check_symmetric_factor(options, problem)
         self.problem = problem
         self._batched = None if options.engine == "petsc" or len(problem.nullspace) else batched_engine
         # A symmetric factorisation's first matrix is checked for symmetry (the flag is the user's word).
-        self._symmetry_unchecked = options.pc_type in SYMMETRIC_PC_TYPES
+        self._symmetry_unchecked = options.pc_type in assembly.SYMMETRIC_PC_TYPES
         self._batched_version = -1                             # A version the batched copy holds
         self._A = _dolfinx.create_matrix(problem.a_form)
         self._destroyed = False
         self._b = _dolfinx.create_vector(problem.L_form)       # ghosted: assembly target
         self._x, self._rhs = self._A.createVecs()              # solution / transposed RHS
-        self._nullspace = attach_nullspace(self._A, problem.nullspace)
-        self._near_nullspace = attach_nullspace(self._A, problem.near_nullspace, near=True)
+        self._nullspace = assembly.attach_nullspace(self._A, problem.nullspace)
+        self._near_nullspace = assembly.attach_nullspace(self._A, problem.near_nullspace, near=True)
         self._solver = CappedSolver(self._A, options, fields=problem.fields or None)
         self._A_inputs = None                                  # fingerprint of the assembled A
         self._A_version = 0                                    # bumped at every assembly of A
         # b(0), C_m and gradient vectors; timed by a Timer on the stats, not a method of self (no reference cycle:
         # the system is freed as soon as its last owner drops it)
         self._forms = ControlForms(problem, self._b, functools.partial(Timer, self._solver.stats, "assembly_time"))
-        self._kept_matrices = KeptMatrices(problem.matrix_controls)
+        self._kept_matrices = assembly.KeptMatrices(problem.matrix_controls)
         #: The last call's residual ratios of capped forward solves, measured when its limit is set (a layer's
         #: health check sets it: :mod:`fempdl.solve.health`).
         self.call_health = CallHealth()
@@ -133,13 +132,14 @@ class LinearSystem:
             if affine and use_batched:
                 # All right-hand sides at once: b_i = b_base + sum_m C_m m_i (no per-sample PETSc calls).
                 with self._assembling():
-                    R = self._affine_rhs_block(b_base, controls, batch)
+                    R = self._forms.affine_rhs_block(b_base, controls, batch)
                 return self._batched_forward(R, initial_guess, health)
             rhs_mats = {name: self._forms.rhs_matrix(name) for name in sorted(names)} if affine else {}
             many = self._direct_many(batch, per_sample_matrix)
             for i in range(batch):
                 if affine:
-                    self._affine_rhs(b_base, rhs_mats, controls, i)
+                    with self._assembling():
+                        self._forms.affine_rhs_into(self._b, b_base, rhs_mats, controls, i)
                 else:
                     ctl.set_sample(i)
                     if per_sample_matrix:
@@ -211,7 +211,7 @@ class LinearSystem:
         residual = initial_guess and not self.options.adjoint_options.direct
         if initial_guess:
             grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
-        G = without_bc_entries(G, p)
+        G = assembly.without_bc_entries(G, p)
         n_owned = p.output_size
         kept = self._kept_matrices.find(controls, batch) if per_sample_matrix else None
         with ControlValues(p, controls) as ctl:
@@ -236,7 +236,7 @@ class LinearSystem:
                     elif kept is not None:
                         kept.restore(i, self._A)
                         self._A_version += 1
-                        self._A_inputs = fingerprint(p.matrix_inputs())
+                        self._A_inputs = assembly.fingerprint(p.matrix_inputs())
                     elif per_sample_matrix:
                         self._assemble_matrix(names)
                     self._lag_preconditioner(per_sample_matrix and i > 0)
@@ -250,28 +250,17 @@ class LinearSystem:
                         C.multTranspose(self._x, on_control)   # C_m^T lam lives on m's space
                         grads[name][i] = on_control.getArray(readonly=True)
                 if by_form:
-                    set_owned(p.lam, self._x.getArray(readonly=True), n_owned)
-                    set_owned(p.u, U[i], n_owned)
+                    assembly.set_owned(p.lam, self._x.getArray(readonly=True), n_owned)
+                    assembly.set_owned(p.u, U[i], n_owned)
                     for name in by_form:
                         grads[name][i] = self._forms.gradient(name)
             self._lag_preconditioner(False)
         return grads
 
     def affine_rhs(self, names: frozenset) -> tuple:
-        """The pieces of b(m) = b_base + sum_m C_m m for affine right-hand-side controls
-        ``names``: (b_base (n,), {name: C_m scipy CSR (n, n_m)}), BC rows of each C_m zeroed."""
-        p = self.problem
-        names = frozenset(names)
-        not_affine = sorted(names - p.affine_rhs_controls)
-        if not_affine:
-            raise NotImplementedError(
-                f"controls {not_affine} enter the matrix or the right-hand side non-affinely "
-                f"(affine controls of this problem: {sorted(p.affine_rhs_controls)})")
-        with ControlValues(p, dict.fromkeys(names)) as ctl:
-            b_base = self._forms.base_rhs(names, ctl).getArray(readonly=True).copy()
-        keep = np.ones(p.output_size)
-        keep[p.bc_dofs] = 0.0  # BC rows of b come from the boundary data alone
-        return b_base, {name: (sp.diags(keep) @ self._forms.rhs_matrix_scipy(name)).tocsr() for name in sorted(names)}
+        """The pieces of b(m) = b_base + sum_m C_m m for affine right-hand-side controls ``names``
+        (:meth:`~fempdl.solve.control_forms.ControlForms.affine_parts`)."""
+        return self._forms.affine_parts(frozenset(names))
 
     def constant_matrix(self) -> sp.csr_matrix:
         """A as scipy CSR, for a problem whose matrix depends on no control passed in a call."""
@@ -352,7 +341,7 @@ class LinearSystem:
             pass
 
     # ------------------------------------------------------- assembly caches
-    def _prepare_matrix(self, names: frozenset, per_sample: bool, ctl: "ControlValues") -> None:
+    def _prepare_matrix(self, names: frozenset, per_sample: bool, ctl: ControlValues) -> None:
         """Make A right for a call: the cached constant matrix, one assembly with
         shared controls, or nothing (assembled per sample by the caller)."""
         if not names & self.problem.matrix_controls:
@@ -367,7 +356,7 @@ class LinearSystem:
         (``KSPOptions.lag_preconditioner``)."""
         self._solver.reuse_preconditioner = later_sample and self.options.lag_preconditioner
 
-    def _assembling(self) -> "Timer":
+    def _assembling(self) -> Timer:
         """Counts the enclosed seconds as assembly in the layer's stats."""
         return Timer(self.stats, "assembly_time")
 
@@ -377,16 +366,16 @@ class LinearSystem:
         self._A_inputs = None
         with self._assembling():
             _dolfinx.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
-            check_operator(self._A, sorted(frozenset(controls) & self.problem.matrix_controls))
+            assembly.check_operator(self._A, sorted(frozenset(controls) & self.problem.matrix_controls))
             if self._symmetry_unchecked:
-                check_symmetric(self._A)
+                assembly.check_symmetric(self._A)
                 self._symmetry_unchecked = False
         self._A_version += 1
-        self._A_inputs = fingerprint(self.problem.matrix_inputs())
+        self._A_inputs = assembly.fingerprint(self.problem.matrix_inputs())
 
     def _matrix_is_current(self) -> bool:
         """Whether A holds the matrix of the coefficients' and constants' current values (on every rank)."""
-        return self._A_inputs is not None and fingerprint_matches(self._A_inputs, self.problem.matrix_inputs(),
+        return self._A_inputs is not None and assembly.fingerprint_matches(self._A_inputs, self.problem.matrix_inputs(),
                                                                   self._comm)
 
     def _assemble_matrix_if_changed(self, controls: frozenset = frozenset()) -> None:
@@ -395,29 +384,3 @@ class LinearSystem:
         factor (MatSolveTranspose) instead of factorising A again."""
         if not self._matrix_is_current():
             self._assemble_matrix(controls)
-
-    def _affine_rhs(self, b_base: PETSc.Vec, rhs_mats: dict, controls, i: int) -> None:
-        """self._b = b_base + sum_m C_m m_i, with BC rows of the control part zeroed."""
-        with self._assembling():
-            self._affine_rhs_values(b_base, rhs_mats, controls, i)
-
-    def _affine_rhs_values(self, b_base: PETSc.Vec, rhs_mats: dict, controls, i: int) -> None:
-        b_base.copy(self._b)
-        bc = self.problem.bc_dofs
-        for name, (C, vin, out, _) in rhs_mats.items():
-            vin.setArray(controls[name][i])
-            C.mult(vin, out)
-            if len(bc):
-                out.array_w[bc] = 0.0
-            self._b.axpy(1.0, out)
-
-    def _affine_rhs_block(self, b_base: PETSc.Vec, controls, batch: int) -> np.ndarray:
-        """(batch, n) right-hand sides b_base + sum_m C_m m_i, BC rows of the control part zeroed."""
-        n = self.problem.output_size
-        R = np.zeros((n, batch))
-        for name in sorted(controls):
-            R += self._forms.rhs_matrix_scipy(name) @ np.asarray(controls[name]).T
-        if len(self.problem.bc_dofs):
-            R[self.problem.bc_dofs] = 0.0
-        R += b_base.getArray(readonly=True)[:n, None]
-        return np.ascontiguousarray(R.T)

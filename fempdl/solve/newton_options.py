@@ -141,11 +141,11 @@ class NewtonOptions:
         return bool(residual_norms) and math.isfinite(residual_norms[-1]) and (
             residual_norms[-1] <= self.rtol * residual_norms[0] or residual_norms[-1] <= self.atol)
 
-    def with_max_it(self, max_it: int | None) -> "NewtonOptions":
+    def with_max_it(self, max_it: int | None) -> NewtonOptions:
         """A copy with the Newton cap moved."""
         return dataclasses.replace(self, max_it=max_it)
 
-    def with_inner_max_it(self, max_it: int | None) -> "NewtonOptions":
+    def with_inner_max_it(self, max_it: int | None) -> NewtonOptions:
         """A copy with the inner (linear) cap moved."""
         if self.ksp is None:
             raise ValueError("the inner solve's options are not set yet (ksp=None); give NewtonOptions(ksp=...)")

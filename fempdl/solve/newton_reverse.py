@@ -7,8 +7,8 @@ iterates a forward solve recorded (:class:`NewtonPath`).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 
@@ -59,7 +59,6 @@ class NewtonReversePass:
                 if initial_guess:
                     grads.setdefault(INITIAL_GUESS, np.zeros((batch, p.output_size)))[i] = u_bar
         return grads
-
 
     def _assembled(self, form, name: str | None) -> np.ndarray:
         """Owned values of a compiled linear form on the space of control ``name`` (None: the solution space)."""

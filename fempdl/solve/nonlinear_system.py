@@ -1,9 +1,9 @@
 """The discrete system of a NonlinearProblem: batched Newton solves and their adjoints on arrays.
 
 :class:`NonlinearSystem` owns the PETSc objects of one :class:`~fempdl.core.nonlinear_problem.NonlinearProblem`
-for one :class:`~fempdl.solve.newton_options.NewtonOptions` (Jacobian, residual and solution vectors, a
-PETSc SNES whose KSP is the inner solve, and a :class:`~fempdl.solve.capped_solver.CappedSolver` for transposed
-solves), and works on NumPy arrays of owned DOF values, one row per sample:
+(Jacobian, residual and solution vectors) and, for one :class:`~fempdl.solve.newton_options.NewtonOptions`,
+its :class:`~fempdl.solve.newton_solvers.NewtonSolvers` (the SNES and the adjoint's capped solvers). It
+works on NumPy arrays of owned DOF values, one row per sample:
 
 * :meth:`solve` — per sample: set the controls, put the boundary values into the initial guess (zero or
   given) and run SNES (``max_it`` steps, or to the tolerances); optionally keep every iterate
@@ -33,29 +33,35 @@ from __future__ import annotations
 import functools
 import math
 import time
-from typing import Mapping
+from collections.abc import Mapping
 
-import numpy as np
 from mpi4py import MPI
+import numpy as np
 from petsc4py import PETSc
 
 from fempdl.core import _dolfinx
 from fempdl.core.nonlinear_problem import NonlinearProblem
 from fempdl.core.tuning import LAGGED_REFRESH_ITERATIONS
-from fempdl.solve.capped_solver import PC_FAILED, CappedSolver, set_interrupt_checks
-from fempdl.solve.assembly import (ControlValues, Timer, attach_nullspace, check_operator, check_symmetric_factor,
-                                   operator_defect, set_owned, without_bc_entries)
+from fempdl.solve import assembly
+from fempdl.solve.assembly import ControlValues, Timer
+from fempdl.solve.capped_solver import PC_FAILED
 from fempdl.solve.control_forms import ControlForms
 from fempdl.solve.health import CallHealth, round_off_floor
 from fempdl.solve.linear_system import INITIAL_GUESS
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.newton_reverse import NewtonPath, NewtonReversePass
+from fempdl.solve.newton_solvers import NewtonSolvers
+from fempdl.solve.newton_stats import (
+    SNES_REASON_NAMES,
+    NewtonCumulativeStats,
+    NewtonFailure,
+    NewtonSolveStats,
+    ended_nonfinite,
+    report_newton_failure,
+)
 from fempdl.solve.newton_stop import NewtonStop
-from fempdl.solve.newton_stats import (SNES_REASON_NAMES, NewtonCumulativeStats, NewtonFailure, NewtonSolveStats,
-                                       ended_nonfinite, report_newton_failure)
-from fempdl.solve.options import KSPOptions
-from fempdl.solve.petsc import create_ksp, destroy_ksp, rejected_at_set_up, unique_prefix
-from fempdl.solve.snes import create_snes, destroy_snes, weak_callback
+from fempdl.solve.petsc import rejected_at_set_up
+from fempdl.solve.snes import weak_callback
 from fempdl.solve.stats import DIVERGED_MAX_IT, REASON_NAMES, SolveStats
 
 __all__ = ["NonlinearSystem", "NewtonPath", "INITIAL_GUESS"]
@@ -63,7 +69,8 @@ __all__ = ["NonlinearSystem", "NewtonPath", "INITIAL_GUESS"]
 _SNES_MAX_IT = PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
 _INSERT, _FORWARD = PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD
 # SNES's stops of a line search or trust region that cannot decrease ||F|| any further.
-_STALLED = frozenset(getattr(PETSc.SNES.ConvergedReason, name) for name in ("DIVERGED_LINE_SEARCH", "DIVERGED_TR_DELTA"))
+_STALLED = frozenset(getattr(PETSc.SNES.ConvergedReason, name)
+                     for name in ("DIVERGED_LINE_SEARCH", "DIVERGED_TR_DELTA"))
 _CONVERGED_EARLY = PETSc.SNES.ConvergedReason.CONVERGED_FNORM_RELATIVE
 _SINGULAR_JACOBIAN = PETSc.SNES.ConvergedReason.DIVERGED_JACOBIAN_DOMAIN
 _AT_STATE = (", a state where F is undefined (the iterate of a failed Newton solve, returned with a warning "
@@ -103,8 +110,8 @@ class NonlinearSystem(NewtonReversePass):
         self._dFdu = self._J if problem.exact_J_form is problem.J_form else _dolfinx.create_matrix(problem.exact_J_form)
         self._rhs, self._lam = self._J.createVecs()
         self._nullspaces = [nsp for A in {id(M): M for M in (self._J, self._dFdu)}.values()
-                            for nsp in (attach_nullspace(A, problem.nullspace),
-                                        attach_nullspace(A, problem.near_nullspace, near=True)) if nsp]
+                            for nsp in (assembly.attach_nullspace(A, problem.nullspace),
+                                        assembly.attach_nullspace(A, problem.near_nullspace, near=True)) if nsp]
         self.stats = NewtonCumulativeStats()
         self._forms = ControlForms(problem, self._b.duplicate(), functools.partial(Timer, self.stats, "assembly_time"))
         self._step_vectors: dict = {}
@@ -112,7 +119,7 @@ class NonlinearSystem(NewtonReversePass):
         self._stopped_on_error = False
         self._called_controls: frozenset = frozenset()     # named when an assembled Jacobian is singular
         self._jacobian_defect: str | None = None
-        self._snes = self._ksp = self._adjoint_solver = None
+        self._solvers: NewtonSolvers | None = None
         self._P: PETSc.Mat | None = None               # a lagged preconditioner's matrix (module docstring)
         self._refresh_P = False
         self._options = options
@@ -131,10 +138,14 @@ class NonlinearSystem(NewtonReversePass):
 
     @options.setter
     def options(self, options: NewtonOptions) -> None:
-        """Rebuild the solvers for new options (a moved inner cap: its KSPs change)."""
+        """New options: a moved inner cap moves in place (:class:`NewtonSolvers`), others build new solvers."""
         if options.ksp is None:
             raise ValueError("NewtonOptions.ksp must be set")
         if options == self._options:
+            return
+        if options == self._options.with_inner_max_it(options.ksp.max_it):
+            self._solvers.inner_max_it = options.ksp.max_it
+            self._options = options
             return
         self._free_solvers()
         self._options = options
@@ -151,7 +162,7 @@ class NonlinearSystem(NewtonReversePass):
             self.options = options                      # another convergence test: a new SNES
             return
         self._options = options
-        self._snes.setTolerances(**options.snes_tolerances())
+        self._solvers.snes.setTolerances(**options.snes_tolerances())
 
     def _stops_at_tolerances(self, options: NewtonOptions) -> bool:
         return not options.capped or self._budget
@@ -162,25 +173,17 @@ class NonlinearSystem(NewtonReversePass):
 
     def _build(self, options: NewtonOptions) -> None:
         p = self.problem
-        ksp_options: KSPOptions = options.ksp
-        check_symmetric_factor(ksp_options, p)
-        lagged = ksp_options.lag_preconditioner
+        assembly.check_symmetric_factor(options.ksp, p)
+        lagged = options.ksp.lag_preconditioner
         if lagged and self._P is None:      # J's pattern, assembled: refreshes copy values only
             self._P = _dolfinx.assemble_matrix_into(_dolfinx.create_matrix(p.J_form), p.J_form, p.bcs)
-        P = self._P if lagged else None
         self._refresh_P = lagged                          # set up on the first Jacobian
-        self._ksp = create_ksp(self._J, ksp_options, unique_prefix("newton_ksp"), p.fields or None)
-        self._snes = create_snes(self._comm, options, self._ksp, *map(weak_callback, (
-            self._residual, self._jacobian, self._monitor)), self._b, self._J, force_step=self._force_step,
-            stop=NewtonStop(options.rtol, options.atol, force_step=self._force_step)
-            if self._stops_at_tolerances(options) else None, P=P)
-        set_interrupt_checks(self._ksp, ksp_options)      # Ctrl-C within a long inner solve
-        self._adjoint_solver = CappedSolver(self._J, ksp_options, fields=p.fields or None, preconditioner_matrix=P)
-        self._adjoint_solver.stats = self.stats
-        self._exact_adjoint_solver = self._adjoint_solver
-        if self._dFdu is not self._J:
-            self._exact_adjoint_solver = CappedSolver(self._dFdu, ksp_options, fields=p.fields or None)
-            self._exact_adjoint_solver.stats = self.stats
+        stop = (NewtonStop(options.rtol, options.atol, force_step=self._force_step)
+                if self._stops_at_tolerances(options) else None)
+        self._solvers = NewtonSolvers(
+            options, J=self._J, dFdu=self._dFdu, P=self._P if lagged else None,
+            callbacks=tuple(map(weak_callback, (self._residual, self._jacobian, self._monitor))), b=self._b,
+            comm=self._comm, fields=p.fields or None, stats=self.stats, force_step=self._force_step, stop=stop)
 
     # ----------------------------------------------------------- callbacks
     def _set_state(self, x: PETSc.Vec) -> None:
@@ -202,7 +205,7 @@ class NonlinearSystem(NewtonReversePass):
             self._set_state(x)
             _dolfinx.assemble_matrix_into(J, self.problem.J_form, self.problem.bcs)
             # A singular J (an empty row) would give MUMPS a tiny or huge finite step: a failed solve.
-            self._jacobian_defect = operator_defect(J)
+            self._jacobian_defect = assembly.operator_defect(J)
         if self._jacobian_defect is not None:
             raise _SingularJacobian(self._jacobian_defect)
         if P.handle != J.handle and self._refresh_P:
@@ -252,7 +255,7 @@ class NonlinearSystem(NewtonReversePass):
                 last = self.stats.last_newton
                 if self.call_health.measuring and last.capped:     # a solve that stopped at a tolerance is healthy
                     self.call_health.add(last.residual_norms[-1], last.residual_norms[0],
-                                         lambda: round_off_floor(self._snes.getJacobian()[0], self._sol.norm()))
+                                         lambda: round_off_floor(self._solvers.snes.getJacobian()[0], self._sol.norm()))
         return (U, NewtonPath(paths, self._options.damping)) if record else U
 
     def _solve_one(self, guess: np.ndarray | None, paths: list | None) -> np.ndarray:
@@ -271,14 +274,14 @@ class NonlinearSystem(NewtonReversePass):
         inner_before, solves_before, assembly_before = s.forward_iterations, s.forward_solves, s.assembly_time
         t0 = time.perf_counter()
         try:
-            self._snes.solve(None, sol)
+            self._solvers.snes.solve(None, sol)
         except BaseException as err:            # a callback's error comes bare or as a PETSc.Error's cause
             self._stopped_on_error = True        # renewed by the next solve (collective: not in this error path)
             cause = err.__cause__ if isinstance(err, PETSc.Error) else err
             if not isinstance(cause, _SingularJacobian):   # that one is a Newton failure, reported below
                 if cause is not None and cause is not err and not isinstance(cause, PETSc.Error):
                     raise cause from None      # a callback's own error (Ctrl-C), not PETSc's
-                blamed = rejected_at_set_up(self._ksp, err) if isinstance(err, PETSc.Error) else None
+                blamed = rejected_at_set_up(self._solvers.ksp, err) if isinstance(err, PETSc.Error) else None
                 if blamed is not None:         # a petsc_options value the inner solve's set-up refused
                     raise blamed from None
                 raise
@@ -287,8 +290,9 @@ class NonlinearSystem(NewtonReversePass):
         steps_done = self.stats.forward_solves - solves_before
         if steps_done:
             self.stats.forward_time += elapsed - (self.stats.assembly_time - assembly_before)
-        reason = _SINGULAR_JACOBIAN if self._jacobian_defect else int(self._snes.getConvergedReason())
-        steps = int(self._snes.getIterationNumber())
+        snes = self._solvers.snes
+        reason = _SINGULAR_JACOBIAN if self._jacobian_defect else int(snes.getConvergedReason())
+        steps = int(snes.getIterationNumber())
         del self._residual_norms[steps + 1:]       # a trust region's last, rejected step is no step
         if self._recording is not None:
             del self._recording[steps + 1:]
@@ -312,7 +316,7 @@ class NonlinearSystem(NewtonReversePass):
             paths.append(np.array(self._recording))
             self._recording = None
         # PETSc keeps a failed factorisation failed (a later solve errors): fresh solvers next time.
-        self._stopped_on_error |= not stats.ok and int(self._ksp.getConvergedReason()) == PC_FAILED
+        self._stopped_on_error |= not stats.ok and int(self._solvers.ksp.getConvergedReason()) == PC_FAILED
         if not stats.ok:
             report_newton_failure(self._options, stats, self._failure(stats))
         return x
@@ -320,14 +324,14 @@ class NonlinearSystem(NewtonReversePass):
     def _failure(self, stats: NewtonSolveStats) -> NewtonFailure:
         """What the failure message needs besides the stats (failed solves only; collective): values at hand
         and, after a NaN or inf residual, J and F (without J's lifting of the Dirichlet values) at that state."""
-        p, ksp = self.problem, self._snes.getKSP()     # the failed step's KSP (no monitor call recorded it)
+        p, ksp = self.problem, self._solvers.snes.getKSP()     # the failed step's KSP (no monitor call recorded it)
         inner, defect, alone = int(ksp.getConvergedReason()), self._jacobian_defect, None
         if defect is None and self._nonfinite_residual and ended_nonfinite(stats):
             self._set_state(self._nonfinite_state)
             F = _dolfinx.assemble_vector_into(_dolfinx.create_vector(p.F_form), p.F_form)
             alone = math.isfinite(F.norm(PETSc.NormType.NORM_INFINITY))
             F.destroy()
-            defect = operator_defect(_dolfinx.assemble_matrix_into(self._J, p.J_form, p.bcs))
+            defect = assembly.operator_defect(_dolfinx.assemble_matrix_into(self._J, p.J_form, p.bcs))
         named = tuple(sorted(self._called_controls & p.jacobian_controls))
         return NewtonFailure(inner_reason=REASON_NAMES.get(inner, str(inner)),
                              inner_iterations=ksp.getIterationNumber(), jacobian_defect=defect,
@@ -360,7 +364,7 @@ class NonlinearSystem(NewtonReversePass):
         grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
         if initial_guess:
             grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
-        G = without_bc_entries(G, p)
+        G = assembly.without_bc_entries(G, p)
         self._called_controls = frozenset(controls)
         with ControlValues(p, controls) as ctl:
             for i in range(batch):
@@ -374,28 +378,25 @@ class NonlinearSystem(NewtonReversePass):
         """Assemble J(u) (u set as the problem's state; with ``exact`` dF/du, else the iteration's J)
         and solve J^T lam = g into ``problem.lam``."""
         p = self.problem
-        set_owned(p.u, u, p.output_size)
-        A, form, solver = ((self._dFdu, p.exact_J_form, self._exact_adjoint_solver) if exact
-                           else (self._J, p.J_form, self._adjoint_solver))
+        assembly.set_owned(p.u, u, p.output_size)
+        A, form, solver = ((self._dFdu, p.exact_J_form, self._solvers.exact_adjoint) if exact
+                           else (self._J, p.J_form, self._solvers.adjoint))
         with Timer(self.stats, "assembly_time"):
             _dolfinx.assemble_matrix_into(A, form, p.bcs)
-            check_operator(A, sorted(self._called_controls & (p.exact_jacobian_controls if exact
+            assembly.check_operator(A, sorted(self._called_controls & (p.exact_jacobian_controls if exact
                                                               else p.jacobian_controls)), _AT_STATE)
         self._rhs.setArray(g)
         solved = solver.solve_transpose(self._rhs, self._lam)
         if A is self._J and self._P is not None and self._options.ksp.lag_preconditioner \
                 and solved.iterations > LAGGED_REFRESH_ITERATIONS:
             self._set_preconditioner_matrix()     # at this J: the next solves start from a fresh set-up
-        set_owned(p.lam, self._lam.getArray(readonly=True), p.output_size)
+        assembly.set_owned(p.lam, self._lam.getArray(readonly=True), p.output_size)
 
     # --------------------------------------------------------------- cleanup
     def _free_solvers(self) -> None:
-        if self._snes is not None:
-            destroy_snes(self._snes)
-            destroy_ksp(self._ksp)
-            for solver in {id(s): s for s in (self._adjoint_solver, self._exact_adjoint_solver)}.values():
-                solver.destroy()
-        self._snes = self._ksp = self._adjoint_solver = self._exact_adjoint_solver = None
+        if self._solvers is not None:
+            self._solvers.destroy()
+        self._solvers = None
 
     def destroy(self) -> None:
         """Free the PETSc objects (the system is unusable afterwards); a second call does nothing."""

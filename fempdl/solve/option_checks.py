@@ -4,7 +4,8 @@ values given as strings, and whether a preconditioner factorises (what ``preonly
 from __future__ import annotations
 
 import types
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 

@@ -19,15 +19,24 @@ import dataclasses
 import math
 import re
 import types
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 from petsc4py import PETSc
 
 from fempdl.core.checks import check_int
-from fempdl.solve.option_checks import (FACTORISING_PC_TYPES, OPTION_TYPES, RESERVED_OPTIONS, check_choice,
-                                        factorises, frozen_petsc_options, inner_pc, parse_option)
+from fempdl.solve.option_checks import (
+    FACTORISING_PC_TYPES,
+    OPTION_TYPES,
+    RESERVED_OPTIONS,
+    check_choice,
+    factorises,
+    frozen_petsc_options,
+    inner_pc,
+    parse_option,
+)
 
 __all__ = ["KSPOptions", "PRESETS", "ENGINES", "ADJOINT_OPERATORS", "MAX_PETSC_INT", "DEFAULT_RTOL",
            "DEFAULT_CONVERGED_MAX_IT", "PRIVATE_PREFIX", "NORM_FREE_KSP_TYPES", "DIRECT_MAX_DOFS", "default_options"]
@@ -158,7 +167,7 @@ class KSPOptions:
     divtol: float | None = None
     gmres_restart: int | None = None
     petsc_options: Mapping[str, Any] = field(default_factory=dict)
-    adjoint: "KSPOptions | None" = None
+    adjoint: KSPOptions | None = None
     on_failure: str = "raise"
     engine: str = "auto"
     adjoint_operator: str = "auto"
@@ -230,7 +239,7 @@ class KSPOptions:
                           for f in dataclasses.fields(self) for v in (getattr(self, f.name),)))
 
     @classmethod
-    def from_petsc_options(cls, options: Mapping[str, Any], **fields) -> "KSPOptions":
+    def from_petsc_options(cls, options: Mapping[str, Any], **fields) -> KSPOptions:
         """Options from a DOLFINx-style PETSc options dict, as given to
         ``dolfinx.fem.petsc.LinearProblem(..., petsc_options=...)``.
 
@@ -270,7 +279,7 @@ class KSPOptions:
         return cls(**{**values, **fields}, petsc_options=rest)
 
     @classmethod
-    def preset(cls, name: str, **overrides) -> "KSPOptions":
+    def preset(cls, name: str, **overrides) -> KSPOptions:
         """Options from a named preset, with any field overridden.
 
         Presets: ``"jacobi"`` (Richardson + PCJACOBI, the PRDP paper's solver),
@@ -318,11 +327,11 @@ class KSPOptions:
         return self.adjoint_operator == "assembled"
 
     @property
-    def adjoint_options(self) -> "KSPOptions":
+    def adjoint_options(self) -> KSPOptions:
         """The options of the transposed solve (the forward ones by default)."""
         return self if self.adjoint is None else self.adjoint
 
-    def with_max_it(self, max_it: int | None) -> "KSPOptions":
+    def with_max_it(self, max_it: int | None) -> KSPOptions:
         """A copy with a new cap (the adjoint override, if any, keeps its own)."""
         return dataclasses.replace(self, max_it=max_it)
 
@@ -343,8 +352,6 @@ class KSPOptions:
         """Whether a solve may run with NORM_NONE (pure cap, no tolerance asked)."""
         return (self.capped and self.rtol is None and self.atol is None and self.divtol is None
                 and self.ksp_type in NORM_FREE_KSP_TYPES and "ksp_norm_type" not in self.petsc_options)
-
-
 
 
 PRESETS: Mapping[str, KSPOptions] = types.MappingProxyType({

@@ -27,7 +27,8 @@ _OPTION_KEYS = ("snes_linesearch_type", "snes_linesearch_damping", "snes_diverge
 
 
 def create_snes(comm, options: NewtonOptions, ksp: PETSc.KSP, residual, jacobian, monitor,
-                b: PETSc.Vec, J: PETSc.Mat, force_step: bool = False, stop=None, P: PETSc.Mat | None = None) -> PETSc.SNES:
+                b: PETSc.Vec, J: PETSc.Mat, force_step: bool = False, stop=None,
+                P: PETSc.Mat | None = None) -> PETSc.SNES:
     """A SNES solving F(u) = 0 with ``residual(snes, x, b)`` into ``b``, ``jacobian(snes, x, J, P)``
     into ``J``, each step's linear solve by ``ksp``, and ``monitor(snes, its, fnorm)`` called per
     step. ``force_step``: take at least one step even from a solution (an unrolled map needs one).

@@ -30,10 +30,9 @@ class SolverFailedError(RuntimeError):
         stats: the :class:`SolveStats` of the failed solve.
     """
 
-    def __init__(self, message: str, stats: "SolveStats"):
+    def __init__(self, message: str, stats: SolveStats):
         super().__init__(message)
         self.stats = stats
-
 
 
 @dataclass(frozen=True)
@@ -122,7 +121,6 @@ class CumulativeStats:
         fresh = type(self)()
         for f in dataclasses.fields(self):
             setattr(self, f.name, getattr(fresh, f.name))
-
 
 
 def capped_solve_stats(options: KSPOptions, seconds: float, finite: bool, engine: str) -> SolveStats:

@@ -9,8 +9,8 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
 from mpi4py import MPI
+import numpy as np
 
 from fempdl import forms, mesh
 from fempdl.core import io

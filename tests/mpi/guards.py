@@ -4,8 +4,8 @@ the other never enters). Writes what each rank caught to OUT.rank<r>.json."""
 import json
 import sys
 
-import torch
 from mpi4py import MPI
+import torch
 
 from fempdl import PRDP, KSPOptions, NonlinearSolveLayer, SolveLayer, forms, mesh
 

@@ -7,10 +7,10 @@ import json
 import sys
 import warnings
 
+from mpi4py import MPI  # before DOLFINx: the PyPI wheels load MPI through mpi4py
+import dolfinx.mesh
 import numpy as np
 import torch
-from mpi4py import MPI      # before DOLFINx: the PyPI wheels load MPI through mpi4py
-import dolfinx.mesh
 
 from fempdl import PRDP, KSPOptions, NewtonOptions, NonlinearSolveLayer, SolveLayer, forms
 from fempdl.methods.newton_caps import NewtonCaps

@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import sys
 
+from mpi4py import MPI
 import numpy as np
 import torch
-from mpi4py import MPI
+from gathering import gathered  # tests/mpi, the script's folder
 
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
-from gathering import gathered     # tests/mpi, the script's folder
 
 SOLVERS = {"lu": KSPOptions.preset("lu"), "jacobi": KSPOptions.preset("jacobi", max_it=30),
            "cg": KSPOptions.preset("cg", rtol=1e-12), "gmres": KSPOptions.preset("gmres", max_it=12)}

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import sys
 
-import numpy as np
-import torch
 from mpi4py import MPI
 import dolfinx.mesh
+import numpy as np
+import torch
+from gathering import gathered  # tests/mpi, the script's folder
 
 from fempdl import KSPOptions, NewtonOptions, NonlinearSolveLayer, forms
-from gathering import gathered     # tests/mpi, the script's folder
 
 CASES = {
     # converged plain Newton (the default snes_type), implicit gradient

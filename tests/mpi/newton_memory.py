@@ -1,7 +1,6 @@
 """Under mpirun -n 2: an unrolled Newton call on a distributed mesh whose iterates cannot fit in memory,
 and a kappa control with values <= 0 on one rank only; rank 0 prints what every rank raised."""
 from mpi4py import MPI  # before DOLFINx: PyPI's DOLFINx needs the MPI library mpi4py loads
-
 import dolfinx.mesh
 import numpy as np
 import torch

@@ -2,9 +2,9 @@
 their gradients, written from rank 0 to OUT (.npz) for comparison with the serial run."""
 import sys
 
+from mpi4py import MPI
 import numpy as np
 import torch
-from mpi4py import MPI
 
 from fempdl import MassInner, PointObservation, forms, mesh
 

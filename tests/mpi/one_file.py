@@ -3,8 +3,8 @@ rank 0 holds the file. Each rank writes what happened to rank<r>.txt beside the 
 import sys
 from pathlib import Path
 
-import torch
 from mpi4py import MPI
+import torch
 
 from fempdl import forms, io, mesh
 from fempdl.core.io import one_writer

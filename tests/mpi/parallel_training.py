@@ -12,9 +12,9 @@ from pathlib import Path
 
 from mpi4py import MPI
 
-from fempdl.core import parallel
-from fempdl.app.runs import runner
 from fempdl.app import scene
+from fempdl.app.runs import runner
+from fempdl.core import parallel
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # tests/, for helpers
 from helpers import tiny_scene  # noqa: E402

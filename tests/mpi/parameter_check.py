@@ -1,7 +1,7 @@
 """Under mpirun -n 2: one data-parallel step with and without parallel.sum_gradients, and ranks
 started from different seeds; rank 0 prints what parallel.check_same_parameters said on both ranks."""
-import torch
 from mpi4py import MPI
+import torch
 
 from fempdl.core import parallel
 

@@ -7,10 +7,10 @@ from __future__ import annotations
 import json
 import sys
 
+from mpi4py import MPI  # before DOLFINx: the PyPI wheels load MPI through mpi4py
+import dolfinx.mesh
 import numpy as np
 import torch
-from mpi4py import MPI      # before DOLFINx: the PyPI wheels load MPI through mpi4py
-import dolfinx.mesh
 
 from fempdl import NewtonOptions, NonlinearSolveLayer, Rollout, forms
 

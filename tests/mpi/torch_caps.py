@@ -5,9 +5,9 @@ PRDP's cap on both. Writes what each rank saw to OUT.rank<r>.json."""
 import json
 import sys
 
+from mpi4py import MPI
 import torch
 import torch.distributed as dist
-from mpi4py import MPI
 
 from fempdl import PRDP, KSPOptions, NewtonOptions, NonlinearSolveLayer, SolveLayer, forms, mesh
 from fempdl.methods.newton_caps import NewtonCaps

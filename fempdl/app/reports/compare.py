@@ -1,7 +1,7 @@
 """A training method against Adam with backpropagation, at equal iterations and at equal training time.
 
 :func:`compare` trains a sip or hig scene twice from the same initial network
-(:mod:`fempdl.app.tasks.inversion`): with the scene's method for its epochs, then with
+(:mod:`fempdl.app.tasks.learned_inverse`): with the scene's method for its epochs, then with
 the baseline for as many; if the baseline used less training time (time in
 optimizer steps, validation excluded), it is resumed and goes on until it has
 used the method's time, at most ``max_factor`` times the iterations.
@@ -22,12 +22,13 @@ import json
 import math
 from pathlib import Path
 
-from fempdl.app.runs import runner
 from fempdl.app import tasks
-from fempdl.app.runs.runner import RunResult
-from fempdl.app.schema import Scene
 from fempdl.app.reports.tradeoff import write_figure
+from fempdl.app.runs import runner
+from fempdl.app.runs.runner import RunResult
+from fempdl.app.runs.settings import RunSettings
 from fempdl.app.runs.training import CHECKPOINT, write_atomically
+from fempdl.app.schema import Scene
 
 __all__ = ["compare", "compare_and_report", "summary", "summary_lines", "table", "write_report"]
 
@@ -44,11 +45,13 @@ def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_tim
     out_dir = Path(out_dir)
     method = tasks.method_of(scene)
 
-    def train(name: str, **kwargs) -> RunResult:
+    common = RunSettings(progress=progress)
+
+    def train(name: str, **changes) -> RunResult:
         sub = out_dir / name
         again = resume and (sub / CHECKPOINT).exists()
-        return runner.run_method(scene, name, out_dir=sub, progress=progress, resume=again,
-                                 overwrite=overwrite and not again, **kwargs)
+        return runner.run_method(scene, name, common, out_dir=sub, resume=again, overwrite=overwrite and not again,
+                                 **changes)
 
     runs = {method: train(method, epochs=epochs)}
     n = len(runs[method].rows)
@@ -56,13 +59,14 @@ def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_tim
     budget = runs[method].rows[-1]["train_time"]
     if equal_time and runs[BASELINE].rows[-1]["train_time"] < budget:
         sub = out_dir / BASELINE
-        runs[BASELINE] = runner.run_method(scene, BASELINE, out_dir=sub, progress=progress, resume=True,
-                                       epochs=max_factor * n, stop_at_time=budget)
+        runs[BASELINE] = runner.run_method(scene, BASELINE, common, out_dir=sub, resume=True,
+                                           epochs=max_factor * n, stop_at_time=budget)
     return runs
 
 
 def compare_and_report(scene: Scene, out_dir: Path, *, equal_time: bool = True, resume: bool = False,
-                       progress: bool = False, overwrite: bool = False) -> tuple[dict[str, RunResult], dict, list[Path]]:
+                       progress: bool = False, overwrite: bool = False
+                       ) -> tuple[dict[str, RunResult], dict, list[Path]]:
     """:func:`compare`, :func:`summary` and :func:`write_report` into ``out_dir``: (runs, summary, paths)."""
     runs = compare(scene, out_dir, equal_time=equal_time, resume=resume, progress=progress, overwrite=overwrite)
     split = summary(scene, runs, equal_time=equal_time)
@@ -152,7 +156,7 @@ def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir:
 
 
 def _plot(scene: Scene, runs: dict[str, RunResult], split: dict, path: Path) -> None:
-    from matplotlib.figure import Figure     # drawn without pyplot: the caller's backend stays as it is
+    from matplotlib.figure import Figure  # drawn without pyplot: the caller's backend stays as it is
 
     steps = steps_per_epoch(scene)
     fig = Figure(figsize=(12, 5))

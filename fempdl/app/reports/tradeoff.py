@@ -34,8 +34,9 @@ from pathlib import Path
 
 from fempdl.app.runs import runner
 from fempdl.app.runs.runner import RunResult
-from fempdl.app.schema import Scene
+from fempdl.app.runs.settings import RunSettings
 from fempdl.app.runs.training import TIME_PARTS, write_atomically
+from fempdl.app.schema import Scene
 
 __all__ = ["sweep", "savings", "comparison_table", "write_report", "geometric_caps", "summary_lines",
            "time_split", "plot_time_split", "clock_bound", "capped_parts"]
@@ -54,17 +55,15 @@ def sweep(scene: Scene, *, ks: list[int] | None = None, out_dir: Path | None = N
           progress: bool = False, overwrite: bool = False) -> dict[str, RunResult]:
     """Train ``scene`` with every fixed K, the converged baseline and PRDP (``overwrite``: replace
     the runs of an earlier sweep in ``out_dir``, which is refused otherwise)."""
-    baseline = runner.run(scene, "converged", out_dir=_sub(out_dir, "converged"), progress=progress,
-                          overwrite=overwrite)
+    common = RunSettings(progress=progress, overwrite=overwrite)
+    baseline = runner.run(scene, "converged", None, common, out_dir=_sub(out_dir, "converged"))
     keps = baseline.k_eps
     measured = {"k_eps_value": keps, "converged_caps": baseline.converged_caps}     # the baseline's, not again
     runs = {}
     for k in ks or geometric_caps(keps):
-        runs[f"K={k}"] = runner.run(scene, "fixed", k, out_dir=_sub(out_dir, f"k{k}"), progress=progress,
-                                    overwrite=overwrite, **measured)
+        runs[f"K={k}"] = runner.run(scene, "fixed", k, common, out_dir=_sub(out_dir, f"k{k}"), **measured)
     runs[f"K_eps={keps}"] = baseline
-    runs["PRDP"] = runner.run(scene, "prdp", out_dir=_sub(out_dir, "prdp"), progress=progress,
-                              overwrite=overwrite, **measured)
+    runs["PRDP"] = runner.run(scene, "prdp", None, common, out_dir=_sub(out_dir, "prdp"), **measured)
     return runs
 
 
@@ -189,7 +188,7 @@ def time_split(run: RunResult) -> dict[str, float]:
 def plot_time_split(runs: dict[str, RunResult], path: Path, title: str) -> None:
     """A stacked bar per run: its wall time split into solver iterations, set-up,
     assembly, adjoint operator, network, validation and the rest."""
-    from matplotlib.figure import Figure     # drawn without pyplot: the caller's backend stays as it is
+    from matplotlib.figure import Figure  # drawn without pyplot: the caller's backend stays as it is
 
     labels = list(runs)
     fig = Figure(figsize=(max(5.0, 1.2 * len(labels) + 3.0), 5))
@@ -219,7 +218,7 @@ def _sub(out_dir: Path | None, name: str) -> Path | None:
 
 
 def _plot_per_epoch(runs: dict[str, RunResult], path: Path, title: str) -> None:
-    from matplotlib.figure import Figure     # drawn without pyplot: the caller's backend stays as it is
+    from matplotlib.figure import Figure  # drawn without pyplot: the caller's backend stays as it is
 
     fig = Figure(figsize=(8, 5))
     ax = fig.subplots()
@@ -241,7 +240,7 @@ def _plot_per_epoch(runs: dict[str, RunResult], path: Path, title: str) -> None:
 
 
 def _plot_against_cost(runs: dict[str, RunResult], path: Path, title: str) -> None:
-    from matplotlib.figure import Figure     # drawn without pyplot: the caller's backend stays as it is
+    from matplotlib.figure import Figure  # drawn without pyplot: the caller's backend stays as it is
 
     fig = Figure(figsize=(12, 5))
     axes = fig.subplots(1, 2, sharey=True)

@@ -135,7 +135,7 @@ class RunLock:
         self._mine = False
         self._fd = None
 
-    def __enter__(self) -> "RunLock":
+    def __enter__(self) -> RunLock:
         self.acquire()
         return self
 

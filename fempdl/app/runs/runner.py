@@ -23,24 +23,22 @@ import dataclasses
 import logging
 from pathlib import Path
 
-import torch
 from mpi4py import MPI
+import torch
 
-from fempdl.core import io, mesh
-from fempdl.app.schema import NONLINEAR_PDES, SEED_MAX, Scene
+from fempdl.app.runs.settings import RunSettings
+from fempdl.app.runs.training import Trainer
+from fempdl.app.schema import NONLINEAR_PDES, Scene
 from fempdl.app.tasks import SPECS, spec_of, task_class
-from fempdl.app.tasks.nonlinear_emulator import newton_options
-from fempdl.app.runs.training import CHECKPOINT_EVERY, Trainer
 from fempdl.app.tasks.base import cap_target, set_cap
-from fempdl.layer.solve_layer import SolveLayer
-from fempdl.solve.options import MAX_PETSC_INT, KSPOptions
+from fempdl.app.tasks.solver_options import layer_options, solver_options
+from fempdl.core import io, mesh
 from fempdl.core.checks import check_int
-from fempdl.core.parallel import shard
-from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps
-from fempdl.methods.newton_caps import converged_caps as measure_converged_caps     # run() takes converged_caps=
-from fempdl.methods.prdp import PRDP
+from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps, newton_k_eps
+from fempdl.methods.prdp import PRDP, k_eps
+from fempdl.solve.options import MAX_PETSC_INT, KSPOptions
 
-__all__ = ["build_task", "check_caps", "check_parallel", "k_eps", "layer_options", "newton_caps_eps", "run",
+__all__ = ["build_task", "check_caps", "check_parallel", "measure_k_eps", "run",
            "run_method", "run_settings", "save_fields", "RunResult", "MODES"]
 _log = logging.getLogger(__name__)
 
@@ -52,7 +50,7 @@ class RunResult:
     """What a run produced; ``rows`` are the per-epoch metrics of :class:`Trainer`.
 
     ``mode`` is a run mode of :data:`MODES`, or the training method of a sip or
-    hig scene (:mod:`fempdl.app.tasks.inversion`), whose runs have no ``k_eps``.
+    hig scene (:mod:`fempdl.app.tasks.learned_inverse`), whose runs have no ``k_eps``.
     ``converged_caps``: on a Newton scene, what converged solves need (the measurement
     behind ``k_eps``; pass it to :func:`run` with ``k_eps_value``), else None."""
 
@@ -148,54 +146,23 @@ def check_caps(scene: Scene, mode: str, k: int | None = None, name: str = "k") -
             raise ValueError(f"{shown} cannot cap the solver of scene {scene.name!r}: {err}") from None
 
 
-def solver_options(scene: Scene, k: int | None, rtol: float | None = None) -> KSPOptions:
-    """The scene's capped solver: ``k`` iterations, or run to ``rtol`` when ``k`` is None."""
-    return KSPOptions.preset(scene.solver.preset, max_it=k, rtol=rtol,
-                             lag_preconditioner=scene.solver.lag_preconditioner)
-
-
-def layer_options(scene: Scene, k: int | None):
-    """The options the task's capped layer is built with: the scene's capped solver at ``k``
-    (:func:`solver_options`), or for a nonlinear PDE the Newton options of ``[solver]``, whose caps
-    the runner sets through the task's ``caps``."""
-    if scene.pde.type in NONLINEAR_PDES:
-        return newton_options(scene, scene.data.k_eps_rtol)
-    return solver_options(scene, k)
-
-
-def newton_caps_eps(task, rtol: float, shard_over: MPI.Comm = MPI.COMM_SELF) -> int:
-    """K_eps of a Newton task under its caps' rule, as :func:`~fempdl.methods.newton_caps.newton_k_eps`
-    measures it: the converged caps of the task's reference inputs (spread over ``shard_over``'s ranks,
-    the maximum theirs), recorded as ``task.caps.converged``."""
-    inputs = {name: torch.atleast_2d(value) for name, value in task.k_eps_rhs().items()}
-    idx = shard(torch.arange(next(iter(inputs.values())).shape[0]), shard_over)
-    local = (measure_converged_caps(task.caps.layers[0], rtol=rtol, **{name: value[idx] for name, value in inputs.items()})
-             if len(idx) else ConvergedCaps(1, 1))
-    task.caps.converged = ConvergedCaps(*(shard_over.allreduce(count, op=MPI.MAX)
-                                          for count in (local.newton_steps, local.inner_iterations)))
-    most = task.caps.k_eps
-    _log.info("K_eps = %d (Newton, refine=%s, to rtol %s; what converged solves take at most: Newton steps %d, "
-              "inner iterations per step %d)", most, task.caps.refine, rtol, task.caps.converged.newton_steps,
-              task.caps.converged.inner_iterations)
-    return most
-
-
-def k_eps(task, options: KSPOptions, shard_over: MPI.Comm = MPI.COMM_SELF, batch: int = 1) -> int:
-    """Largest iteration count the solver needs to reach its rtol on the task's reference inputs.
-
-    With ``shard_over`` the samples are spread over its ranks (data-parallel
-    runs, where every rank holds the whole problem) and the maximum is theirs.
-    A lagged preconditioner is probed in calls of ``batch`` samples, as it trains."""
-    probe = SolveLayer(task.problem, dataclasses.replace(options, engine="petsc"))
-    inputs = {name: torch.atleast_2d(value) for name, value in task.k_eps_rhs().items()}
-    size = batch if options.lag_preconditioner else 1
-    with torch.no_grad():
-        idx = shard(torch.arange(next(iter(inputs.values())).shape[0]), shard_over)
-        for chunk in idx.split(size):
-            probe(**{name: value[chunk] for name, value in inputs.items()})
-    most = shard_over.allreduce(probe.stats.max_forward_iterations, op=MPI.MAX)
-    probe.close()
-    _log.info("K_eps = %d (%s + %s to rtol %s)", most, options.ksp_type, options.pc_type, options.rtol)
+def measure_k_eps(task, scene: Scene, shard_over: MPI.Comm = MPI.COMM_SELF) -> int:
+    """K_eps of ``task`` on its reference inputs (``task.k_eps_rhs()``) to the scene's ``k_eps_rtol``:
+    :func:`~fempdl.methods.prdp.k_eps` of its first layer, or for a Newton task
+    :func:`~fempdl.methods.newton_caps.newton_k_eps` under its caps' rule (which records the
+    converged caps as ``task.caps.converged``). ``shard_over`` spreads the samples over its ranks."""
+    rtol = scene.data.k_eps_rtol
+    if isinstance(getattr(task, "caps", None), NewtonCaps):
+        most = newton_k_eps(task.caps, rtol=rtol, shard_over=shard_over, **task.k_eps_rhs())
+        _log.info("K_eps = %d (Newton, refine=%s, to rtol %s; what converged solves take at most: Newton steps "
+                  "%d, inner iterations per step %d)", most, task.caps.refine, rtol,
+                  task.caps.converged.newton_steps, task.caps.converged.inner_iterations)
+        return most
+    layer = task.layers[0]
+    # A lagged preconditioner is set up once a call: probe it in calls of the training batch.
+    batch = _batch(scene) if layer.options.lag_preconditioner else 1
+    most = k_eps(layer, rtol=rtol, shard_over=shard_over, batch=batch, **task.k_eps_rhs())
+    _log.info("K_eps = %d (%s + %s to rtol %s)", most, layer.options.ksp_type, layer.options.pc_type, rtol)
     return most
 
 
@@ -226,48 +193,37 @@ def run_settings(scene: Scene, **settings) -> dict:
     return {"scene": parsed, "mesh_sha256": mesh.source_digest(scene.mesh.name, scene.mesh.h), **settings}
 
 
-def run(scene: Scene, mode: str, k: int | None = None, *, out_dir: Path | None = None, resume: bool = False,
-        epochs: int | None = None, progress: bool = False, k_eps_value: int | None = None,
-        converged_caps: ConvergedCaps | None = None, stop_after: int | None = None, parallel: str | None = None,
-        comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None, save: bool = False,
-        tensorboard: bool = False, overwrite: bool = False,
-        checkpoint_every: float = CHECKPOINT_EVERY) -> RunResult:
-    """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp").
+def run(scene: Scene, mode: str, k: int | None = None, settings: RunSettings | None = None, *,
+        k_eps_value: int | None = None, converged_caps: ConvergedCaps | None = None, **changes) -> RunResult:
+    """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp") under ``settings``
+    (:class:`~fempdl.app.runs.settings.RunSettings`; keyword ``changes`` replace its fields, e.g.
+    ``run(scene, "prdp", out_dir=path)``).
 
-    ``parallel`` ("data" or "mesh") trains on the ranks of ``comm`` together
-    (:mod:`fempdl.core.parallel`); every rank returns the same result. ``seed``
-    sets the network initialisation and the minibatch order (default: the
-    scene's data seed); the data are the scene's either way. ``save`` writes
-    the validation fields after training (:func:`save_fields`, into
-    ``out_dir``; rank 0, or every rank of a distributed mesh). ``tensorboard`` also
-    writes the metrics as TensorBoard scalars into ``out_dir``/tensorboard. An
-    ``out_dir`` holding an earlier run needs ``resume`` (continue it) or
-    ``overwrite`` (replace it). ``checkpoint_every``: the seconds between writes of the files
-    (:class:`~fempdl.app.runs.training.Trainer`). ``k_eps_value`` and, on a Newton scene,
-    ``converged_caps`` (an earlier run's ``RunResult.converged_caps``) are taken instead of measured."""
+    ``k_eps_value`` and, on a Newton scene, ``converged_caps`` (an earlier run's
+    ``RunResult.converged_caps``) are taken instead of measured. With ``settings.save`` the
+    validation fields are written after training (:func:`save_fields`; rank 0, or every rank of a
+    distributed mesh)."""
+    settings = dataclasses.replace(settings or RunSettings(), **changes)
+    settings.check_outputs()
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
-    if save and (out_dir is None or not spec_of(scene.task).writes_fields):
+    out_dir, parallel, comm = settings.out_dir, settings.parallel, settings.comm
+    if settings.save and (out_dir is None or not spec_of(scene.task).writes_fields):
         raise ValueError(f"save=True writes validation fields of {field_tasks()} scenes into out_dir; got task "
                          f"{scene.task!r}, out_dir={out_dir!r}")
     if (mode == "fixed") != (k is not None):
         raise ValueError("give k exactly when mode='fixed'")
     check_caps(scene, mode, k)
-    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= SEED_MAX):
-        raise ValueError(f"seed must be an int in [0, 2^63 - 1] (what torch's and numpy's generators take), "
-                         f"got {seed!r}")
-    task = build_task(scene, layer_options(scene, k or 1), parallel, comm, seed)
+    task = build_task(scene, layer_options(scene, k or 1), parallel, comm, settings.seed)
     try:
         keps, prdp = _set_caps(task, scene, mode, k, k_eps_value, converged_caps,
                                comm if parallel == "data" else MPI.COMM_SELF)
-        trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=_batch(scene),
-                          out_dir=out_dir, prdp=prdp, seed=scene.data.seed if seed is None else seed,
-                          progress=progress, tensorboard=_board_dir(out_dir, tensorboard),
-                          stop_after=stop_after, stop_at=scene.optimizer.stop_at, parallel=parallel, comm=comm,
-                          settings=run_settings(scene, mode=mode, k=k, seed=seed), overwrite=overwrite,
-                          checkpoint_every=checkpoint_every)
-        rows = trainer.run(resume=resume)
-        if save and (parallel == "mesh" or comm.rank == 0):    # a distributed mesh is written by all ranks
+        loop = dataclasses.replace(settings, epochs=settings.epochs or scene.optimizer.epochs,
+                                   seed=scene.data.seed if settings.seed is None else settings.seed)
+        trainer = Trainer(task, batch=_batch(scene), settings=loop, prdp=prdp, stop_at=scene.optimizer.stop_at,
+                          run_fingerprint=run_settings(scene, mode=mode, k=k, seed=settings.seed))
+        rows = trainer.run()
+        if settings.save and (parallel == "mesh" or comm.rank == 0):    # a distributed mesh: every rank writes
             save_fields(task, out_dir, title=f"{scene.name}, {mode}" + (f" K={k}" if k else ""))
     finally:
         task.close()
@@ -287,13 +243,10 @@ def _set_caps(task, scene: Scene, mode: str, k: int | None, k_eps_value: int | N
         if converged is not None:
             task.caps.converged = converged
         elif k_eps_value is None or task.caps.refine != "newton":
-            newton_caps_eps(task, scene.data.k_eps_rtol, shard_over)
+            measure_k_eps(task, scene, shard_over)
         keps = task.caps.k_eps if k_eps_value is None else k_eps_value
-    elif k_eps_value is not None:
-        keps = k_eps_value
     else:
-        keps = k_eps(task, solver_options(scene, None, scene.data.k_eps_rtol), shard_over=shard_over,
-                     batch=_batch(scene))
+        keps = measure_k_eps(task, scene, shard_over) if k_eps_value is None else k_eps_value
     if newton and task.caps.refine == "inner":     # K caps the inner solve; Newton takes the converged steps
         for layer in task.layers:
             layer.max_it = task.caps.converged.newton_steps
@@ -304,34 +257,29 @@ def _set_caps(task, scene: Scene, mode: str, k: int | None, k_eps_value: int | N
     return keps, None
 
 
-def _board_dir(out_dir: Path | None, tensorboard: bool) -> Path | None:
-    if tensorboard and out_dir is None:
-        raise ValueError("tensorboard=True writes into out_dir/tensorboard: give out_dir")
-    return Path(out_dir) / "tensorboard" if tensorboard else None
-
-
 def _batch(scene: Scene) -> int:
     """The scene's mini-batch size; the inverse task has none (its one sample is its batch)."""
     return 1 if scene.optimizer.batch is None else scene.optimizer.batch
 
 
-def run_method(scene: Scene, method: str, *, out_dir: Path | None = None, resume: bool = False, epochs: int | None = None,
-        progress: bool = False, stop_after: int | None = None, stop_at_time: float | None = None,
-        tensorboard: bool = False, overwrite: bool = False, checkpoint_every: float = CHECKPOINT_EVERY) -> RunResult:
-    """Train a sip or hig scene with ``method`` (its own, or "backprop"); metrics and checkpoints in ``out_dir``.
-
-    ``stop_at_time`` ends the run once its training steps took that many
-    seconds (a resumed run can so be extended to equal training time)."""
+def run_method(scene: Scene, method: str, settings: RunSettings | None = None, **changes) -> RunResult:
+    """Train a sip or hig scene with ``method`` (its own, or "backprop") under ``settings`` (keyword
+    ``changes`` replace its fields); metrics and checkpoints in ``settings.out_dir``. A resumed run
+    can be extended to equal training time with ``stop_at_time``. Method runs train on one process
+    from the scene's seed and write no fields."""
+    settings = dataclasses.replace(settings or RunSettings(), **changes)
+    settings.check_outputs()
+    refused = [name for name in ("seed", "parallel", "save") if getattr(settings, name) not in (None, False)]
+    if refused:
+        raise ValueError(f"run_method trains on one process from the scene's seed and writes no fields; "
+                         f"got {', '.join(f'{n}={getattr(settings, n)!r}' for n in refused)}")
     task = task_class(scene.task, scene.pde.type)(scene, method)
     try:
-        trainer = Trainer(task, epochs=epochs or scene.optimizer.epochs, batch=scene.optimizer.batch,
-                          out_dir=out_dir, seed=scene.data.seed, progress=progress, stop_after=stop_after,
-                          tensorboard=_board_dir(out_dir, tensorboard),
-                          stop_at=scene.optimizer.stop_at, stop_at_time=stop_at_time,
-                          settings=run_settings(scene, method=method), overwrite=overwrite,
-                          checkpoint_every=checkpoint_every)
-        rows = trainer.run(resume=resume)
+        loop = dataclasses.replace(settings, epochs=settings.epochs or scene.optimizer.epochs, seed=scene.data.seed)
+        trainer = Trainer(task, batch=scene.optimizer.batch, settings=loop, stop_at=scene.optimizer.stop_at,
+                          run_fingerprint=run_settings(scene, method=method))
+        rows = trainer.run()
     finally:
         task.close()
     return RunResult(scene=scene.name, mode=method, k_eps=None, rows=rows,
-                     out_dir=None if out_dir is None else str(out_dir))
+                     out_dir=None if settings.out_dir is None else str(settings.out_dir))

@@ -7,12 +7,12 @@ validates, steps the PRDP controller, and writes
 iterations and times, and ``time_<part>`` for each of :data:`TIME_PARTS`
 (:mod:`fempdl.app.runs.timesplit`), adding up to ``wall_time``; a task with Newton layers adds
 ``newton_steps``, forward and unrolled backward, and ``backward_newton_steps``, the latter apart,
-its iterations being the inner Krylov ones; rows written before have no ``backward_newton_steps``) and ``checkpoint.pt`` (model,
-optimizer, scheduler, PRDP, layer counters, each rank's task state, RNG states, rows) after
+its iterations being the inner Krylov ones; rows written before have no ``backward_newton_steps``) and
+``checkpoint.pt`` (model, optimizer, scheduler, PRDP, layer counters, each rank's task state, RNG states, rows) after
 the last epoch and after every epoch that ends ``checkpoint_every`` seconds or more after the
 files were last written (every epoch of a run whose epochs take longer). Every file is written
 atomically (:mod:`fempdl.app.runs.checkpoints`), so an interrupted run keeps the epochs finished
-up to ``checkpoint_every`` seconds before it; ``run(resume=True)`` continues it with the same
+up to ``checkpoint_every`` seconds before it; a run with ``resume=True`` continues it with the same
 metrics as an uninterrupted run, and refuses a resume whose settings differ
 (:meth:`Trainer.fingerprint`).
 
@@ -30,21 +30,20 @@ import json
 import logging
 from pathlib import Path
 
+from mpi4py import MPI
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from mpi4py import MPI
-
 from fempdl import __version__
-from fempdl.core import parallel
-from fempdl.app.runs import checkpoints
-from fempdl.app.runs import rundir
+from fempdl.app.runs import checkpoints, rundir
 from fempdl.app.runs.board import tensorboard_writer
-from fempdl.app.runs.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
 from fempdl.app.runs.checkpoint_values import check_optimizer, check_stats, fitting
+from fempdl.app.runs.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
+from fempdl.app.runs.settings import RunSettings
 from fempdl.app.runs.timesplit import TIME_FIELDS, TIME_PARTS, TimeSplit
 from fempdl.app.tasks.base import cap_target, set_cap
+from fempdl.core import parallel
 from fempdl.methods.prdp import PRDP
 
 __all__ = ["Trainer", "write_atomically", "CheckpointError", "RESUMABLE_CHANGES", "CHECKPOINT", "TIME_PARTS",
@@ -56,86 +55,56 @@ RESUMABLE_CHANGES = ("run.scene.optimizer.epochs", "run.epochs")
 KEYS_ADDED_LATER = {"run.scene.solver.warm_start": False,      # the inverse task's solves started from zero
                     "run.scene.marker.inputs": "raw",           # the marker network took raw inputs
                     "run.mesh_sha256": rundir.NOT_RECORDED}     # the mesh file's content was not recorded
-PARALLEL_MODES = ("data", "mesh")
 _log = logging.getLogger(__name__)
 
 METRIC_FIELDS = ("epoch", "train_loss", "val_metric", "k", "forward_iterations", "backward_iterations",
                  "total_iterations", "solve_time", "train_time", "wall_time") + TIME_FIELDS
 # Newton layers add their steps (forward and unrolled backward) and the unrolled backward ones apart.
 NEWTON_FIELDS = ("newton_steps", "backward_newton_steps")
-# Seconds of a run between writes of its files: a checkpoint costs milliseconds (a network's and
-# its optimizer's state), which after every epoch of a fast scene would be a share of the run.
-CHECKPOINT_EVERY = 1.0
 
 
 @dataclasses.dataclass
 class Trainer:
-    """Runs a task for ``epochs`` epochs with batch size ``batch``.
+    """Runs a task for ``settings.epochs`` epochs of mini-batches of ``batch`` samples.
 
     Args:
         task: see the module docstring.
-        epochs, batch: the loop's size.
-        out_dir: where metrics and the checkpoint go (``None``: nowhere).
+        batch: the mini-batch size.
+        settings: the run's :class:`~fempdl.app.runs.settings.RunSettings` (``epochs`` given; a
+            ``seed`` of ``None`` is 0).
         prdp: a controller driving the task's layers, or ``None`` (fixed K).
-        seed: seeds the shuffling generator.
-        progress: show a tqdm bar with epoch, loss, metric and K.
-        stop_after: stop (as if interrupted) after this many epochs of this call.
-        stop_at: end training once the validation metric is at or below this
-            (the cost to reach a target accuracy is then the iterations used).
-        stop_at_time: end training once the time in training steps reaches
-            this many seconds (a comparison at equal training time).
-        tensorboard: a directory for TensorBoard event files: every metric row's
-            numbers as scalars per epoch (rank 0; needs the ``tensorboard``
-            package: ``pip install 'fempdl[tensorboard]'``). ``None``: none.
-        parallel: ``None`` (serial), ``"data"`` or ``"mesh"`` (module docstring).
-        comm: the ranks that train together in a parallel mode.
-        settings: what defines the run beyond the Trainer's own arguments (the
-            parsed scene, mode, K, ...; plain values). With the batch size,
-            seed, parallel mode, number of ranks and the fempdl version it
-            forms the run's fingerprint, stored in the checkpoint: a resume
-            whose fingerprint differs is refused (:data:`RESUMABLE_CHANGES`
-            may differ).
-        overwrite: a fresh run (``resume=False``) replaces the files of a run
-            already in ``out_dir``, or writes into a directory holding other files
-            (those of fempdl's names replaced, nothing deleted); without it both are
-            refused (:func:`~fempdl.app.runs.rundir.check_output_directory`), as the
-            command refuses without ``--overwrite``.
-        checkpoint_every: write the files after an epoch that ends at least this many seconds of
-            the run's clock after they were last written (and after the last epoch of the call);
-            0 writes them after every epoch.
+        stop_at: end training once the validation metric is at or below this (the cost to reach
+            a target accuracy is then the iterations used).
+        run_fingerprint: what defines the run beyond the Trainer's own settings (the parsed scene,
+            mode, K, ...; plain values). With the batch size, seed, parallel mode, number of ranks
+            and the fempdl version it forms the run's fingerprint, stored in the checkpoint: a
+            resume whose fingerprint differs is refused (:data:`RESUMABLE_CHANGES` may differ).
     """
 
     task: object
-    epochs: int
     batch: int
-    out_dir: Path | None = None
+    settings: RunSettings
     prdp: PRDP | None = None
-    seed: int = 0
-    progress: bool = False
-    stop_after: int | None = None
     stop_at: float | None = None
-    stop_at_time: float | None = None
-    tensorboard: Path | None = None
-    parallel: str | None = None
-    comm: MPI.Comm = dataclasses.field(default_factory=lambda: MPI.COMM_WORLD)
-    settings: dict | None = None
+    run_fingerprint: dict | None = None
     rows: list = dataclasses.field(default_factory=list)
-    overwrite: bool = False
-    checkpoint_every: float = CHECKPOINT_EVERY
 
     def __post_init__(self):
-        if self.parallel not in (None, *PARALLEL_MODES):
-            raise ValueError(f"parallel must be None or one of {list(PARALLEL_MODES)}, got {self.parallel!r}")
-        if self.parallel is None:
-            self.comm = MPI.COMM_SELF
+        if self.settings.epochs is None:
+            raise ValueError("the Trainer needs settings.epochs (the runner takes the scene's)")
+        self.settings.check_outputs()
+        self.comm = self.settings.ranks
+        self.out_dir = self.settings.out_dir
+        self.epochs = self.settings.epochs
+        self._seed = self.settings.seed or 0
         self._writer = self.comm.rank == 0
-        self._shuffle = torch.Generator().manual_seed(self.seed)
+        self._shuffle = torch.Generator().manual_seed(self._seed)
         self._clock = TimeSplit(self.task)
         self._saved_at = None         # the clock's elapsed time at the last checkpoint
         if self.out_dir is not None and self._writer:
-            self.out_dir = Path(self.out_dir)
             self.out_dir.mkdir(parents=True, exist_ok=True)
-        self._board = tensorboard_writer(self.tensorboard) if self.tensorboard is not None and self._writer else None
+        board = self.settings.board_dir
+        self._board = tensorboard_writer(board) if board is not None and self._writer else None
 
     @property
     def k(self) -> int | None:
@@ -145,18 +114,19 @@ class Trainer:
             return target[0].max_it if target else None
         return target.max_it
 
-    def run(self, resume: bool = False) -> list[dict]:
+    def run(self) -> list[dict]:
         """Train; returns the metric rows (one per epoch, including resumed ones).
 
         The output directory is locked for the run (:class:`fempdl.app.runs.rundir.RunLock`:
         a second run on it is refused); temporary files an interrupted write
-        left there are removed; a fresh run (``resume=False``) first removes
+        left there are removed; a fresh run (``settings.resume`` False) first removes
         the checkpoints of a run it replaces."""
+        resume = self.settings.resume
         refusal = None
         if self.out_dir is not None and self._writer:
             try:
-                rundir.check_output_directory(self.out_dir, resume=resume, overwrite=self.overwrite, nested=False,
-                                              flags=rundir.PYTHON_FLAGS)
+                rundir.check_output_directory(self.out_dir, resume=resume, overwrite=self.settings.overwrite,
+                                              nested=False, flags=rundir.PYTHON_FLAGS)
             except rundir.RunDirectoryError as err:
                 refusal = str(err)
         if self.comm.bcast(refusal, root=0):       # every rank takes the same branch
@@ -182,7 +152,7 @@ class Trainer:
         if self._reached_target():
             return self.rows
         bar = tqdm(range(start_epoch, self.epochs), initial=start_epoch, total=self.epochs,
-                   disable=not (self.progress and self._writer), desc="epochs")
+                   disable=not (self.settings.progress and self._writer), desc="epochs")
         done = 0
         self.comm.barrier()   # the ranks finish building their tasks at different times; time from here
         self._clock.start_clock()
@@ -207,7 +177,7 @@ class Trainer:
             bar.set_postfix(loss=f"{self.rows[-1]['train_loss']:.2e}", val=f"{metric:.2e}", K=k_used)
             done += 1
             last = (epoch + 1 == self.epochs or self._reached_target()
-                    or (self.stop_after is not None and done >= self.stop_after))
+                    or (self.settings.stop_after is not None and done >= self.settings.stop_after))
             self._save(epoch, last)
             self._log_epoch(self.rows[-1])
             self._board_epoch(self.rows[-1])
@@ -237,14 +207,14 @@ class Trainer:
             return False
         last = self.rows[-1]
         return ((self.stop_at is not None and last["val_metric"] <= self.stop_at)
-                or (self.stop_at_time is not None and last["train_time"] >= self.stop_at_time))
+                or (self.settings.stop_at_time is not None and last["train_time"] >= self.settings.stop_at_time))
 
     # ------------------------------------------------------------------ steps
     def _train_step(self, idx: torch.Tensor) -> float:
         """One optimizer step on the batch ``idx`` (this rank's shard of it in data mode); the batch loss."""
-        if self.parallel is None:
+        if self.settings.parallel is None:
             return self.task.train_step(idx)
-        share = parallel.shard(idx, self.comm) if self.parallel == "data" else idx
+        share = parallel.shard(idx, self.comm) if self.settings.parallel == "data" else idx
         self.task.optimizer.zero_grad()
         value = 0.0
         if len(share):
@@ -255,16 +225,16 @@ class Trainer:
             value = loss.item()
         parallel.sum_gradients(self.task.model.parameters(), self.comm)
         self.task.optimizer.step()
-        return self.comm.allreduce(value) if self.parallel == "data" else value
+        return self.comm.allreduce(value) if self.settings.parallel == "data" else value
 
     def _validate(self) -> float:
         """The mean validation error over all samples (each rank validates its shard in data mode)."""
         idx = torch.arange(self.task.val_size)
-        if self.parallel == "data":
+        if self.settings.parallel == "data":
             idx = parallel.shard(idx, self.comm)
         with torch.no_grad():
             total = float(self.task.validation_errors(idx).double().sum()) if len(idx) else 0.0
-        if self.parallel == "data":
+        if self.settings.parallel == "data":
             total = self.comm.allreduce(total)
         return total / self.task.val_size
 
@@ -277,7 +247,7 @@ class Trainer:
         counts = [sum(layer.stats.forward_iterations for layer in self.task.layers),
                   sum(layer.stats.backward_iterations for layer in self.task.layers),
                   sum(layer.stats.solve_time for layer in self.task.layers)]
-        if self.parallel == "data":   # every rank solved its own samples: the run's cost is the sum
+        if self.settings.parallel == "data":   # every rank solved its own samples: the run's cost is the sum
             counts = [self.comm.allreduce(c) for c in counts]
         fwd, bwd, solve_time = counts
         row = {"epoch": epoch, "train_loss": loss, "val_metric": metric, "k": k,
@@ -289,7 +259,7 @@ class Trainer:
         if newton:      # Newton layers: their iterations above are the inner ones; the steps come apart
             steps = [sum(s.newton_steps + s.backward_newton_steps for s in newton),
                      sum(s.backward_newton_steps for s in newton)]
-            if self.parallel == "data":
+            if self.settings.parallel == "data":
                 steps = [self.comm.allreduce(c) for c in steps]
             row["newton_steps"], row["backward_newton_steps"] = steps
         return row
@@ -299,7 +269,7 @@ class Trainer:
         """Write the files after ``epoch`` if it is the ``last`` of this call or they are due
         (``checkpoint_every``; decided on the row's wall time, the same on every rank)."""
         wall = self.rows[-1]["wall_time"]
-        if self.out_dir is None or not (last or wall - (self._saved_at or 0.0) >= self.checkpoint_every):
+        if self.out_dir is None or not (last or wall - (self._saved_at or 0.0) >= self.settings.checkpoint_every):
             return
         self._saved_at = wall
         layer_stats = self.comm.gather([dataclasses.asdict(layer.stats) for layer in self.task.layers])
@@ -330,9 +300,9 @@ class Trainer:
         checkpoints.save(self.out_dir, state)
 
     def fingerprint(self) -> dict:
-        """What defines this run (``settings`` and the Trainer's own), flat; stored in the checkpoint."""
-        return rundir.fingerprint(run=self.settings or {}, fempdl=__version__,
-                                  trainer={"batch": self.batch, "seed": self.seed, "parallel": self.parallel,
+        """What defines this run (``run_fingerprint`` and the Trainer's own), flat; stored in the checkpoint."""
+        return rundir.fingerprint(run=self.run_fingerprint or {}, fempdl=__version__,
+                                  trainer={"batch": self.batch, "seed": self._seed, "parallel": self.settings.parallel,
                                            "ranks": self.comm.size, "prdp": self.prdp is not None})
 
     def _restore(self) -> int:
@@ -382,11 +352,12 @@ class Trainer:
             with fitting(path, "task state"):
                 self.task.load_state_dict(task_states)
         elif any(task_states):
-            raise ValueError(f"{path} holds task state that {type(self.task).__name__} cannot take (no load_state_dict)")
+            raise ValueError(f"{path} holds task state that {type(self.task).__name__} cannot take "
+                             "(no load_state_dict)")
         checkpoints.restore_rng(state["rng"], self._shuffle)
         self.rows = list(state["rows"])
         self._clock.elapsed = self._saved_at = state["elapsed"]
-        if "train_time" not in state and self.stop_at_time is not None:
+        if "train_time" not in state and self.settings.stop_at_time is not None:
             raise ValueError(f"{path} was written before fempdl timed training steps (no train_time); it cannot "
                              "be extended to a training time: rerun it without resume")
         self._clock.train_time = state.get("train_time", 0.0)

@@ -16,7 +16,7 @@ from fempdl.app.tasks.base import Task
 from fempdl.app.tasks.emulator import EmulatorTask
 from fempdl.app.tasks.hybrid import HybridTask
 from fempdl.app.tasks.inverse import InverseTask
-from fempdl.app.tasks.inversion import InversionTask, method_of
+from fempdl.app.tasks.learned_inverse import InversionTask, method_of
 from fempdl.app.tasks.marker import MarkerInversionTask
 from fempdl.app.tasks.nonlinear_emulator import NonlinearEmulatorTask
 

@@ -4,10 +4,14 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
+from typing import TYPE_CHECKING
 
 import torch
 
 from fempdl.solve.assembly import assemble_scipy
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 __all__ = ["Task", "make_optimizer", "optimisation_step", "operator_pattern", "cap_target", "set_cap", "uncounted"]
 
@@ -35,7 +39,7 @@ class Task:
       validation metric is their mean over all ``val_size`` samples.
 
     ``train_step(idx)`` is one step of ``optimizer`` on ``loss(idx)``; a task
-    whose optimizer makes its own update (HIG, :mod:`fempdl.app.tasks.inversion`)
+    whose optimizer makes its own update (HIG, :mod:`fempdl.app.tasks.learned_inverse`)
     replaces it. A task may also define ``start_epoch(epoch)``, which the
     Trainer calls before every epoch (to draw new training data). State a
     task carries from step to step outside its model (a warm start's last
@@ -91,7 +95,7 @@ def uncounted(layers):
                 setattr(layer.stats, f.name, getattr(before, f.name))
 
 
-def operator_pattern(problem) -> "sp.csr_matrix":
+def operator_pattern(problem) -> sp.csr_matrix:
     """The assembled operator without boundary conditions: its pattern is the DOF graph."""
     return assemble_scipy(problem.a_form)
 

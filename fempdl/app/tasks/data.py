@@ -5,8 +5,8 @@ they span (:func:`unit_box`), so a field looks alike on any mesh of a geometry.
 """
 from __future__ import annotations
 
-import numpy as np
 from mpi4py import MPI
+import numpy as np
 
 __all__ = ["unit_box", "smooth_fields", "source_modes", "rectangle_fields"]
 

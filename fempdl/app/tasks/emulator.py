@@ -1,17 +1,17 @@
 """The emulator task (the PRDP paper's mixed chain): network step, then a capped physics step."""
 from __future__ import annotations
 
+from mpi4py import MPI
 import numpy as np
 import torch
-from mpi4py import MPI
 
 from fempdl import forms
-from fempdl.core import mesh
-from fempdl.app.tasks.networks import GraphConvNet, ResidualMLP, normalised_adjacency
 from fempdl.app.schema import NetworkConfig, Scene, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer, operator_pattern
 from fempdl.app.tasks.data import smooth_fields
 from fempdl.app.tasks.metrics import nmse, sample_nmse
+from fempdl.app.tasks.networks import GraphConvNet, ResidualMLP, normalised_adjacency
+from fempdl.core import mesh
 from fempdl.layer.solve_layer import SolveLayer
 from fempdl.solve.options import KSPOptions
 

@@ -32,19 +32,19 @@ from __future__ import annotations
 
 import functools
 
+from mpi4py import MPI
 import dolfinx.fem
 import numpy as np
 import torch
-from mpi4py import MPI
 from scipy.spatial import cKDTree
 
-from fempdl.core import _dolfinx, mesh
 from fempdl import forms
-from fempdl.app.tasks.networks import ResidualMLP
 from fempdl.app.schema import PdeConfig, Scene, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import smooth_fields
 from fempdl.app.tasks.metrics import sample_nmse
+from fempdl.app.tasks.networks import ResidualMLP
+from fempdl.core import _dolfinx, mesh
 from fempdl.layer.solve_layer import SolveLayer
 from fempdl.solve.options import KSPOptions
 

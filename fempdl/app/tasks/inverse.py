@@ -1,17 +1,19 @@
-"""The inverse task (the PRDP paper's Poisson inverse problem): gradient descent on source amplitudes."""
+"""The inverse task (the PRDP paper's Poisson inverse problem): gradient descent on source amplitudes
+through a capped solve. (Networks that learn to invert physics, the sip and hig tasks, are
+:mod:`fempdl.app.tasks.learned_inverse`.)"""
 from __future__ import annotations
 
+from mpi4py import MPI
 import numpy as np
 import torch
-from mpi4py import MPI
 from scipy.spatial import cKDTree
 
 from fempdl import forms
-from fempdl.core import mesh
 from fempdl.app.schema import Scene, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import source_modes
 from fempdl.app.tasks.metrics import nmse
+from fempdl.core import mesh
 from fempdl.layer.solve_layer import SolveLayer
 from fempdl.solve.options import KSPOptions
 
@@ -42,7 +44,8 @@ class InverseTask(Task):
 
     specs = (TaskSpec(name="inverse", pdes=("poisson",), required=frozenset({"scene", "mesh", "pde", "inverse"}),
                       optional=frozenset({"data", "optimizer", "solver", "prdp"}),
-                      unused={"data": frozenset({"train", "validation", "modes", "rollout", "train_rollout"}) | frozenset({"truths", "noise", "resample"}),
+                      unused={"data": frozenset({"train", "validation", "modes", "rollout", "train_rollout", "truths",
+                                                 "noise", "resample"}),
                               "optimizer": frozenset({"batch"})},
                       parallel=("mesh",), writes_fields=True),)
 

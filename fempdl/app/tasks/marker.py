@@ -34,19 +34,19 @@ from __future__ import annotations
 
 import dataclasses
 
+from mpi4py import MPI
 import numpy as np
 import torch
-from mpi4py import MPI
 from scipy.spatial import cKDTree
 
-from fempdl.core import _dolfinx, mesh
-from fempdl.app.tasks.networks import Standardize, mlp
 from fempdl.app.schema import Scene
 from fempdl.app.tasks.base import Task, make_optimizer, uncounted
 from fempdl.app.tasks.data import smooth_fields
-from fempdl.app.tasks.inversion import SIP_SPEC
-from fempdl.forms._common import make_function
+from fempdl.app.tasks.learned_inverse import SIP_SPEC
 from fempdl.app.tasks.marker_rollout import MarkerFlow
+from fempdl.app.tasks.networks import Standardize, mlp
+from fempdl.core import _dolfinx, mesh
+from fempdl.forms._common import make_function
 from fempdl.methods.sip import LinearisedGaussNewton, proxy_loss
 
 __all__ = ["MarkerInversionTask", "marker_flow"]

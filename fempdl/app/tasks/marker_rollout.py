@@ -34,12 +34,12 @@ import scipy.sparse as sp
 import torch
 import ufl
 
-from fempdl.core import _dolfinx
 from fempdl import forms
-from fempdl.layer.solve_layer import SolveLayer
-from fempdl.solve.options import KSPOptions
+from fempdl.core import _dolfinx
 from fempdl.core.mesh import as_tagged
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.solve.assembly import assemble_scipy
+from fempdl.solve.options import KSPOptions
 
 __all__ = ["ENCLOSED_LU", "MarkerFlow"]
 

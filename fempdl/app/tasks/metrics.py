@@ -1,8 +1,8 @@
 """The tasks' error measures: normalised mean squared errors, per sample and over a batch."""
 from __future__ import annotations
 
-import torch
 from mpi4py import MPI
+import torch
 
 from fempdl.core import parallel
 

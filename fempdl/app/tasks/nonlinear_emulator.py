@@ -22,27 +22,11 @@ from fempdl.app.tasks.emulator import EmulatorTask, emulator_spec
 from fempdl.layer.newton_layer import NonlinearSolveLayer
 from fempdl.methods.newton_caps import NewtonCaps
 from fempdl.solve.newton_options import NewtonOptions
-from fempdl.solve.options import KSPOptions
 
-__all__ = ["NonlinearEmulatorTask", "newton_options", "REFERENCE_RTOL"]
+__all__ = ["NonlinearEmulatorTask", "REFERENCE_RTOL"]
 
 #: Relative residual of the converged reference Newton solves (data and validation).
 REFERENCE_RTOL = 1e-10
-
-
-def newton_options(scene: Scene, rtol: float) -> NewtonOptions:
-    """The training layer's Newton options from ``[solver]``: plain Newton (full steps, so a cap of N
-    is exactly N Newton steps), its inner solve the preset: LU, or with ``refine = "newton"`` the
-    Krylov preset run to ``rtol`` (converged), else capped (K moves it). The caps start at 1; the
-    runner sets them through :class:`NewtonCaps`."""
-    solver = scene.solver
-    if solver.preset == "lu":
-        inner = KSPOptions.preset("lu")
-    elif solver.refine == "newton":
-        inner = KSPOptions.preset(solver.preset, max_it=None, rtol=rtol)
-    else:
-        inner = KSPOptions.preset(solver.preset, max_it=1)
-    return NewtonOptions(max_it=1, snes_type="newton", ksp=inner)
 
 
 class NonlinearEmulatorTask(EmulatorTask):

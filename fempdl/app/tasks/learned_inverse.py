@@ -12,8 +12,9 @@ the converged (LU) solutions, plus Gaussian noise when ``[data] noise`` > 0.
 With ``[data] resample`` the training truths are drawn anew every epoch
 (seeded by the epoch, so a resumed run draws the same ones).
 The marker PDE (an initial velocity from the marker it moved, a rollout of
-flow and marker steps) has its own task, :mod:`fempdl.app.tasks.marker`
-(``TASKS``); :func:`run` and :mod:`fempdl.app.reports.compare` treat it alike.
+flow and marker steps) has its own task class, :mod:`fempdl.app.tasks.marker`, registered under the
+same ``sip`` task (:data:`fempdl.app.tasks.SPECS`); :func:`fempdl.app.runs.runner.run_method` and
+:mod:`fempdl.app.reports.compare` treat it alike.
 
 Three ways to train the same network (``method``):
 
@@ -45,30 +46,30 @@ counts no data.
 """
 from __future__ import annotations
 
+from mpi4py import MPI
 import numpy as np
 import torch
-from mpi4py import MPI
 
 from fempdl import forms
-from fempdl.core import mesh
-from fempdl.app.tasks.networks import mlp
 from fempdl.app.schema import NONLINEAR_PDES, Scene, SipConfig, TaskSpec
 from fempdl.app.tasks.base import Task, make_optimizer
 from fempdl.app.tasks.data import rectangle_fields, smooth_fields
 from fempdl.app.tasks.metrics import sample_nmse
-from fempdl.layer.solve_layer import SolveLayer
+from fempdl.app.tasks.networks import mlp
+from fempdl.core import mesh
 from fempdl.layer.newton_layer import NonlinearSolveLayer
+from fempdl.layer.solve_layer import SolveLayer
 from fempdl.methods.hig import HIG
+from fempdl.methods.sip import ExactLinearInverse, GaussNewtonInverse, TikhonovInverse, proxy_loss
 from fempdl.methods.sip_nonlinear import ExactNonlinearInverse
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.options import KSPOptions
-from fempdl.methods.sip import (ExactLinearInverse, GaussNewtonInverse, TikhonovInverse,
-                                proxy_loss)
 
 __all__ = ["InversionTask", "method_of"]
 
 #: The sip task on a one-layer physics (poisson, heat); the marker task serves it on the marker rollout.
-SIP_SPEC = TaskSpec(name="sip", pdes=("poisson", "heat", "nonlinear-poisson"), required=frozenset({"scene", "mesh", "pde", "sip"}),
+SIP_SPEC = TaskSpec(name="sip", pdes=("poisson", "heat", "nonlinear-poisson"),
+                    required=frozenset({"scene", "mesh", "pde", "sip"}),
                     optional=frozenset({"data", "network", "optimizer", "baseline", "marker"}),
                     unused={"data": frozenset({"k_eps_rtol", "rollout", "train_rollout"})}, trains="method")
 
@@ -87,7 +88,8 @@ class InversionTask(Task):
     network is ``[network] layers`` tanh layers of width ``hidden``.
     """
 
-    specs = (SIP_SPEC, TaskSpec(name="hig", pdes=("poisson", "nonlinear-poisson"), required=frozenset({"scene", "mesh", "pde", "hig"}),
+    specs = (SIP_SPEC, TaskSpec(name="hig", pdes=("poisson", "nonlinear-poisson"),
+                                required=frozenset({"scene", "mesh", "pde", "hig"}),
                                 optional=frozenset({"data", "network", "optimizer", "baseline"}),
                                 unused={"data": frozenset({"k_eps_rtol", "rollout", "train_rollout"}),
                                         "optimizer": frozenset({"type", "lr", "decay"})},
