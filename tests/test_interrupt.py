@@ -125,3 +125,34 @@ def test_ctrl_c_stops_a_newton_layer(max_it, inner):
     returncode, out, err = interrupt(NEWTON.format(max_it=max_it, inner=inner))
     assert returncode == 0, err[-3000:]
     assert out.splitlines() == ["KeyboardInterrupt", "next solve 3 True"], (out, err[-3000:])
+
+
+def test_a_matrix_interrupted_while_assembled_takes_the_next_assembly(coarse_lshape, monkeypatch):
+    """Ctrl-C between setting a matrix's values and assembling them left it unassembled, and PETSc refuses
+    to zero such a matrix: every later solve of the layer failed with PETSc error 73. The interrupt now
+    finishes the assembly on its way out, and the next solve is the one a fresh layer gives."""
+    import dolfinx.fem.petsc
+    import torch
+    from petsc4py import PETSc
+
+    from fempdl import SolveLayer, forms
+
+    prob = forms.poisson.problem(coarse_lshape, controls=("f", "kappa"))
+    layer = SolveLayer(prob, "lu")
+    f = torch.ones(prob.control_size("f"), dtype=torch.float64)
+    kappa = torch.ones(prob.control_size("kappa"), dtype=torch.float64)
+    layer(f=f, kappa=kappa)
+
+    def interrupted(A, *args):
+        A.setValue(0, 0, 1.0, addv=PETSc.InsertMode.ADD_VALUES)
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(dolfinx.fem.petsc, "assemble_matrix", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            layer(f=f, kappa=2 * kappa)
+    u = layer(f=f, kappa=2 * kappa)
+    fresh = SolveLayer(prob, "lu")
+    torch.testing.assert_close(u, fresh(f=f, kappa=2 * kappa), rtol=0, atol=1e-12)
+    fresh.close()
+    layer.close()

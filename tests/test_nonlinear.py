@@ -645,6 +645,21 @@ def test_unrolled_memory_bound_is_checked_before_solving(prob4):
     layer.close()
 
 
+def test_an_unrolled_memory_budget_in_bytes_is_checked_before_solving(prob4):
+    """``memory_budget`` replaces the default budget (half the memory available): 8 bytes per kept value."""
+    n = prob4.output_size
+    layer = NonlinearSolveLayer(prob4, capped(3), diff="unrolled", memory_budget=8 * 4 * 2 * n)
+    layer(f=values(prob4, "f", batch=2), alpha=values(prob4, "alpha"))            # (3 + 1) * 2 * n floats: fits
+    with pytest.raises(MemoryError, match=r"would keep .* of iterates for backward .*more than memory_budget"):
+        layer(f=values(prob4, "f", batch=3), alpha=values(prob4, "alpha"))
+    assert layer.stats.newton_solves == 2 and layer.memory_budget == 8 * 4 * 2 * n
+    layer.close()
+    with pytest.raises(ValueError, match="memory_budget applies to diff='unrolled' layers"):
+        NonlinearSolveLayer(prob4, CONVERGED, memory_budget=10 ** 9)
+    with pytest.raises(ValueError, match="memory_budget must be >= 1, got 0"):
+        NonlinearSolveLayer(prob4, capped(3), diff="unrolled", memory_budget=0)
+
+
 @pytest.mark.parametrize("diff,options", [("implicit", CONVERGED), ("unrolled", capped(2))])
 def test_second_derivatives_are_refused(prob4, diff, options):
     layer = NonlinearSolveLayer(prob4, options, diff=diff)

@@ -203,9 +203,17 @@ def create_vector(L_form) -> PETSc.Vec:
 def assemble_matrix_into(A: PETSc.Mat, a_form, bcs=(), diagonal: float = 1.0) -> PETSc.Mat:
     """Zero ``A`` and assemble ``a_form`` into it; BC rows and columns are zeroed
     and ``diagonal`` is put on BC rows (only when ``bcs`` is given)."""
-    A.zeroEntries()
-    # Positional: the keyword is ``diagonal`` up to 0.9 and ``diag`` from 0.10.
-    dolfinx.fem.petsc.assemble_matrix(A, a_form, list(bcs), diagonal)
+    try:
+        A.zeroEntries()
+        # Positional: the keyword is ``diagonal`` up to 0.9 and ``diag`` from 0.10.
+        dolfinx.fem.petsc.assemble_matrix(A, a_form, list(bcs), diagonal)
+    except BaseException:
+        # Interrupted (Ctrl-C) between setting values and assembling them, A would stay unassembled, and
+        # PETSc refuses to zero such a matrix: every later assembly, hence every later solve, would fail.
+        # Serial only: assembly is collective, and under MPI an error ends the job (core.parallel).
+        if A.getComm().getSize() == 1:
+            A.assemble()
+        raise
     A.assemble()
     return A
 

@@ -35,6 +35,7 @@ import dataclasses
 from mpi4py import MPI
 import torch
 
+from fempdl.core.checks import check_int
 from fempdl.core.nonlinear_problem import NonlinearProblem
 from fempdl.core.resources import format_bytes, memory_budget
 from fempdl.layer.implicit_diff import count_on_all_ranks
@@ -62,6 +63,9 @@ class NonlinearSolveLayer(SystemLayer):
             with a MemoryError before it starts. ``None``: no bound but the
             memory's: a call whose iterates would exceed half the memory
             available at the call is refused likewise.
+        memory_budget: in unrolled mode, the bytes a machine's kept iterates may take
+            (those of its ranks together); a call that needs more is refused before it
+            starts. ``None``: half the memory available at the call.
 
     Attributes:
         max_it: the Newton cap N (``None``: converged); assign to move it (PRDP does).
@@ -71,7 +75,8 @@ class NonlinearSolveLayer(SystemLayer):
     """
 
     def __init__(self, problem: NonlinearProblem, options: NewtonOptions | None = None, *,
-                 diff: str = "implicit", max_unrolled_values: int | None = None):
+                 diff: str = "implicit", max_unrolled_values: int | None = None,
+                 memory_budget: int | None = None):
         super().__init__()
         if not isinstance(problem, NonlinearProblem):
             raise TypeError(f"problem must be a fempdl.NonlinearProblem, got {type(problem).__name__}; a linear "
@@ -85,10 +90,13 @@ class NonlinearSolveLayer(SystemLayer):
         check_diff(diff)
         if diff == "unrolled":
             check_unrolled_newton(options)
-        if max_unrolled_values is not None and diff != "unrolled":
-            raise ValueError("max_unrolled_values applies to diff='unrolled' layers")
+        for name, value in (("max_unrolled_values", max_unrolled_values), ("memory_budget", memory_budget)):
+            if value is not None and diff != "unrolled":
+                raise ValueError(f"{name} applies to diff='unrolled' layers")
+        if memory_budget is not None:
+            check_int("memory_budget", memory_budget, minimum=1)
         self.diff = diff
-        self.max_unrolled_values = max_unrolled_values
+        self.max_unrolled_values, self.memory_budget = max_unrolled_values, memory_budget
         # Implicit: the cap is a budget (a solve stops at its tolerances before it); unrolled: exactly N steps,
         # and at least one even from a solution, where the map is not the identity nearby.
         self._init_system(problem, NonlinearSystem(problem, options, force_step=diff == "unrolled",
@@ -139,7 +147,7 @@ class NonlinearSolveLayer(SystemLayer):
         iterates of that machine's ranks): a high Newton cap would otherwise grow until the machine
         runs out of memory."""
         needed = stored_values(self.options, batch, self.problem.output_size)
-        mine = (MPI.Get_processor_name(), needed, memory_budget())
+        mine = (MPI.Get_processor_name(), needed, memory_budget() if self.memory_budget is None else self.memory_budget)
         comm = self.problem.V.mesh.comm
         every = comm.allgather(mine) if comm.size > 1 else [mine]
         most = max(values for _, values, _ in every)
@@ -156,8 +164,9 @@ class NonlinearSolveLayer(SystemLayer):
                 raise MemoryError(
                     f"an unrolled Newton call would keep {format_bytes(kept)} of iterates for backward{where} "
                     f"((steps + 1) * batch * n float64 values, steps = {steps}, batch = {batch}, "
-                    f"n = {kept // (8 * (steps + 1) * batch)}), more than half the memory available now "
-                    f"({format_bytes(budget)}); {self._memory_fix()}")
+                    f"n = {kept // (8 * (steps + 1) * batch)}), more than "
+                    + ("half the memory available now" if self.memory_budget is None else "memory_budget")
+                    + f" ({format_bytes(budget)}); {self._memory_fix()}")
 
     def _memory_fix(self) -> str:
         cap = (f"cap Newton lower (max_it={self.options.max_it})" if self.options.max_it is not None
