@@ -208,9 +208,8 @@ def assemble_matrix_into(A: PETSc.Mat, a_form, bcs=(), diagonal: float = 1.0) ->
         # Positional: the keyword is ``diagonal`` up to 0.9 and ``diag`` from 0.10.
         dolfinx.fem.petsc.assemble_matrix(A, a_form, list(bcs), diagonal)
     except BaseException:
-        # Interrupted (Ctrl-C) between setting values and assembling them, A would stay unassembled, and
-        # PETSc refuses to zero such a matrix: every later assembly, hence every later solve, would fail.
-        # Serial only: assembly is collective, and under MPI an error ends the job (core.parallel).
+        # Interrupted (Ctrl-C) between setting values and assembling them, A would stay unassembled, which
+        # PETSc refuses to zero: every later solve would fail. Serial only (under MPI an error ends the job).
         if A.getComm().getSize() == 1:
             A.assemble()
         raise

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from fempdl.layer.implicit_diff import FirstOrderOnly, count_on_all_ranks, nonfinite_control_message
-from fempdl.solve.nonlinear_system import INITIAL_GUESS
+from fempdl.solve.linear_system import INITIAL_GUESS
 
 __all__ = ["UnrolledNewton", "check_unrolled_newton", "stored_values"]
 

@@ -1,9 +1,11 @@
-"""The exact reverse pass of the plain Newton map that was run (``NonlinearSolveLayer(diff="unrolled")``).
+"""The two reverse passes of a Newton system, a part of :class:`~fempdl.solve.nonlinear_system.NonlinearSystem`.
 
-:class:`NewtonReversePass` is a part of :class:`~fempdl.solve.nonlinear_system.NonlinearSystem`: per
-sample and per step k = N-1 ... 0, backwards, mu = J(u_k)^{-T} u_bar, then u_bar <- u_bar + a dQ/du and
-m_bar += a dQ/dm with Q = mu^T J(u_k; m) delta_k - F(u_k, mu; m) (the problem's step forms), from the
-iterates a forward solve recorded (:class:`NewtonPath`).
+* :meth:`NewtonReversePass.adjoint`, the implicit adjoint at the returned states (``diff="implicit"``):
+  per sample J(u)^T lam = g, then dJ/dm = -d/dm F(u, lam; m) from the problem's gradient forms.
+* :meth:`NewtonReversePass.unrolled_adjoint`, the exact reverse pass of the plain Newton map that was run
+  (``diff="unrolled"``): per sample and per step k = N-1 ... 0, backwards, mu = J(u_k)^{-T} u_bar, then
+  u_bar <- u_bar + a dQ/du and m_bar += a dQ/dm with Q = mu^T J(u_k; m) delta_k - F(u_k, mu; m) (the
+  problem's step forms), from the iterates a forward solve recorded (:class:`NewtonPath`).
 """
 from __future__ import annotations
 
@@ -29,8 +31,30 @@ class NewtonPath:
 
 
 class NewtonReversePass:
-    """The reverse pass over a :class:`NewtonPath`; the system provides ``problem``, ``stats`` and
-    ``_transpose_solve(u, g)`` (J(u)^T lam = g into ``problem.lam``), and holds ``_step_vectors``."""
+    """The reverse passes; the system provides ``problem``, ``stats``, its control forms ``_forms`` and
+    ``_transpose_solve(u, g, exact)`` (J(u)^T lam = g into ``problem.lam``; ``exact``: dF/du), and holds
+    ``_step_vectors`` and ``_called_controls`` (the controls a singular-matrix message names)."""
+
+    def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
+                wanted, shared=frozenset(), initial_guess: bool = False) -> dict[str, np.ndarray]:
+        """Implicit control gradients dJ/dm (batch, n_m) at the states U, for incoming
+        G = dJ/du (batch, n). With ``initial_guess`` the result also holds a zero
+        gradient for the starting point: a solution of F(u) = 0 does not depend on it."""
+        p = self.problem
+        batch = G.shape[0]
+        wanted = [n for n in p.control_names if n in set(wanted)]
+        grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
+        if initial_guess:
+            grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
+        G = without_bc_entries(G, p)
+        self._called_controls = frozenset(controls)
+        with ControlValues(p, controls) as ctl:
+            for i in range(batch):
+                ctl.set_sample(i)
+                self._transpose_solve(U[i], G[i], exact=True)
+                for name in wanted:
+                    grads[name][i] = self._forms.gradient(name)
+        return grads
 
     def unrolled_adjoint(self, controls: Mapping[str, np.ndarray], path: NewtonPath, G: np.ndarray,
                          wanted, initial_guess: bool = False) -> dict[str, np.ndarray]:

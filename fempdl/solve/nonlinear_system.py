@@ -10,9 +10,8 @@ works on NumPy arrays of owned DOF values, one row per sample:
   u_0 ... u_N (a :class:`NewtonPath`);
 * :meth:`adjoint` — the implicit gradient at the returned states: J(u)^T lam = g (BC entries zeroed,
   the inner solve's adjoint options), then dJ/dm = -d/dm F(u, lam; m) by assembling the problem's
-  gradient forms;
-* :meth:`unrolled_adjoint` — the exact reverse pass of the plain Newton map that was run
-  (:class:`~fempdl.solve.newton_reverse.NewtonReversePass`).
+  gradient forms; :meth:`unrolled_adjoint` — the exact reverse pass of the plain Newton map that was
+  run (both: :class:`~fempdl.solve.newton_reverse.NewtonReversePass`).
 
 A lagged inner preconditioner (``KSPOptions(lag_preconditioner=True)``, the ``"lu-lagged"`` preset) is
 set up on a copy P of an earlier J and kept across Newton steps, solves, samples and the adjoint's
@@ -47,7 +46,6 @@ from fempdl.solve.assembly import ControlValues, Timer
 from fempdl.solve.capped_solver import PC_FAILED
 from fempdl.solve.control_forms import ControlForms
 from fempdl.solve.health import CallHealth, round_off_floor
-from fempdl.solve.linear_system import INITIAL_GUESS
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.newton_reverse import NewtonPath, NewtonReversePass
 from fempdl.solve.newton_solvers import NewtonSolvers
@@ -64,7 +62,7 @@ from fempdl.solve.petsc import rejected_at_set_up
 from fempdl.solve.snes import weak_callback
 from fempdl.solve.stats import DIVERGED_MAX_IT, REASON_NAMES, SolveStats
 
-__all__ = ["NonlinearSystem", "NewtonPath", "INITIAL_GUESS"]
+__all__ = ["NonlinearSystem", "NewtonPath"]
 
 _SNES_MAX_IT = PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
 _INSERT, _FORWARD = PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD
@@ -353,27 +351,6 @@ class NonlinearSystem(NewtonReversePass):
         self._build(self._options)
 
     # --------------------------------------------------------------- adjoint
-    def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
-                wanted, shared=frozenset(), initial_guess: bool = False) -> dict[str, np.ndarray]:
-        """Implicit control gradients dJ/dm (batch, n_m) at the states U, for incoming
-        G = dJ/du (batch, n). With ``initial_guess`` the result also holds a zero
-        gradient for the starting point: a solution of F(u) = 0 does not depend on it."""
-        p = self.problem
-        batch = G.shape[0]
-        wanted = [n for n in p.control_names if n in set(wanted)]
-        grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
-        if initial_guess:
-            grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
-        G = assembly.without_bc_entries(G, p)
-        self._called_controls = frozenset(controls)
-        with ControlValues(p, controls) as ctl:
-            for i in range(batch):
-                ctl.set_sample(i)
-                self._transpose_solve(U[i], G[i], exact=True)
-                for name in wanted:
-                    grads[name][i] = self._forms.gradient(name)
-        return grads
-
     def _transpose_solve(self, u: np.ndarray, g: np.ndarray, exact: bool = False) -> None:
         """Assemble J(u) (u set as the problem's state; with ``exact`` dF/du, else the iteration's J)
         and solve J^T lam = g into ``problem.lam``."""
