@@ -73,7 +73,7 @@ from fempdl import (
     mesh,
 )
 from fempdl.core import _dolfinx
-from fempdl.methods.newton_caps import NewtonCaps, newton_k_eps
+from fempdl.methods.newton_caps import NewtonCaps
 from fempdl.prdp import k_eps, k_start
 
 from bench_common import comma_list, machine_info, write_json_atomically

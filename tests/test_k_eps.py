@@ -8,7 +8,7 @@ import torch
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.methods.prdp import k_eps
+from fempdl.methods.k_eps import k_eps
 from fempdl.solve.assembly import assemble_scipy
 
 
@@ -51,5 +51,5 @@ def test_k_eps_errors(heat):
         k_eps(layer)
     with pytest.raises(ValueError, match=r"layer solves directly \(ksp_type='preonly'\): it has no iteration cap"):
         k_eps(SolveLayer(heat, KSPOptions.preset("lu")), u0=torch.zeros(heat.output_size, dtype=torch.float64))
-    with pytest.raises(TypeError, match="layer must be a SolveLayer, got str"):
+    with pytest.raises(TypeError, match="target must be a SolveLayer, a NonlinearSolveLayer, a NewtonCaps, a Rollout or a list of them, got str"):
         k_eps("layer", u0=None)

@@ -20,7 +20,8 @@ from fempdl.app.runs.timesplit import TIME_PARTS
 from fempdl.app.tasks.learned_inverse import InversionTask
 from fempdl.app.tasks.nonlinear_emulator import NonlinearEmulatorTask
 from fempdl.methods.hig import HIG
-from fempdl.methods.newton_caps import NewtonCaps, converged_caps, newton_k_eps
+from fempdl.methods.k_eps import converged_caps, newton_k_eps
+from fempdl.methods.newton_caps import NewtonCaps
 from fempdl.methods.sip_nonlinear import ExactNonlinearInverse
 
 from helpers import tiny_scene

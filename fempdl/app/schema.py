@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from fempdl.methods.newton_caps import REFINE
-from fempdl.methods.prdp import PRDPSettings
+from fempdl.methods.prdp_settings import PRDPSettings
 
 __all__ = ["Scene", "SceneError", "Spec", "TaskSpec", "SECTIONS", "PDE_UNUSED", "NONLINEAR_PDES", "REQUIRED",
            "SEED_MAX", "POSITIVE", "specs", "check_slug",

@@ -85,11 +85,23 @@ def shard(indices: torch.Tensor, comm: MPI.Comm) -> torch.Tensor:
     return indices[bounds[comm.rank]:bounds[comm.rank + 1]]
 
 
+def batch_size(inputs: dict[str, torch.Tensor]) -> int:
+    """The samples in a call's keyword inputs: the leading size of its (B, n) tensors, 1 when every
+    input is a shared (n,) tensor. Raises ValueError when the batched ones disagree."""
+    sizes = {name: value.shape[0] for name, value in inputs.items() if value.dim() == 2}
+    if len(set(sizes.values())) > 1:
+        raise ValueError(f"inputs have different batch sizes {sizes}; pass (B, n) tensors with one B, or (n,) "
+                         "tensors shared by all samples")
+    return next(iter(sizes.values()), 1)
+
+
 def shard_inputs(inputs: dict[str, torch.Tensor], comm: MPI.Comm) -> dict[str, torch.Tensor]:
-    """This rank's :func:`shard` of a batch of keyword inputs (each (B, n) or (n,), one sample), as (b, n)."""
-    inputs = {name: torch.atleast_2d(value) for name, value in inputs.items()}
-    idx = shard(torch.arange(next(iter(inputs.values())).shape[0]), comm)
-    return {name: value[idx] for name, value in inputs.items()}
+    """This rank's :func:`shard` of a call's keyword inputs: the (B, n) ones are split along B, the
+    shared (n,) ones kept whole; when nothing is batched, the call is one sample, as (1, n)."""
+    if not any(value.dim() == 2 for value in inputs.values()):
+        inputs = {name: value[None] for name, value in inputs.items()}
+    idx = shard(torch.arange(batch_size(inputs)), comm)
+    return {name: value[idx] if value.dim() == 2 else value for name, value in inputs.items()}
 
 
 def sum_gradients(parameters, comm: MPI.Comm) -> None:

@@ -130,6 +130,8 @@ class NonlinearSolveLayer(SystemLayer):
     def forward(self, *positional, initial_guess: torch.Tensor | None = None, **controls: torch.Tensor) -> torch.Tensor:
         """Solve for the given controls (keyword per control name) from ``initial_guess``
         (zero by default; its Dirichlet entries are replaced by the boundary values)."""
+        if self.route is not None:                       # reference physics, or a probe (fempdl.layer.reference)
+            return self.route(*positional, initial_guess=initial_guess, **controls)
         names, tensors, batch, batched, dtype, device = self._inputs(positional, initial_guess, controls)
         if self.diff == "unrolled":
             self._check_memory(batch)

@@ -218,6 +218,7 @@ class _Scheduled(torch.autograd.Function):
     def forward(ctx, rollout, steps, values, constant_names, step_names, indices, write, initial, *tensors):
         plan = _Plan(rollout, steps, values, constant_names, step_names, initial, tensors)
         training = any(ctx.needs_input_grad[7:])
+        plan.layer.note_call(training)
 
         def run(k, u, first):
             u_next = plan.run(k, u, first, training)
@@ -255,8 +256,9 @@ class _Plan:
     """A scheduled call's arrays and the step's solves and adjoints on them."""
 
     def __init__(self, rollout, steps, values, constant_names, step_names, initial, tensors):
-        self.rollout, self.layer, self.steps, self.values = rollout, rollout.step, steps, values
-        self.system, self.problem = rollout.step.system, rollout.step.problem
+        # The layer that solves the step's calls now (a twin at reference physics: fempdl.layer.reference).
+        self.rollout, self.layer, self.steps, self.values = rollout, rollout.step.acting(), steps, values
+        self.system, self.problem = self.layer.system, self.layer.problem
         self.names = list(constant_names) + list(step_names)
         self.per_step = frozenset(step_names)
         self.dtypes = [initial.dtype, *(t.dtype for t in tensors)]

@@ -99,6 +99,8 @@ class SolveLayer(SystemLayer):
         differentiable: exactly for Richardson + Jacobi in both modes and for
         every method in unrolled mode; in implicit mode the adjoint residual is
         the gradient (module docstring)."""
+        if self.route is not None:                       # reference physics, or a probe (fempdl.layer.reference)
+            return self.route(*positional, initial_guess=initial_guess, **controls)
         names, tensors, batch, batched, dtype, device = self._inputs(positional, initial_guess, controls)
         if self._unrolled is not None:
             self._check_finite(names, tensors)

@@ -60,6 +60,58 @@ class SystemLayer(torch.nn.Module):
         self._health_due = (None, 0)             # (caps of the last measured call, training calls since)
         #: The largest residual ratio of the last training call the health check measured (None: none yet).
         self.last_health_ratio: float | None = None
+        # Plain attributes, not submodules: a twin is no part of the model's state_dict.
+        self.__dict__.update(_route=None, _reference_twin=None)
+        #: Calls without gradients at a cap (a validation computed with capped physics), counted for PRDP.
+        self.capped_eval_calls = 0
+
+    def __setattr__(self, name: str, value) -> None:
+        if name in ("route", "reference_twin"):       # properties, not submodules (torch registers Modules)
+            object.__setattr__(self, name, value)
+        else:
+            super().__setattr__(name, value)
+
+    @property
+    def route(self) -> SystemLayer | None:
+        """The layer that answers this layer's calls instead of it (:mod:`fempdl.layer.reference`), or None."""
+        return self.__dict__["_route"]
+
+    @route.setter
+    def route(self, twin: SystemLayer | None) -> None:
+        self.__dict__["_route"] = twin
+
+    @property
+    def reference_twin(self) -> SystemLayer | None:
+        """The converged twin that answers calls at reference physics (built on first use), or None."""
+        return self.__dict__.get("_reference_twin")
+
+    @reference_twin.setter
+    def reference_twin(self, twin: SystemLayer | None) -> None:
+        self.__dict__["_reference_twin"] = twin
+
+    @property
+    def reference_stats(self):
+        """The counters of this layer's solves at reference physics (:mod:`fempdl.layer.reference`), kept
+        apart from :attr:`stats`; None before the first."""
+        return None if self.reference_twin is None else self.reference_twin.stats
+
+    def acting(self) -> SystemLayer:
+        """The layer that solves this layer's calls now: itself, or the twin it is routed to."""
+        return self if self.route is None else self.route
+
+    def note_call(self, training: bool) -> None:
+        """Count a call made without gradients at a cap (what a capped validation looks like)."""
+        if not training and self.capped:
+            self.capped_eval_calls += 1
+
+    @property
+    def capped(self) -> bool:
+        """Whether a solve of this layer stops at a cap rather than at convergence."""
+        options = self.options
+        inner = getattr(options, "ksp", None)            # a Newton layer's inner solve
+        if inner is not None:
+            return options.max_it is not None or (inner.max_it is not None and not inner.direct)
+        return options.max_it is not None and not options.direct
 
     @property
     def health(self) -> HealthCheck | None:
@@ -165,6 +217,7 @@ class SystemLayer(torch.nn.Module):
         if initial_guess is not None:
             controls = {**controls, INITIAL_GUESS: initial_guess}
         names, tensors, batch, batched = self._validate(controls)
+        self.note_call(torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
         if self._distributed:
             self._check_ranks_agree(names, tensors, batch)
         elif torch_group_initialised() and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
@@ -257,6 +310,9 @@ class SystemLayer(torch.nn.Module):
         if getattr(self, "_system", None) is not None:
             self._system.destroy()
             self._system = None
+        if self.__dict__.get("_reference_twin") is not None:
+            self.reference_twin.close()
+            self.reference_twin = None
 
     def _validate(self, controls: dict):
         sizes = self._sizes

@@ -7,59 +7,80 @@ model whose coefficient ended 1750% off). :func:`k_start` measures, on the
 inputs and from the starts the loop uses (its ``initial_guess`` too), the
 relative error of the capped solve against a converged one:
 
-    e(K) = max over samples of ||u_K - u*|| / ||u*||   (owned DOFs, all ranks),
+    e(K) = max over samples (and returned states) of ||u_K - u*|| / ||u*||   (owned DOFs, all ranks),
 
 and returns the smallest K with e(K) <= ``tolerance`` (doubling K, then
-bisecting: O(log K) capped solves). Probe layers on the same problem do the
-solves, so the target's caps and counters are left as they are.
+bisecting: O(log K) capped solves). The target runs at each K with its caps,
+counters and health state put back afterwards; the converged solves are its
+layers' own solvers run to ``rtol`` (:func:`fempdl.layer.reference.converged_counts`'
+twins). Any target PRDP moves works: a layer, a NewtonCaps, a Rollout, or a list
+of layers with ``call=`` (a function returning the tensor(s) to compare).
 """
 from __future__ import annotations
 
-import dataclasses
+from collections.abc import Callable
 
 import torch
 
 from fempdl.core.checks import check_int
+from fempdl.layer.reference import converged_options, routed, twin_of
 from fempdl.layer.newton_layer import NonlinearSolveLayer
-from fempdl.layer.solve_layer import SolveLayer
+from fempdl.methods.k_eps import layers_of, left_as_is, measure_call
 from fempdl.methods.newton_caps import NewtonCaps
 from fempdl.solve.stats import SolverFailedError
 
-__all__ = ["k_start", "probe_layers", "close_probes"]
+__all__ = ["k_start", "capped_target"]
 
 
-def k_start(target, *, tolerance: float = 0.5, k_max: int = 100_000, rtol: float = 1e-8, **inputs) -> int:
+def capped_target(target):
+    """What PRDP's K moves: a NonlinearSolveLayer's Newton cap is a NewtonCaps(layer, "newton")."""
+    return NewtonCaps(target, "newton") if isinstance(target, NonlinearSolveLayer) else target
+
+
+def k_start(target, *, tolerance: float = 0.5, k_max: int = 100_000, rtol: float = 1e-8,
+            call: Callable | None = None, **inputs) -> int:
     """The smallest cap K whose solves of ``inputs`` are within ``tolerance`` of converged solves.
 
     Args:
-        target: a :class:`~fempdl.layer.solve_layer.SolveLayer`, a
-            :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (its Newton cap), or a
-            :class:`~fempdl.methods.newton_caps.NewtonCaps` (the cap its rule moves): what PRDP moves.
+        target: what PRDP moves: a :class:`~fempdl.layer.solve_layer.SolveLayer`, a
+            :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (its Newton cap), a
+            :class:`~fempdl.methods.newton_caps.NewtonCaps` (the cap its rule moves), a
+            :class:`~fempdl.layer.rollout.Rollout`, or a list of layers (with ``call=``).
         tolerance: the largest acceptable relative error e(K) (module docstring), in (0, 1].
         k_max: the largest K tried; if even it is not within ``tolerance``, ValueError.
         rtol: the converged reference's tolerance.
-        inputs: the layer's keyword inputs as the loop passes them ((B, n_m) or (n_m,)),
+        call: instead of keyword inputs, a function that runs the target's layers as the loop does and
+            returns the tensor (or tuple of tensors) to compare.
+        inputs: the target's keyword inputs as the loop passes them ((B, n_m) or (n_m,)),
             ``initial_guess`` included for a warm-started loop.
 
     Example:
         ``ctrl = PRDP(layer, k0=k_start(layer, f=f_val), k_cap=k_eps(layer, f=f_val))``
     """
-    if not inputs:
-        raise ValueError("give the inputs to measure k0 on as keyword arguments (those the loop passes, "
-                         "initial_guess included if it warm-starts)")
+    target = capped_target(target)
+    layers = layers_of(target)
+    if not layers:
+        raise TypeError(f"target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps (or a Rollout, or a "
+                        f"list of layers), got {type(target).__name__}")
+    run = measure_call(target, call, inputs, "k0")
     if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not 0.0 < tolerance <= 1.0:
         raise ValueError(f"tolerance must be a relative error in (0, 1], got {tolerance!r}")
     check_int("k_max", k_max, minimum=1)
-    capped, converged = probe_layers(target, rtol)
+    for layer in layers:
+        if not isinstance(layer, NonlinearSolveLayer) and layer.options.direct:
+            raise ValueError(f"the layer solves directly (ksp_type={layer.options.ksp_type!r}): it has no "
+                             "iteration cap to start")
+    twins = [twin_of(layer, converged_options(layer, rtol)) for layer in layers]
+    comm = layers[0].problem.V.mesh.comm
     try:
-        with torch.no_grad():
-            reference = converged(**inputs)
-            comm = converged.problem.V.mesh.comm
+        with torch.no_grad(), left_as_is(target):
+            with routed(zip(layers, twins)):
+                reference = _tensors(run())
 
             def error(k: int) -> float:
-                capped.max_it = k
+                target.max_it = k
                 try:
-                    return _relative_error(capped(**inputs), reference, comm)
+                    return max(_relative_error(u, ref, comm) for u, ref in zip(_tensors(run()), reference))
                 except SolverFailedError:          # a capped solve that broke down is garbage too
                     return float("inf")
 
@@ -74,57 +95,12 @@ def k_start(target, *, tolerance: float = 0.5, k_max: int = 100_000, rtol: float
                 low, high = (low, mid) if error(mid) <= tolerance else (mid, high)
             return high
     finally:
-        close_probes(capped, converged)
+        for twin in twins:
+            twin.close()
 
 
-def probe_layers(target, rtol: float = 1e-8):
-    """Probe layers on ``target``'s problem: a capped one that takes K as ``max_it`` (a layer, or a
-    NewtonCaps over one, moved by the target's rule) and a converged one (to ``rtol``). The caller
-    closes them (``close_probes``)."""
-    if isinstance(target, NonlinearSolveLayer):
-        target = NewtonCaps(target, "newton")
-    if isinstance(target, NewtonCaps):
-        layer = target.layers[0]
-        probe = NewtonCaps(NonlinearSolveLayer(layer.problem, layer.options), target.refine,
-                           inner_per_k=target.inner_per_k)
-        probe.converged = target.converged
-        ksp = layer.options.ksp
-        inner = ksp if ksp.direct else dataclasses.replace(ksp, max_it=None, rtol=rtol, atol=None, divtol=None,
-                                                            adjoint=None)
-        reference = NonlinearSolveLayer(layer.problem, dataclasses.replace(layer.options, max_it=None, rtol=rtol,
-                                                                           ksp=inner))
-        return _Caller(probe), reference
-    if isinstance(target, SolveLayer):
-        if target.options.direct:
-            raise ValueError(f"the layer solves directly (ksp_type={target.options.ksp_type!r}): it has no "
-                             "iteration cap to start")
-        options = dataclasses.replace(target.options, adjoint=None, options_prefix=None)
-        converged = dataclasses.replace(options, max_it=None, rtol=rtol, atol=None, divtol=None)
-        return SolveLayer(target.problem, options), SolveLayer(target.problem, converged)
-    raise TypeError(f"target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps, got {type(target).__name__}")
-
-
-def close_probes(capped, converged) -> None:
-    for layer in (*getattr(capped, "layers", [capped]), converged):
-        layer.close()
-
-
-class _Caller:
-    """A NewtonCaps over one probe layer, callable like the layer (K set through the caps' rule)."""
-
-    def __init__(self, caps: NewtonCaps):
-        self.caps, self.layers = caps, caps.layers
-
-    @property
-    def max_it(self):
-        return self.caps.max_it
-
-    @max_it.setter
-    def max_it(self, k: int) -> None:
-        self.caps.max_it = k
-
-    def __call__(self, **inputs):
-        return self.layers[0](**inputs)
+def _tensors(out) -> tuple:
+    return tuple(out) if isinstance(out, (tuple, list)) else (out,)
 
 
 def _relative_error(u: torch.Tensor, reference: torch.Tensor, comm) -> float:

@@ -10,7 +10,7 @@ moves one number; :class:`NewtonCaps` is the PRDP target that says which cap it 
   a converged Newton with K = 1 inner iteration per step seldom reaches its tolerance, and fails);
 * ``"both"``: N = K and ``inner_per_k`` * K Krylov iterations per step: both
   refinements move together, the inner solve staying ``inner_per_k`` times finer
-  than the Newton count. Once :func:`newton_k_eps` has measured what converged solves
+  than the Newton count. Once :func:`~fempdl.methods.k_eps.newton_k_eps` has measured what converged solves
   need (:class:`ConvergedCaps`, kept as ``converged``), neither cap exceeds its own
   converged value: N = min(K, N_eps) and min(``inner_per_k`` * K, inner_eps) iterations
   per step, so that K_eps, the larger of the two in units of K, does not run the other
@@ -25,15 +25,10 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from mpi4py import MPI
-import torch
-
 from fempdl.core.checks import check_int
-from fempdl.core.parallel import shard_inputs
-from fempdl.layer.newton_layer import NonlinearSolveLayer
 from fempdl.layer.newton_unrolled import check_unrolled_newton
 
-__all__ = ["ConvergedCaps", "NewtonCaps", "REFINE", "converged_caps", "newton_k_eps"]
+__all__ = ["ConvergedCaps", "NewtonCaps", "REFINE"]
 
 REFINE = ("newton", "inner", "both")
 
@@ -41,7 +36,7 @@ REFINE = ("newton", "inner", "both")
 @dataclasses.dataclass(frozen=True)
 class ConvergedCaps:
     """What converged solves need: the most Newton steps of a solve (N_eps) and the most inner
-    iterations of a step (inner_eps), measured by :func:`converged_caps`."""
+    iterations of a step (inner_eps), measured by :func:`~fempdl.methods.k_eps.converged_caps`."""
 
     newton_steps: int
     inner_iterations: int
@@ -61,7 +56,7 @@ class NewtonCaps:
 
     Attributes:
         converged: the :class:`ConvergedCaps` that bound the caps under ``"both"`` (set by
-            :func:`newton_k_eps`, or assigned; None: unbounded).
+            :func:`~fempdl.methods.k_eps.newton_k_eps`, or assigned; None: unbounded).
     """
 
     def __init__(self, layers, refine: str = "newton", *, inner_per_k: int = 1):
@@ -128,43 +123,3 @@ class NewtonCaps:
     def __repr__(self) -> str:
         extra = f", inner_per_k={self.inner_per_k}" if self.refine == "both" else ""
         return f"NewtonCaps({len(self.layers)} layer(s), refine={self.refine!r}{extra}, K={self._k})"
-
-
-def converged_caps(layer: NonlinearSolveLayer, *, rtol: float = 1e-8, **controls) -> ConvergedCaps:
-    """What converged solves of ``controls`` (the layer's keyword inputs, e.g. validation samples)
-    need, measured by a probe layer on ``layer``'s problem (Newton to ``rtol``, the inner solve to
-    ``rtol``; a direct inner solve as it is): the most Newton steps and the most inner iterations of
-    a step (at least 1 each)."""
-    if not controls:
-        raise ValueError("give the inputs to measure the converged caps on as keyword arguments")
-    ksp = layer.options.ksp
-    inner = ksp if ksp.direct else dataclasses.replace(ksp, max_it=None, rtol=rtol, atol=None, divtol=None,
-                                                        adjoint=None, engine="petsc", options_prefix=None)
-    options = dataclasses.replace(layer.options, max_it=None, rtol=rtol, ksp=inner)
-    probe = NonlinearSolveLayer(layer.problem, options)
-    try:
-        with torch.no_grad():
-            probe(**controls)
-        steps, per_step = probe.stats.max_newton_steps, probe.stats.max_forward_iterations
-    finally:
-        probe.close()
-    return ConvergedCaps(max(steps, 1), max(per_step, 1))
-
-
-def newton_k_eps(caps: NewtonCaps, *, rtol: float = 1e-8, shard_over: MPI.Comm = MPI.COMM_SELF,
-                 **controls) -> int:
-    """K_eps of a Newton layer under ``caps``' rule: the least K at which converged solves of
-    ``controls`` need no more than the caps allow (:attr:`NewtonCaps.k_eps`), from the
-    :func:`converged_caps` of its first layer, which it records as ``caps.converged`` (under
-    ``"both"`` they bound the caps from then on). Use it as PRDP's ``k_cap``.
-
-    ``shard_over``: the samples are spread over its ranks (data-parallel training; all of them
-    call) and each converged count is the maximum over the ranks."""
-    if not controls:
-        raise ValueError("give the inputs to measure K_eps on as keyword arguments")
-    mine = shard_inputs(controls, shard_over)
-    local = (converged_caps(caps.layers[0], rtol=rtol, **mine) if next(iter(mine.values())).shape[0]
-             else ConvergedCaps(1, 1))
-    caps.converged = ConvergedCaps(*(shard_over.allreduce(count, op=MPI.MAX)
-                                     for count in (local.newton_steps, local.inner_iterations)))
-    return caps.k_eps

@@ -8,108 +8,51 @@ it smooths the history with an EMA, and when the progress over the last
 1 - ``tau_stop`` (then it holds, until the metric moves again). The interface
 follows ``ReduceLROnPlateau``: ``step(metric) -> bool``, ``state_dict()``.
 
+The metric judges the model with the physics it is deployed with. A network
+trained through capped solves can learn the cap's bias, which a metric computed
+with the same capped solves cannot see; so ``step`` takes the validation as a
+function and runs it at reference physics (converged solves,
+:mod:`fempdl.layer.reference`; ``judge="capped"`` for a model deployed capped).
+Where the rule would hold, or K sits at ``k_cap``, on a plateau, it also runs the
+validation at the caps: while the two metrics differ by more than ``gap`` (the
+network leans on the cap, or the cap still moves what the model is judged at)
+K is refined (cause ``"gap"``); at ``k_cap`` K_eps is measured again at the
+current model (``remeasure``) and ``k_cap`` raised to it (cause ``"k_eps"``).
+A metric given as a number is taken as it is; if the layers were called capped
+without gradients since the last step (a capped validation), PRDP warns once.
+
 Between validations, the layers it moves refine at once when a training call's
 capped solves are garbage rather than coarse: their residual grew, or did not
 shrink below ``health`` times its start (:mod:`fempdl.solve.health`). The layer
 solves that call again at the refined cap, so the network never trains on it;
 :attr:`PRDP.health_refinements` lists these refinements.
 
-:func:`k_eps` measures a layer's converged cap K_eps, the usual ``k_cap``.
+:func:`~fempdl.methods.k_eps.k_eps` measures the converged cap K_eps, the usual ``k_cap``.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
+import warnings
 import weakref
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 
-from mpi4py import MPI
 import torch
 
-from fempdl.core.checks import check_int
-from fempdl.core.parallel import shard_inputs
 from fempdl.core.ranks import Ranks, training_ranks
-from fempdl.layer.solve_layer import SolveLayer
-from fempdl.layer.system_layer import SystemLayer
+from fempdl.layer.reference import reference_physics
+from fempdl.methods.k_eps import k_eps, layers_of, targets_of
+from fempdl.methods.prdp_settings import SETTING_NAMES, PRDPRecord, PRDPSettings
 from fempdl.solve.health import HealthCheck
 
-__all__ = ["PRDP", "PRDPRecord", "PRDPSettings", "k_eps"]
+__all__ = ["PRDP", "PRDPRecord", "PRDPSettings", "PRDPValidationWarning", "k_eps"]
 _log = logging.getLogger(__name__)
 
 
-@dataclasses.dataclass(frozen=True)
-class PRDPRecord:
-    """One call of :meth:`PRDP.step`: the K in force while ``metric`` was
-    measured, the smoothed metric, the ratios (None before a decision is
-    possible or when not computed) and whether K was raised afterwards."""
-
-    step: int
-    k: int
-    metric: float
-    ema: float
-    r: float | None
-    rc: float | None
-    refined: bool
-    cause: str | None = None      # "plateau" or "rise" (the guard) when refined
-
-
-def _setting(default, doc: str, kind: type, **bounds):
-    """A field of :class:`PRDPSettings`; its metadata (kind, doc, bounds) is what scene files are checked
-    against (``[prdp]`` of :mod:`fempdl.app.schema`)."""
-    return dataclasses.field(default=default, metadata={"kind": kind, "doc": doc, **bounds})
-
-
-_POSITIVE = 1e-300      # a minimum of "> 0"
-
-
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class PRDPSettings:
-    """The settings of a :class:`PRDP` controller, validated once (change one with
-    :func:`dataclasses.replace`). They are also the ``[prdp]`` section of a scene file."""
-
-    k0: int = _setting(1, "first cap", int, minimum=1)
-    dk: int = _setting(1, "least increase of a refinement", int, minimum=1)
-    tau_step: float = _setting(0.95, "refine when the metric improves less than this factor", float,
-                               minimum=_POSITIVE, maximum=1.0)
-    tau_stop: float = _setting(0.9, "stop refining when a refinement improves less than this factor", float,
-                               minimum=_POSITIVE, maximum=1.0)
-    delta: int = _setting(3, "epochs compared for a plateau", int, minimum=2)
-    ema_window: int = _setting(6, "epochs of the metric's moving average", int, minimum=1)
-    k_cap: int | None = _setting(None, "largest cap (none: K_eps in a scene, unbounded in PRDP)", int, minimum=1)
-    guard: float | None = _setting(None, "refine at once when the metric rises above guard x its best "
-                                         "(none: never)", float, minimum=1.0 + 1e-12)
-    growth: float = _setting(1.0, "a refinement sets K to max(K + dk, ceil(growth K))", float, minimum=1.0)
-    health: float | None = _setting(1.0, "refine at once when a training call's capped solve ends with its residual "
-                                         "above health x its start, and solve it again (none: never)", float,
-                                    minimum=_POSITIVE)
-
-    def __post_init__(self):
-        check_int("k0", self.k0, minimum=1)
-        check_int("dk", self.dk, minimum=1)
-        check_int("delta", self.delta, minimum=2)
-        check_int("ema_window", self.ema_window, minimum=1)
-        if self.k_cap is not None:
-            check_int("k_cap", self.k_cap, minimum=self.k0)
-        for name in ("tau_step", "tau_stop"):
-            value = getattr(self, name)
-            if not _is_number(value) or not 0.0 < value <= 1.0:
-                raise ValueError(f"{name} must be a number in (0, 1], got {value!r}")
-            object.__setattr__(self, name, float(value))
-        if self.guard is not None:
-            if not (_is_number(self.guard) and 1.0 < self.guard < math.inf):
-                raise ValueError(f"guard must be a finite number > 1 (or None: off), got {self.guard!r}")
-            object.__setattr__(self, "guard", float(self.guard))
-        if not (_is_number(self.growth) and 1.0 <= self.growth < math.inf):
-            raise ValueError(f"growth must be a finite number >= 1, got {self.growth!r}")
-        object.__setattr__(self, "growth", float(self.growth))
-        if self.health is not None:
-            if not (_is_number(self.health) and 0.0 < self.health < math.inf):
-                raise ValueError(f"health must be a finite residual ratio > 0 (or None: off), got {self.health!r}")
-            object.__setattr__(self, "health", float(self.health))
-
-
-_SETTING_NAMES = frozenset(f.name for f in dataclasses.fields(PRDPSettings))
+class PRDPValidationWarning(UserWarning):
+    """PRDP was stepped with a metric computed with capped solves (module docstring)."""
 
 
 class PRDP:
@@ -122,6 +65,9 @@ class PRDP:
     first metric): if rc < tau_stop (the last refinement still helped) or
     rc > 1 (the metric got worse), c = ema[-1] and K is refined; otherwise K
     holds. ``guard`` and ``growth`` are optional departures, off by default.
+    Where the rule holds, or K is at ``k_cap``, on a plateau, a metric given as a
+    function is also run at the caps, and K refined while the two differ by more
+    than ``gap`` (|capped - reference| / the smaller; module docstring).
 
     Args:
         target: a layer (anything with a ``max_it`` attribute), a list of them,
@@ -138,6 +84,12 @@ class PRDP:
         guard: refine at once when the metric exceeds ``guard`` (> 1) times the
             best metric so far and the previous one (``None``: off).
         growth: a refinement sets K = max(K + dk, ceil(growth * K)) (>= 1; 1: K + dk).
+        judge: ``"reference"`` (a metric given as a function runs at converged physics) or
+            ``"capped"`` (at the caps: a model deployed with the capped solver; no gap rule).
+        gap: the largest relative difference |capped - reference| / min(capped, reference) at which the rule may
+            hold or stop at ``k_cap`` (``None``: never checked).
+        remeasure: at ``k_cap`` with the gap open, measure K_eps at the current model (to
+            ``k_eps_rtol``) and raise ``k_cap`` to it.
         health: the largest residual ratio ||r_K|| / ||r_0|| of a training call's capped solves
             (:mod:`fempdl.solve.health`) before the target layers refine K at once and solve that call
             again (1, the default: a residual that did not shrink; ``None``: off). Measured on the first
@@ -169,6 +121,11 @@ class PRDP:
         self.comm = comm if comm is not None else _layers_comm(target)
         self.alpha = 2.0 / (settings.ema_window + 1.0)
         self.k = settings.k0
+        self._target = target
+        self._k_cap = settings.k_cap
+        self._warned = False
+        self._gap_closed_at: tuple | None = None
+        self._eval_calls = self._capped_eval_calls()
         self.checkpoint: float | None = None
         self.history: list[PRDPRecord] = []
         #: Refinements for garbage solves between validations: dicts of the step (validations so far),
@@ -178,7 +135,7 @@ class PRDP:
         self._install_health(target)
 
     def __getattr__(self, name: str):
-        if name in _SETTING_NAMES and "settings" in self.__dict__:
+        if name in SETTING_NAMES and "settings" in self.__dict__:
             return getattr(self.__dict__["settings"], name)
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
@@ -186,20 +143,47 @@ class PRDP:
     def ema(self) -> list[float]:
         return [rec.ema for rec in self.history]
 
-    def step(self, metric: float) -> bool:
-        """Record a validation metric; returns True if K was raised."""
-        if isinstance(metric, bool) or not isinstance(metric, (int, float)) and not hasattr(metric, "__float__"):
-            raise TypeError(f"metric must be a number, got {type(metric).__name__}")
-        metric = float(metric)
-        self._check_ranks_agree(metric)
-        if not math.isfinite(metric) or metric <= 0.0:
-            raise ValueError(f"metric must be finite and > 0 (a validation error), got {metric!r}")
+    @property
+    def k_cap(self) -> int | None:
+        """The upper bound of K: ``settings.k_cap``, raised where K_eps was measured again."""
+        return self._k_cap
+
+    @property
+    def layers(self) -> list:
+        """The solve layers whose caps PRDP moves."""
+        return layers_of(self._target)
+
+    def reference(self):
+        """A context in which the layers PRDP moves solve at reference physics (converged; their
+        ``reference_stats`` count it): ``with torch.no_grad(), ctrl.reference(): metric = ...``."""
+        layers = self.layers
+        if not layers:
+            raise TypeError(f"PRDP's target ({type(self._target).__name__}) moves no solve layers to run at reference "
+                            "physics; compute the metric with converged solves yourself and pass it as a number")
+        return reference_physics(layers)
+
+    def step(self, metric, *, capped: float | None = None) -> bool:
+        """Record a validation metric; returns True if K was raised.
+
+        Args:
+            metric: a function computing the validation metric through the layers PRDP moves (run without
+                gradients at reference physics, or at the caps under ``judge="capped"``), or its value.
+            capped: with a metric given as a number computed at reference physics, the same metric at the
+                caps (for the gap rule); a function's is measured when needed.
+        """
+        validate = metric if callable(metric) else None
+        if validate is not None:
+            metric = self._run(validate, at_reference=self.judge == "reference")
+        else:
+            self._warn_if_validated_capped()
+        metric = self._checked(metric, "metric")
         ema = metric if not self.history else self.alpha * metric + (1.0 - self.alpha) * self.history[-1].ema
         if self.checkpoint is None:
             self.checkpoint = metric
         k_used = self.k
-        r = rc = None
+        r = rc = gap = None
         cause = None
+        plateau = False
         if self.guard is not None and self.history and metric > self.history[-1].metric \
                 and metric > self.guard * min(rec.metric for rec in self.history):
             cause = "rise"
@@ -207,19 +191,81 @@ class PRDP:
         elif len(self.history) + 1 > self.delta:
             emas = self.ema + [ema]
             r = emas[-1] / emas[-self.delta]
-            if r > self.tau_step:
+            plateau = r > self.tau_step
+            if plateau:
                 rc = emas[-1] / self.checkpoint
                 if rc < self.tau_stop or rc > 1.0:
                     self.checkpoint = emas[-1]
                     cause = "plateau"
+        # At k_cap a gap found closed stays closed until k_cap moves: no capped validation at every plateau.
+        closed = not self._can_refine() and self._gap_closed_at == (self.k, self.k_cap)
+        if plateau and (cause is None or not self._can_refine()) and self.gap is not None and not closed \
+                and self.judge == "reference" and (capped is not None or validate is not None):
+            capped = self._checked(self._run(validate, at_reference=False) if capped is None else capped,
+                                   "capped")
+            gap = abs(capped - metric) / min(capped, metric)
+            if gap <= self.gap and not self._can_refine():
+                self._gap_closed_at = (self.k, self.k_cap)
+            if gap > self.gap:
+                if self._can_refine():
+                    cause = "gap"
+                elif self.remeasure and validate is not None and self._raise_k_cap(validate):
+                    cause = "k_eps"
+                if cause in ("gap", "k_eps"):
+                    self.checkpoint = ema
         refine = cause is not None and self._can_refine()
-        self.history.append(PRDPRecord(step=len(self.history), k=k_used, metric=metric, ema=ema,
-                                       r=r, rc=rc, refined=refine, cause=cause if refine else None))
+        self.history.append(PRDPRecord(step=len(self.history), k=k_used, metric=metric, ema=ema, r=r, rc=rc,
+                                       refined=refine, cause=cause if refine else None,
+                                       capped_metric=None if gap is None else capped, gap=gap, k_cap=self.k_cap))
         if refine:
             self._refine()
             _log.info("PRDP: K %d -> %d (%s) at step %d, metric %.3e", k_used, self.k, cause,
                       len(self.history) - 1, metric)
+        self._eval_calls = self._capped_eval_calls()
         return refine
+
+    def _run(self, validate: Callable, at_reference: bool) -> float:
+        """The metric ``validate()`` computes, without gradients, at reference physics or at the caps."""
+        with torch.no_grad(), (self.reference() if at_reference else contextlib.nullcontext()):
+            value = validate()
+        return value
+
+    def _checked(self, metric, what: str) -> float:
+        if isinstance(metric, bool) or not isinstance(metric, (int, float)) and not hasattr(metric, "__float__"):
+            raise TypeError(f"{what} must be a number (or a function returning one), got {type(metric).__name__}")
+        metric = float(metric)
+        self._check_ranks_agree(metric)
+        if not math.isfinite(metric) or metric <= 0.0:
+            raise ValueError(f"{what} must be finite and > 0 (a validation error), got {metric!r}")
+        return metric
+
+    def _capped_eval_calls(self) -> int:
+        return sum(layer.capped_eval_calls for layer in self.layers)
+
+    def _warn_if_validated_capped(self) -> None:
+        if self._warned or self.judge != "reference" or self._capped_eval_calls() == self._eval_calls:
+            return
+        self._warned = True
+        warnings.warn(
+            "the layers PRDP moves were called capped without gradients since the last step: if that was the "
+            "validation, its metric cannot see a network that leans on the cap's bias, and PRDP may stop where "
+            "converged physics judges the model far worse. Pass the validation as a function, ctrl.step(validate), "
+            "and PRDP runs it at reference physics and refines while the capped metric differs; or compute it "
+            "inside `with torch.no_grad(), ctrl.reference():`. A model deployed with the capped solver: "
+            "PRDP(..., judge='capped')", PRDPValidationWarning, stacklevel=3)
+
+    def _raise_k_cap(self, validate: Callable) -> bool:
+        """Measure K_eps on the validation at the current model; raise ``k_cap`` if it lies above."""
+        measured = k_eps(self._target, call=validate, rtol=self.k_eps_rtol)
+        ranks = self.ranks
+        if ranks is not None and ranks.size > 1:
+            measured = int(ranks.max(float(measured)))
+        if measured <= self.k_cap:
+            return False
+        _log.info("PRDP: K_eps measured again at step %d: %d (k_cap was %d)", len(self.history), measured,
+                  self.k_cap)
+        self._k_cap = measured
+        return True
 
     def _can_refine(self) -> bool:
         return self.k_cap is None or self.k < self.k_cap
@@ -243,8 +289,7 @@ class PRDP:
 
     def _install_health(self, target) -> None:
         """Give the target's layers the health check (``health`` set), or take a previous one away."""
-        layers = [layer for t in _targets(target) for layer in getattr(t, "layers", [t])
-                  if isinstance(layer, SystemLayer)]
+        layers = layers_of(target)
         if self.health is None:
             for layer in layers:
                 layer.health = None
@@ -277,7 +322,7 @@ class PRDP:
     def state_dict(self) -> dict:
         """Everything needed to continue: K, the checkpoint, the history and the settings."""
         return {
-            "k": self.k, "checkpoint": self.checkpoint,
+            "k": self.k, "k_cap": self.k_cap, "checkpoint": self.checkpoint,
             "history": [dataclasses.asdict(rec) for rec in self.history],
             "health_refinements": [dict(event) for event in self.health_refinements],
             "settings": dataclasses.asdict(self.settings),
@@ -287,12 +332,15 @@ class PRDP:
         """Restore from :meth:`state_dict` (and set the target's cap to the saved K)."""
         # States saved before guard and growth existed ran plain Algorithm 4; health acts between
         # validations and leaves the saved history valid, so a state saved before it resumes with either.
-        settings = {"guard": None, "growth": 1.0, "health": self.health, **state["settings"]}
+        # The judge, gap and remeasure settings act at the steps to come: a state saved before them resumes too.
         mine = self.state_dict()["settings"]
+        later = {key: mine[key] for key in ("judge", "gap", "remeasure", "k_eps_rtol")}
+        settings = {"guard": None, "growth": 1.0, "health": self.health, **later, **state["settings"]}
         if settings != mine:
             changed = {k: (settings.get(k), v) for k, v in mine.items() if settings.get(k) != v}
             raise ValueError(f"saved PRDP settings differ from this controller's (saved, current): {changed}")
         self.k = int(state["k"])
+        self._k_cap = state.get("k_cap", self.settings.k_cap)
         self.checkpoint = state["checkpoint"]
         self.history = [PRDPRecord(**rec) for rec in state["history"]]
         self.health_refinements = [dict(event) for event in state.get("health_refinements", [])]
@@ -303,58 +351,13 @@ class PRDP:
         return f"PRDP(k={self.k}, {settings}, steps={len(self.history)})"
 
 
-def k_eps(layer: SolveLayer, *, rtol: float = 1e-8, shard_over: MPI.Comm = MPI.COMM_SELF,
-          batch: int | None = None, **controls) -> int:
-    """K_eps: the most iterations ``layer``'s solver needs to reach ``rtol`` on
-    ``controls`` (the layer's keyword inputs, (B, n) or (n,), e.g. validation
-    samples), found by converged solves of a probe layer with the same
-    solver and preconditioner (PETSc; ``layer`` itself and its counters are
-    left as they are). Use it as PRDP's ``k_cap``.
-
-    ``shard_over``: the samples are spread over its ranks (data-parallel training, every rank
-    holding the whole problem; all of them call) and K_eps is the maximum over the ranks.
-    ``batch``: probe in calls of that many samples, as training calls the layer (a lagged
-    preconditioner is set up once a call); ``None``: one call.
-
-    Example:
-        ``ctrl = PRDP(layer, k0=1, dk=1, k_cap=k_eps(layer, f=f_val, rtol=1e-6))``
-    """
-    if not isinstance(layer, SolveLayer):
-        raise TypeError(f"layer must be a SolveLayer, got {type(layer).__name__}")
-    if not controls:
-        raise ValueError(f"give the inputs to measure K_eps on as keyword arguments, e.g. "
-                         f"{layer.problem.control_names[0] if layer.problem.control_names else 'f'}=tensor")
-    if layer.options.direct:
-        raise ValueError(f"layer solves directly (ksp_type={layer.options.ksp_type!r}): it has no iteration cap")
-    options = dataclasses.replace(layer.options, max_it=None, rtol=rtol, atol=None, divtol=None, adjoint=None,
-                                  engine="petsc", options_prefix=None)
-    mine = shard_inputs(controls, shard_over)
-    samples = next(iter(mine.values())).shape[0]
-    probe = SolveLayer(layer.problem, options)
-    try:
-        with torch.no_grad():
-            for start in range(0, samples, batch or max(samples, 1)):
-                probe(**{name: value[start:start + (batch or samples)] for name, value in mine.items()})
-        most = probe.stats.max_forward_iterations
-    finally:
-        probe.close()
-    return shard_over.allreduce(most, op=MPI.MAX)
-
-
 def _layers_comm(target):
     """The communicator of the first target layer's mesh (``None`` for other targets)."""
-    for t in _targets(target):
+    for t in targets_of(target):
         problem = getattr(t, "problem", None)
         if problem is not None:
             return problem.V.mesh.comm
     return None
-
-
-def _targets(target) -> list:
-    """The objects with a ``max_it`` that ``target`` names (none for None or a callable)."""
-    if target is None or callable(target) and not hasattr(target, "max_it"):
-        return []
-    return list(target) if isinstance(target, Iterable) and not hasattr(target, "max_it") else [target]
 
 
 def _cannot_refine(ratio: float) -> bool:
@@ -367,7 +370,7 @@ def _setter(target) -> Callable[[int], None]:
         return lambda k: None
     if callable(target) and not hasattr(target, "max_it"):
         return target
-    targets = _targets(target)
+    targets = targets_of(target)
     for i, t in enumerate(targets):
         if not hasattr(t, "max_it"):
             raise TypeError(f"PRDP target {i} ({type(t).__name__}) has no max_it attribute; pass SolveLayers, "
@@ -377,7 +380,3 @@ def _setter(target) -> Callable[[int], None]:
         for t in targets:
             t.max_it = k
     return apply
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)

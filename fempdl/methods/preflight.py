@@ -31,10 +31,9 @@ import torch
 
 from fempdl.core.checks import check_int
 from fempdl.layer.newton_layer import NonlinearSolveLayer
-from fempdl.layer.solve_layer import SolveLayer
-from fempdl.methods.k_start import close_probes, k_start, probe_layers
-from fempdl.methods.newton_caps import NewtonCaps, newton_k_eps
-from fempdl.methods.prdp import k_eps
+from fempdl.methods.k_eps import k_eps, layers_of, left_as_is, measure_call
+from fempdl.methods.k_start import capped_target, k_start
+from fempdl.methods.newton_caps import NewtonCaps
 
 __all__ = ["Preflight", "preflight"]
 
@@ -75,7 +74,7 @@ class Preflight:
 
 
 def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: float = 0.5, rtol: float = 1e-8,
-              **inputs) -> Preflight:
+              call: Callable | None = None, **inputs) -> Preflight:
     """Measure k0, K_eps and the solver's share of the loop's step (module docstring).
 
     Args:
@@ -83,28 +82,31 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
             target's layers; called ``steps + 1`` times at K_eps (the first call warms caches up and is
             not timed). These are real steps: the model trains.
         target: what PRDP will move: a :class:`~fempdl.layer.solve_layer.SolveLayer`, a
-            :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (its Newton cap) or a
-            :class:`~fempdl.methods.newton_caps.NewtonCaps`. Its layers' caps are put back afterwards.
+            :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (its Newton cap), a
+            :class:`~fempdl.methods.newton_caps.NewtonCaps`, a :class:`~fempdl.layer.rollout.Rollout`,
+            or a list of layers (with ``call=``). Its layers' caps are put back afterwards.
         steps: timed steps (>= 1).
         tolerance: k0's relative error (:func:`~fempdl.methods.k_start.k_start`).
         rtol: the converged solves' tolerance for K_eps.
-        inputs: the layer's keyword inputs as the loop passes them (``initial_guess`` included).
+        call: instead of keyword inputs, a function that runs the target's layers as the loop does and
+            returns what they computed (the validation's outputs, say).
+        inputs: the target's keyword inputs as the loop passes them (``initial_guess`` included).
     """
     check_int("steps", steps, minimum=1)
     if not callable(step):
         raise TypeError(f"step must be a callable running one training step, got {type(step).__name__}")
-    if isinstance(target, NonlinearSolveLayer):
-        target = NewtonCaps(target, "newton")
-    if isinstance(target, NewtonCaps):
-        layers, k_cap = target.layers, newton_k_eps(target, rtol=rtol, **inputs)
-        parts = ("iterations", "setup", "assembly") if target.refine in ("newton", "both") else ("iterations",)
-    elif isinstance(target, SolveLayer):
-        layers, k_cap, parts = [target], k_eps(target, rtol=rtol, **inputs), ("iterations",)
-    else:
-        raise TypeError("target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps, "
-                        f"got {type(target).__name__}")
-    k0 = min(k_start(target, tolerance=tolerance, rtol=rtol, k_max=k_cap, **inputs), k_cap)
-    cost_ratio = _solve_cost(target, k0, parts, inputs) / max(_solve_cost(target, k_cap, parts, inputs), 1)
+    target = capped_target(target)
+    layers = layers_of(target)
+    if not layers:
+        raise TypeError("target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps (or a Rollout, or a list "
+                        f"of layers), got {type(target).__name__}")
+    run = measure_call(target, call, inputs, "K_eps")
+    newton_cap = (target.refine in ("newton", "both") if isinstance(target, NewtonCaps)
+                  else any(isinstance(layer, NonlinearSolveLayer) for layer in layers))
+    parts = ("iterations", "setup", "assembly") if newton_cap else ("iterations",)
+    k_cap = k_eps(target, rtol=rtol, call=run)
+    k0 = min(k_start(target, tolerance=tolerance, rtol=rtol, k_max=k_cap, call=run), k_cap)
+    cost_ratio = _solve_cost(target, run, k0, parts) / max(_solve_cost(target, run, k_cap, parts), 1)
     saved = [layer.get_extra_state() for layer in layers]      # every cap, as state_dict carries them
     target.max_it = k_cap
     try:
@@ -122,18 +124,19 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
                      cost_ratio=cost_ratio)
 
 
-def _solve_cost(target, k: int, parts: tuple, inputs: dict) -> int:
-    """What probe solves of ``inputs`` capped at ``k`` ran: Newton steps where the cap moves them (each
-    repeats assembly and set-up), else inner iterations."""
-    capped, converged = probe_layers(target)
-    try:
-        capped.max_it = k
-        with torch.no_grad():
-            capped(**inputs)
-        stats = getattr(capped, "layers", [capped])[0].stats
-        return stats.newton_steps if "assembly" in parts else stats.forward_iterations
-    finally:
-        close_probes(capped, converged)
+def _solve_cost(target, run, k: int, parts: tuple) -> int:
+    """What ``run()`` ran with the target capped at ``k``: Newton steps where the cap moves them (each repeats
+    assembly and set-up), else inner iterations (the target's caps and counters are put back)."""
+    layers = layers_of(target)
+    with torch.no_grad(), left_as_is(target):
+        target.max_it = k
+        before = [_cost(layer.stats, parts) for layer in layers]
+        run()
+        return sum(_cost(layer.stats, parts) - b for layer, b in zip(layers, before))
+
+
+def _cost(stats, parts: tuple) -> int:
+    return getattr(stats, "newton_steps", 0) if "assembly" in parts else stats.forward_iterations
 
 
 def _capped_seconds(stats, parts: tuple) -> float:

@@ -34,8 +34,9 @@ from fempdl.app.tasks.base import cap_target, set_cap
 from fempdl.app.tasks.solver_options import layer_options, solver_options
 from fempdl.core import io, mesh
 from fempdl.core.checks import check_int
-from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps, newton_k_eps
-from fempdl.methods.prdp import PRDP, k_eps
+from fempdl.methods.k_eps import k_eps, newton_k_eps
+from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps
+from fempdl.methods.prdp import PRDP
 from fempdl.solve.options import MAX_PETSC_INT, KSPOptions
 
 __all__ = ["build_task", "check_caps", "check_parallel", "measure_k_eps", "run",

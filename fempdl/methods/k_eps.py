@@ -1,0 +1,153 @@
+"""K_eps, the converged cap, on whatever PRDP moves, and the layers a PRDP target moves.
+
+K_eps is the cap that converged solves of given inputs need: the most
+iterations of a linear solve, the most Newton steps of a Newton solve (or,
+under a :class:`~fempdl.methods.newton_caps.NewtonCaps` rule, the K at which
+neither cap cuts a converged solve short). It is measured by running the
+inputs through the target with each of its layers' calls solved converged by
+that layer's own solver to ``rtol`` (:func:`fempdl.layer.reference.converged_counts`):
+a layer, a list of layers, a ``NewtonCaps`` or a ``Rollout`` (every step's
+solve counts), with keyword inputs or with ``call=``, any function that
+calls the target's layers as the loop does (the validation metric itself).
+The target's caps and counters are left as they are.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from contextlib import contextmanager
+
+from mpi4py import MPI
+import torch
+
+from fempdl.core.parallel import batch_size, shard_inputs
+from fempdl.layer.reference import converged_counts, counters_kept
+from fempdl.layer.system_layer import SystemLayer
+from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps
+
+__all__ = ["k_eps", "newton_k_eps", "converged_caps", "layers_of", "targets_of", "measure_call",
+           "left_as_is"]
+
+
+def targets_of(target) -> list:
+    """The objects with a ``max_it`` that ``target`` names (none for None or a plain callable)."""
+    if target is None or callable(target) and not hasattr(target, "max_it"):
+        return []
+    return list(target) if isinstance(target, Iterable) and not hasattr(target, "max_it") else [target]
+
+
+def layers_of(target) -> list[SystemLayer]:
+    """The solve layers whose caps ``target`` moves: a layer itself, a list's layers, a ``NewtonCaps``'
+    or a ``Rollout``'s (their ``layers``)."""
+    found = []
+    for t in targets_of(target):
+        for layer in getattr(t, "layers", [t]):
+            if isinstance(layer, SystemLayer) and not any(layer is seen for seen in found):
+                found.append(layer)
+    return found
+
+
+@contextmanager
+def left_as_is(target):
+    """Within the block ``target`` may run at other caps: its layers' caps (as ``state_dict`` carries them),
+    a NewtonCaps' K and the layers' counters are put back on exit."""
+    layers = layers_of(target)
+    k = getattr(target, "max_it", None) if isinstance(target, NewtonCaps) else None
+    states = [layer.get_extra_state() for layer in layers]
+    try:
+        with counters_kept(layers):
+            yield
+    finally:
+        if k is not None:
+            target.max_it = k
+        for layer, state in zip(layers, states):
+            layer.set_extra_state(state)
+
+
+def measure_call(target, call: Callable | None, inputs: dict, what: str) -> Callable[[], object]:
+    """The function that runs ``target`` as the loop does: ``call`` itself, or ``target(**inputs)``."""
+    if call is not None:
+        if inputs:
+            raise TypeError(f"give {what} either call= or the target's keyword inputs, not both (got call and "
+                            f"{sorted(inputs)})")
+        if not callable(call):
+            raise TypeError(f"call must be a function that runs the target's layers, got {type(call).__name__}")
+        return call
+    if not inputs:
+        names = [name for layer in layers_of(target) for name in layer.problem.control_names][:1] or ["f"]
+        raise ValueError(f"give the inputs to measure {what} on as keyword arguments, e.g. {names[0]}=tensor, or "
+                         "call= a function that runs the target's layers")
+    if isinstance(target, NewtonCaps) or not callable(target):
+        layers = layers_of(target)
+        if len(layers) != 1:
+            raise TypeError(f"{type(target).__name__} over {len(layers)} layers: give call= a function that runs "
+                            "them as the loop does")
+        target = layers[0]
+    return lambda: target(**inputs)
+
+
+def k_eps(target, *, rtol: float = 1e-8, shard_over: MPI.Comm = MPI.COMM_SELF, batch: int | None = None,
+          call: Callable | None = None, **inputs) -> int:
+    """K_eps: the cap converged solves need on ``inputs`` (module docstring). Use it as PRDP's ``k_cap``.
+
+    Args:
+        target: what PRDP moves: a SolveLayer, a NonlinearSolveLayer (its Newton cap), a NewtonCaps
+            (its rule; records ``target.converged``), a Rollout, or a list of layers.
+        rtol: the converged solves' tolerance.
+        shard_over: keyword inputs are spread over its ranks (data-parallel training, every rank holding
+            the whole problem; all of them call) and K_eps is the maximum over the ranks.
+        batch: probe keyword inputs in calls of that many samples, as training calls the layer (a
+            lagged preconditioner is set up once a call); ``None``: one call.
+        call: instead of keyword inputs, a function that runs the target's layers (e.g. the validation).
+        inputs: the target's keyword inputs ((B, n) or shared (n,), ``initial_guess`` too when the
+            loop warm-starts; a Rollout's ``initial``, ``steps``, ...).
+
+    Example:
+        ``ctrl = PRDP(layer, k0=1, dk=1, k_cap=k_eps(layer, f=f_val, rtol=1e-6))``
+    """
+    layers = layers_of(target)
+    if not layers:
+        raise TypeError(f"target must be a SolveLayer, a NonlinearSolveLayer, a NewtonCaps, a Rollout or a list of "
+                        f"them, got {type(target).__name__}")
+    run = measure_call(target, call, inputs, "K_eps")
+    if call is None and all(isinstance(v, torch.Tensor) for v in inputs.values()):
+        run = _sharded(run, target, inputs, shard_over, batch)
+    counts = converged_counts(layers, run, rtol)
+    steps = shard_over.allreduce(max((n or 0) for n, _ in counts), op=MPI.MAX)
+    iterations = shard_over.allreduce(max(k for _, k in counts), op=MPI.MAX)
+    if isinstance(target, NewtonCaps):
+        target.converged = ConvergedCaps(max(steps, 1), max(iterations, 1))
+        return target.k_eps
+    newton = any(n is not None for n, _ in counts)
+    linear = any(n is None for n, _ in counts)
+    return max(1, max(steps if newton else 0, iterations if linear else 0))
+
+
+def _sharded(run, target, inputs: dict, comm: MPI.Comm, batch: int | None):
+    """``run`` over this rank's share of the samples, in calls of ``batch`` samples."""
+    mine = shard_inputs(inputs, comm)
+    samples = batch_size(mine) if any(v.dim() == 2 for v in mine.values()) else 0
+    layer = layers_of(target)[0] if isinstance(target, NewtonCaps) or not callable(target) else target
+
+    def sharded():
+        step = batch or max(samples, 1)
+        for start in range(0, samples, step):
+            layer(**{name: value[start:start + step] if value.dim() == 2 else value for name, value in mine.items()})
+    return sharded if comm.size > 1 or batch is not None else run
+
+
+def converged_caps(layer, *, rtol: float = 1e-8, **controls) -> ConvergedCaps:
+    """What converged solves of ``controls`` (a Newton layer's keyword inputs, e.g. validation samples)
+    need: the most Newton steps and the most inner iterations of a step (at least 1 each), Newton and
+    the inner solve run to ``rtol`` (a direct inner solve as it is)."""
+    (steps, per_step), = converged_counts([layer], measure_call(layer, None, controls, "the converged caps"), rtol)
+    return ConvergedCaps(max(steps, 1), max(per_step, 1))
+
+
+def newton_k_eps(caps: NewtonCaps, *, rtol: float = 1e-8, shard_over: MPI.Comm = MPI.COMM_SELF,
+                 call: Callable | None = None, **controls) -> int:
+    """K_eps of Newton layers under ``caps``' rule: the least K at which converged solves need no more
+    than the caps allow (:attr:`NewtonCaps.k_eps`), recorded as ``caps.converged`` (under ``"both"`` they
+    bound the caps from then on): :func:`k_eps` on a NewtonCaps."""
+    if not isinstance(caps, NewtonCaps):
+        raise TypeError(f"caps must be a NewtonCaps, got {type(caps).__name__}")
+    return k_eps(caps, rtol=rtol, shard_over=shard_over, call=call, **controls)

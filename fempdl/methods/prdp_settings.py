@@ -1,0 +1,120 @@
+"""The settings of a PRDP controller and the record of one of its steps.
+
+:class:`PRDPSettings` is validated once and is also the ``[prdp]`` section of
+a scene file; :class:`PRDPRecord` is one entry of ``PRDP.history``. The
+rule they parametrise is :mod:`fempdl.methods.prdp`'s.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from fempdl.core.checks import check_int
+
+__all__ = ["PRDPRecord", "PRDPSettings", "JUDGES", "SETTING_NAMES"]
+
+#: The physics a metric given as a function is computed with (``PRDPSettings.judge``).
+JUDGES = ("reference", "capped")
+
+
+@dataclasses.dataclass(frozen=True)
+class PRDPRecord:
+    """One call of :meth:`PRDP.step`: the K in force while ``metric`` was
+    measured, the smoothed metric, the ratios (None before a decision is
+    possible or when not computed), whether K was raised afterwards and why,
+    and, where the rule would have held, the capped metric and the gap."""
+
+    step: int
+    k: int
+    metric: float
+    ema: float
+    r: float | None
+    rc: float | None
+    refined: bool
+    cause: str | None = None      # when refined: "plateau", "rise" (the guard), "gap" or "k_eps" (module docstring)
+    capped_metric: float | None = None     # the metric at the caps, where the gap was checked
+    gap: float | None = None               # |capped - reference| / min(capped, reference), where checked
+    k_cap: int | None = None               # the cap's upper bound after this step (raised by "k_eps")
+
+
+def _setting(default, doc: str, kind: type, **bounds):
+    """A field of :class:`PRDPSettings`; its metadata (kind, doc, bounds) is what scene files are checked
+    against (``[prdp]`` of :mod:`fempdl.app.schema`)."""
+    return dataclasses.field(default=default, metadata={"kind": kind, "doc": doc, **bounds})
+
+
+_POSITIVE = 1e-300      # a minimum of "> 0"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class PRDPSettings:
+    """The settings of a :class:`PRDP` controller, validated once (change one with
+    :func:`dataclasses.replace`). They are also the ``[prdp]`` section of a scene file."""
+
+    k0: int = _setting(1, "first cap", int, minimum=1)
+    dk: int = _setting(1, "least increase of a refinement", int, minimum=1)
+    tau_step: float = _setting(0.95, "refine when the metric improves less than this factor", float,
+                               minimum=_POSITIVE, maximum=1.0)
+    tau_stop: float = _setting(0.9, "stop refining when a refinement improves less than this factor", float,
+                               minimum=_POSITIVE, maximum=1.0)
+    delta: int = _setting(3, "epochs compared for a plateau", int, minimum=2)
+    ema_window: int = _setting(6, "epochs of the metric's moving average", int, minimum=1)
+    k_cap: int | None = _setting(None, "largest cap (none: K_eps in a scene, unbounded in PRDP)", int, minimum=1)
+    guard: float | None = _setting(None, "refine at once when the metric rises above guard x its best "
+                                         "(none: never)", float, minimum=1.0 + 1e-12)
+    growth: float = _setting(1.0, "a refinement sets K to max(K + dk, ceil(growth K))", float, minimum=1.0)
+    judge: str = _setting("reference", "the physics a metric given as a function is computed with: reference "
+                                       "(converged, the model as deployed) or capped (a model deployed with the "
+                                       "capped solver)", str, choices=JUDGES)
+    gap: float | None = _setting(0.05, "where the rule would hold or K is at k_cap, refine while the capped and "
+                                       "the reference metric differ by more than this fraction (none: never)",
+                                 float, minimum=_POSITIVE)
+    remeasure: bool = _setting(True, "where the gap stays open at k_cap, measure K_eps again at the current "
+                                     "model and raise k_cap to it", bool)
+    k_eps_rtol: float = _setting(1e-8, "the tolerance of converged solves when K_eps is measured again", float,
+                                 minimum=_POSITIVE, maximum=1.0)
+    health: float | None = _setting(1.0, "refine at once when a training call's capped solve ends with its residual "
+                                         "above health x its start, and solve it again (none: never)", float,
+                                    minimum=_POSITIVE)
+
+    def __post_init__(self):
+        check_int("k0", self.k0, minimum=1)
+        check_int("dk", self.dk, minimum=1)
+        check_int("delta", self.delta, minimum=2)
+        check_int("ema_window", self.ema_window, minimum=1)
+        if self.k_cap is not None:
+            check_int("k_cap", self.k_cap, minimum=self.k0)
+        for name in ("tau_step", "tau_stop"):
+            value = getattr(self, name)
+            if not _is_number(value) or not 0.0 < value <= 1.0:
+                raise ValueError(f"{name} must be a number in (0, 1], got {value!r}")
+            object.__setattr__(self, name, float(value))
+        if self.guard is not None:
+            if not (_is_number(self.guard) and 1.0 < self.guard < math.inf):
+                raise ValueError(f"guard must be a finite number > 1 (or None: off), got {self.guard!r}")
+            object.__setattr__(self, "guard", float(self.guard))
+        if not (_is_number(self.growth) and 1.0 <= self.growth < math.inf):
+            raise ValueError(f"growth must be a finite number >= 1, got {self.growth!r}")
+        object.__setattr__(self, "growth", float(self.growth))
+        if self.judge not in JUDGES:
+            raise ValueError(f"judge must be one of {list(JUDGES)}, got {self.judge!r}")
+        if self.gap is not None:
+            if not (_is_number(self.gap) and 0.0 < self.gap < math.inf):
+                raise ValueError(f"gap must be a finite relative difference > 0 (or None: off), got {self.gap!r}")
+            object.__setattr__(self, "gap", float(self.gap))
+        if not isinstance(self.remeasure, bool):
+            raise TypeError(f"remeasure must be True or False, got {self.remeasure!r}")
+        if not (_is_number(self.k_eps_rtol) and 0.0 < self.k_eps_rtol < 1.0):
+            raise ValueError(f"k_eps_rtol must be a number in (0, 1), got {self.k_eps_rtol!r}")
+        object.__setattr__(self, "k_eps_rtol", float(self.k_eps_rtol))
+        if self.health is not None:
+            if not (_is_number(self.health) and 0.0 < self.health < math.inf):
+                raise ValueError(f"health must be a finite residual ratio > 0 (or None: off), got {self.health!r}")
+            object.__setattr__(self, "health", float(self.health))
+
+
+SETTING_NAMES = frozenset(f.name for f in dataclasses.fields(PRDPSettings))
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
