@@ -2,10 +2,10 @@
 
     torchrun --standalone --nproc_per_node 2 examples/ddp_prdp_loop.py [--epochs 30] [--local-metric]
 
-Every process holds the whole problem (MPI.COMM_SELF), DDP averages the gradients, the validation metric is
-all-reduced, and PRDP (finding the torch.distributed group itself) checks that every rank steps with the same
-metric, so the ranks refine K together. ``--local-metric`` steps PRDP on each rank's own metric, as a first DDP loop
-often does: PRDP refuses it on every rank. Prints one line of JSON per rank.
+Every process holds the whole problem (MPI.COMM_SELF), DDP averages the gradients, the validation metric (at
+converged physics: ctrl.reference()) is all-reduced, and PRDP (finding the torch.distributed group itself) checks
+that every rank steps with the same metric, so the ranks refine K together. ``--local-metric`` steps PRDP on each
+rank's own metric, as a first DDP loop often does: PRDP refuses it on every rank. Prints one line of JSON per rank.
 """
 import argparse
 import json
@@ -47,7 +47,7 @@ try:
             optimizer.zero_grad()
             error_sum(layer(u0=net(a_train[mine])), u_train[mine]).div(len(mine)).backward()   # DDP averages
             optimizer.step()
-        with torch.no_grad():
+        with torch.no_grad(), ctrl.reference():         # the model judged as it is deployed: converged
             mine = torch.arange(8)[rank::size]
             total = error_sum(layer(u0=net.module(a_val[mine])), u_val[mine])
         if not args.local_metric:

@@ -10,7 +10,18 @@ relative error of the capped solve against a converged one:
     e(K) = max over samples (and returned states) of ||u_K - u*|| / ||u*||   (owned DOFs, all ranks),
 
 and returns the smallest K with e(K) <= ``tolerance`` (doubling K, then
-bisecting: O(log K) capped solves). The target runs at each K with its caps,
+bisecting: O(log K) capped solves).
+
+The default tolerance follows what the network's gradient is at a capped
+solve (:func:`default_tolerance`). Where it is the exact derivative of the
+capped map (Richardson + Jacobi with right-hand-side controls, or unrolled
+differentiation), a coarse cap trains the network on a coarse but consistent
+physics that PRDP refines later: 0.5. Elsewhere (a Newton cap or a capped
+Krylov solve differentiated implicitly, matrix controls) the gradient is the
+implicit-function approximation at an unconverged state, wrong by about the
+state's error, and Adam keeps early wrong gradients in its moments for hundreds
+of steps: 0.01, which a fit to data needs anyway (a relative solution error e
+moves a normalised misfit by about e^2, so a misfit of 1e-4 needs e near 1e-2). The target runs at each K with its caps,
 counters and health state put back afterwards; the converged solves are its
 layers' own solvers run to ``rtol`` (:func:`fempdl.layer.reference.converged_counts`'
 twins). Any target PRDP moves works: a layer, a NewtonCaps, a Rollout, or a list
@@ -23,13 +34,18 @@ from collections.abc import Callable
 import torch
 
 from fempdl.core.checks import check_int
-from fempdl.layer.reference import converged_options, routed, twin_of
 from fempdl.layer.newton_layer import NonlinearSolveLayer
+from fempdl.layer.reference import converged_options, routed, twin_of
 from fempdl.methods.k_eps import layers_of, left_as_is, measure_call
 from fempdl.methods.newton_caps import NewtonCaps
 from fempdl.solve.stats import SolverFailedError
 
-__all__ = ["k_start", "capped_target"]
+__all__ = ["k_start", "capped_target", "default_tolerance", "CONSISTENT_TOLERANCE", "IMPLICIT_TOLERANCE"]
+
+#: k0's relative error where the capped gradient is the derivative of the capped map (module docstring).
+CONSISTENT_TOLERANCE = 0.5
+#: k0's relative error where it is the implicit-function approximation at an unconverged state.
+IMPLICIT_TOLERANCE = 0.01
 
 
 def capped_target(target):
@@ -37,7 +53,19 @@ def capped_target(target):
     return NewtonCaps(target, "newton") if isinstance(target, NonlinearSolveLayer) else target
 
 
-def k_start(target, *, tolerance: float = 0.5, k_max: int = 100_000, rtol: float = 1e-8,
+def default_tolerance(layers) -> float:
+    """k0's default relative error for ``layers`` (module docstring): the looser one only when every layer's
+    capped gradient is the derivative of the capped map."""
+    def consistent(layer) -> bool:
+        if layer.diff == "unrolled":
+            return True
+        options = layer.options
+        return (not isinstance(layer, NonlinearSolveLayer) and options.ksp_type == "richardson"
+                and options.pc_type == "jacobi" and not layer.problem.matrix_controls)
+    return CONSISTENT_TOLERANCE if all(consistent(layer) for layer in layers) else IMPLICIT_TOLERANCE
+
+
+def k_start(target, *, tolerance: float | None = None, k_max: int = 100_000, rtol: float = 1e-8,
             call: Callable | None = None, **inputs) -> int:
     """The smallest cap K whose solves of ``inputs`` are within ``tolerance`` of converged solves.
 
@@ -46,7 +74,8 @@ def k_start(target, *, tolerance: float = 0.5, k_max: int = 100_000, rtol: float
             :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (its Newton cap), a
             :class:`~fempdl.methods.newton_caps.NewtonCaps` (the cap its rule moves), a
             :class:`~fempdl.layer.rollout.Rollout`, or a list of layers (with ``call=``).
-        tolerance: the largest acceptable relative error e(K) (module docstring), in (0, 1].
+        tolerance: the largest acceptable relative error e(K), in (0, 1]; ``None``: by what the
+            capped gradient is (:func:`default_tolerance`, module docstring).
         k_max: the largest K tried; if even it is not within ``tolerance``, ValueError.
         rtol: the converged reference's tolerance.
         call: instead of keyword inputs, a function that runs the target's layers as the loop does and
@@ -63,6 +92,8 @@ def k_start(target, *, tolerance: float = 0.5, k_max: int = 100_000, rtol: float
         raise TypeError(f"target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps (or a Rollout, or a "
                         f"list of layers), got {type(target).__name__}")
     run = measure_call(target, call, inputs, "k0")
+    if tolerance is None:
+        tolerance = default_tolerance(layers)
     if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not 0.0 < tolerance <= 1.0:
         raise ValueError(f"tolerance must be a relative error in (0, 1], got {tolerance!r}")
     check_int("k_max", k_max, minimum=1)

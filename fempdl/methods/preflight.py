@@ -73,7 +73,8 @@ class Preflight:
                 f"(max_it={self.k_cap}) or with converged solves")
 
 
-def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: float = 0.5, rtol: float = 1e-8,
+def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: float | None = None,
+              rtol: float = 1e-8,
               call: Callable | None = None, **inputs) -> Preflight:
     """Measure k0, K_eps and the solver's share of the loop's step (module docstring).
 
@@ -86,7 +87,7 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
             :class:`~fempdl.methods.newton_caps.NewtonCaps`, a :class:`~fempdl.layer.rollout.Rollout`,
             or a list of layers (with ``call=``). Its layers' caps are put back afterwards.
         steps: timed steps (>= 1).
-        tolerance: k0's relative error (:func:`~fempdl.methods.k_start.k_start`).
+        tolerance: k0's relative error (:func:`~fempdl.methods.k_start.k_start`; ``None``: its default).
         rtol: the converged solves' tolerance for K_eps.
         call: instead of keyword inputs, a function that runs the target's layers as the loop does and
             returns what they computed (the validation's outputs, say).
