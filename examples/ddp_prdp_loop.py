@@ -1,11 +1,9 @@
-"""PRDP under torchrun + DistributedDataParallel: each process trains on its shard of the data.
-
-    torchrun --standalone --nproc_per_node 2 examples/ddp_prdp_loop.py [--epochs 30] [--local-metric]
-
+"""PRDP under torchrun + DistributedDataParallel: each process trains on its shard of the data
+(``torchrun --standalone --nproc_per_node 2 examples/ddp_prdp_loop.py [--epochs 30] [--local-metric]``).
 Every process holds the whole problem (MPI.COMM_SELF), DDP averages the gradients, the validation metric (at
 converged physics: ctrl.reference()) is all-reduced, and PRDP (finding the torch.distributed group itself) checks
-that every rank steps with the same metric, so the ranks refine K together. ``--local-metric`` steps PRDP on each
-rank's own metric, as a first DDP loop often does: PRDP refuses it on every rank. Prints one line of JSON per rank.
+that every rank steps with the same metric, so the ranks refine K together. ``--local-metric`` steps each rank's
+own metric, as a first DDP loop often does: PRDP refuses it on every rank. Prints one line of JSON per rank.
 """
 import argparse
 import json
@@ -27,9 +25,9 @@ dist.init_process_group("gloo")
 rank, size = dist.get_rank(), dist.get_world_size()
 torch.set_num_threads(1)
 problem = forms.heat.problem(mesh.load("lshape", MPI.COMM_SELF, h=0.2), controls=("u0",), dt=0.01)
-x = problem.dof_coordinates()
-modes = torch.from_numpy(np.stack([np.sin(i * x[:, 0] + 1.0) * np.cos(j * x[:, 1])
-                                   for i in range(1, 4) for j in range(1, 4)], axis=1))   # (n, 9)
+x = problem.dof_coordinates()                           # 9 modes sin(i x + 1) cos(j y), (n, 9)
+modes = torch.from_numpy(np.stack([np.sin(i * x[:, 0] + 1) * np.cos(j * x[:, 1]) for i in (1, 2, 3) for j in (1, 2, 3)],
+                                  1))
 data = torch.Generator().manual_seed(0)                 # one data set; each rank trains on its shard
 a_train, a_val = (torch.randn(m, 9, dtype=torch.float64, generator=data) for m in (32, 8))
 u_train, u_val = (SolveLayer(problem)(u0=a @ modes.T) for a in (a_train, a_val))     # converged: the targets
@@ -57,4 +55,5 @@ try:
 except ValueError as err:
     line = {"rank": rank, "error": str(err)}
 os.write(1, (json.dumps(line) + "\n").encode())   # one unbuffered write: the ranks share the pipe
+del net, optimizer              # DDP's reducer holds the group: freed after it, at exit, the group aborts
 dist.destroy_process_group()
