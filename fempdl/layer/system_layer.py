@@ -60,34 +60,18 @@ class SystemLayer(torch.nn.Module):
         self._health_due = (None, 0)             # (caps of the last measured call, training calls since)
         #: The largest residual ratio of the last training call the health check measured (None: none yet).
         self.last_health_ratio: float | None = None
-        # Plain attributes, not submodules: a twin is no part of the model's state_dict.
-        self.__dict__.update(_route=None, _reference_twin=None)
+        # Plain attributes, not submodules: a twin is no part of the model's state_dict (__setattr__).
+        #: ``route``: the layer that answers this layer's calls instead of it (:mod:`fempdl.layer.reference`);
+        #: ``reference_twin``: the converged twin that answers them at reference physics (built on first use).
+        self.__dict__.update(route=None, reference_twin=None)
         #: Calls without gradients at a cap (a validation computed with capped physics), counted for PRDP.
         self.capped_eval_calls = 0
 
     def __setattr__(self, name: str, value) -> None:
-        if name in ("route", "reference_twin"):       # properties, not submodules (torch registers Modules)
-            object.__setattr__(self, name, value)
+        if name in ("route", "reference_twin"):       # torch would register a Module value as a submodule
+            self.__dict__[name] = value
         else:
             super().__setattr__(name, value)
-
-    @property
-    def route(self) -> SystemLayer | None:
-        """The layer that answers this layer's calls instead of it (:mod:`fempdl.layer.reference`), or None."""
-        return self.__dict__["_route"]
-
-    @route.setter
-    def route(self, twin: SystemLayer | None) -> None:
-        self.__dict__["_route"] = twin
-
-    @property
-    def reference_twin(self) -> SystemLayer | None:
-        """The converged twin that answers calls at reference physics (built on first use), or None."""
-        return self.__dict__.get("_reference_twin")
-
-    @reference_twin.setter
-    def reference_twin(self, twin: SystemLayer | None) -> None:
-        self.__dict__["_reference_twin"] = twin
 
     @property
     def reference_stats(self):
@@ -310,7 +294,7 @@ class SystemLayer(torch.nn.Module):
         if getattr(self, "_system", None) is not None:
             self._system.destroy()
             self._system = None
-        if self.__dict__.get("_reference_twin") is not None:
+        if self.__dict__.get("reference_twin") is not None:
             self.reference_twin.close()
             self.reference_twin = None
 

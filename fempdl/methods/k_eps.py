@@ -25,7 +25,7 @@ from fempdl.layer.system_layer import SystemLayer
 from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps
 
 __all__ = ["k_eps", "newton_k_eps", "converged_caps", "layers_of", "targets_of", "measure_call",
-           "left_as_is"]
+           "caps_kept", "left_as_is"]
 
 
 def targets_of(target) -> list:
@@ -47,20 +47,37 @@ def layers_of(target) -> list[SystemLayer]:
 
 
 @contextmanager
-def left_as_is(target):
-    """Within the block ``target`` may run at other caps: its layers' caps (as ``state_dict`` carries them),
-    a NewtonCaps' K and the layers' counters are put back on exit."""
+def caps_kept(target):
+    """Within the block ``target`` may run at other caps: its layers' caps (as ``state_dict`` carries them)
+    and a NewtonCaps' K are put back on exit."""
     layers = layers_of(target)
     k = getattr(target, "max_it", None) if isinstance(target, NewtonCaps) else None
     states = [layer.get_extra_state() for layer in layers]
     try:
-        with counters_kept(layers):
-            yield
+        yield
     finally:
         if k is not None:
             target.max_it = k
         for layer, state in zip(layers, states):
             layer.set_extra_state(state)
+
+
+@contextmanager
+def left_as_is(target):
+    """:func:`caps_kept`, and the layers' counters put back too (probe runs are not training)."""
+    with caps_kept(target), counters_kept(layers_of(target)):
+        yield
+
+
+def _callee(target):
+    """What keyword inputs are passed to: the target itself, or a NewtonCaps' (or list's) one layer."""
+    if not isinstance(target, NewtonCaps) and callable(target):
+        return target
+    layers = layers_of(target)
+    if len(layers) != 1:
+        raise TypeError(f"{type(target).__name__} over {len(layers)} layers: give call= a function that runs "
+                        "them as the loop does")
+    return layers[0]
 
 
 def measure_call(target, call: Callable | None, inputs: dict, what: str) -> Callable[[], object]:
@@ -76,13 +93,8 @@ def measure_call(target, call: Callable | None, inputs: dict, what: str) -> Call
         names = [name for layer in layers_of(target) for name in layer.problem.control_names][:1] or ["f"]
         raise ValueError(f"give the inputs to measure {what} on as keyword arguments, e.g. {names[0]}=tensor, or "
                          "call= a function that runs the target's layers")
-    if isinstance(target, NewtonCaps) or not callable(target):
-        layers = layers_of(target)
-        if len(layers) != 1:
-            raise TypeError(f"{type(target).__name__} over {len(layers)} layers: give call= a function that runs "
-                            "them as the loop does")
-        target = layers[0]
-    return lambda: target(**inputs)
+    callee = _callee(target)
+    return lambda: callee(**inputs)
 
 
 def k_eps(target, *, rtol: float = 1e-8, shard_over: MPI.Comm = MPI.COMM_SELF, batch: int | None = None,
@@ -126,7 +138,7 @@ def _sharded(run, target, inputs: dict, comm: MPI.Comm, batch: int | None):
     """``run`` over this rank's share of the samples, in calls of ``batch`` samples."""
     mine = shard_inputs(inputs, comm)
     samples = batch_size(mine) if any(v.dim() == 2 for v in mine.values()) else 0
-    layer = layers_of(target)[0] if isinstance(target, NewtonCaps) or not callable(target) else target
+    layer = _callee(target)
 
     def sharded():
         step = batch or max(samples, 1)

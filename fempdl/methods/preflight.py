@@ -31,7 +31,7 @@ import torch
 
 from fempdl.core.checks import check_int
 from fempdl.layer.newton_layer import NonlinearSolveLayer
-from fempdl.methods.k_eps import k_eps, layers_of, left_as_is, measure_call
+from fempdl.methods.k_eps import caps_kept, k_eps, layers_of, left_as_is, measure_call
 from fempdl.methods.k_start import capped_target, k_start
 from fempdl.methods.newton_caps import NewtonCaps
 
@@ -108,9 +108,8 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
     k_cap = k_eps(target, rtol=rtol, call=run)
     k0 = min(k_start(target, tolerance=tolerance, rtol=rtol, k_max=k_cap, call=run), k_cap)
     cost_ratio = _solve_cost(target, run, k0, parts) / max(_solve_cost(target, run, k_cap, parts), 1)
-    saved = [layer.get_extra_state() for layer in layers]      # every cap, as state_dict carries them
-    target.max_it = k_cap
-    try:
+    with caps_kept(target):                     # the steps are real training: their counters stay
+        target.max_it = k_cap
         step()
         before = [_capped_seconds(layer.stats, parts) for layer in layers]
         t0 = time.perf_counter()
@@ -118,9 +117,6 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
             step()
         elapsed = time.perf_counter() - t0
         capped = sum(_capped_seconds(layer.stats, parts) - b for layer, b in zip(layers, before))
-    finally:
-        for layer, state in zip(layers, saved):
-            layer.set_extra_state(state)
     return Preflight(k0=k0, k_cap=k_cap, step_time=elapsed / steps, capped_time=capped / steps, capped_parts=parts,
                      cost_ratio=cost_ratio)
 

@@ -1,13 +1,11 @@
 """The task protocol the trainer runs, and what every task shares: its optimizer and its step."""
 from __future__ import annotations
 
-import contextlib
-import copy
-import dataclasses
 from typing import TYPE_CHECKING
 
 import torch
 
+from fempdl.layer.reference import counters_kept
 from fempdl.solve.assembly import assemble_scipy
 
 if TYPE_CHECKING:
@@ -81,18 +79,9 @@ class Task:
             return float(self.validation_errors(torch.arange(self.val_size)).double().mean())
 
 
-@contextlib.contextmanager
-def uncounted(layers):
-    """Leave the solves run inside out of ``layers``' counters: a task's data drawn through its training
-    layers is not training. Each layer's stats are restored on exit in place (its system holds the same
-    object); the wall clock still sees the time."""
-    saved = [copy.deepcopy(layer.stats) for layer in layers]
-    try:
-        yield
-    finally:
-        for layer, before in zip(layers, saved):
-            for f in dataclasses.fields(before):
-                setattr(layer.stats, f.name, getattr(before, f.name))
+#: Leave the solves run inside out of the layers' counters: a task's data drawn through its training
+#: layers is not training (the wall clock still sees the time).
+uncounted = counters_kept
 
 
 def operator_pattern(problem) -> sp.csr_matrix:
