@@ -16,6 +16,8 @@ re-exports of those floors.
 import importlib
 import logging
 import os
+import signal
+import threading
 
 # OpenMP threads (torch's, the BLAS's) that spin-wait between parallel regions
 # stall any other busy process on the same cores (scripts/bench_stall.py). The policy is read when the OpenMP
@@ -28,6 +30,18 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 logging.getLogger("fempdl").addHandler(logging.NullHandler())
 
 __version__ = "0.1.0"
+
+
+def _python_sigint() -> None:
+    """Put Python's SIGINT handler back where the OS default is in place. ``import gmsh`` sets the OS
+    default, and a script that imports gmsh before fempdl (as anyone meshing with gmsh does) would then
+    be killed by Ctrl-C without unwinding: no KeyboardInterrupt, no ``finally``, no final checkpoint. Only
+    the main thread may set a handler; a handler of the user's own (or SIG_IGN) is left alone."""
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is signal.SIG_DFL:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+_python_sigint()
 
 # Public name -> the module that defines it (imported on first access).
 _PUBLIC = {

@@ -143,3 +143,21 @@ def test_newton_layer_changed_dt_between_steps(coarse_lshape, diff):
     # Converged Newton solves: the implicit gradient is exact up to the solve tolerance and the
     # O(eps^2) truncation of the central difference.
     assert torch.dot(f.grad, direction).item() == pytest.approx(expected.item(), rel=1e-6)
+
+
+def test_newton_inner_cap_moved_between_forward_and_backward(coarse_lshape):
+    """The inner cap moved between a Newton layer's forward and backward (PRDP's health check does it
+    with a scheduled Rollout): the backward runs at the forward's inner cap, as if nothing moved, and
+    the moved cap is back afterwards."""
+    prob = forms.nonlinear_diffusion.problem(coarse_lshape, controls=("f",))
+    layer = NonlinearSolveLayer(prob, NewtonOptions(max_it=3, ksp=KSPOptions.preset("jacobi", max_it=6)))
+    gen = torch.Generator().manual_seed(4)
+    f = torch.rand(prob.control_size("f"), dtype=torch.float64, generator=gen, requires_grad=True)
+    w = torch.rand(prob.output_size, dtype=torch.float64, generator=gen)
+    loss_of(layer(f=f), w).backward()
+    expected, f.grad = f.grad.clone(), None
+    out = loss_of(layer(f=f), w)
+    layer.inner_max_it = 50
+    out.backward()
+    assert layer.inner_max_it == 50
+    torch.testing.assert_close(f.grad, expected, rtol=1e-12, atol=0.0)

@@ -75,6 +75,19 @@ def test_ctrl_c_in_a_loop_after_loading_a_mesh_raises_keyboard_interrupt(first_i
     assert err.rstrip().endswith("KeyboardInterrupt"), err[-3000:]
 
 
+def test_ctrl_c_after_importing_gmsh_before_fempdl_raises_keyboard_interrupt():
+    """``import gmsh`` first (it sets the OS default): ``import fempdl`` puts Python's handler back, and a
+    user's own gmsh mesh read through fempdl keeps it."""
+    code = ("import gmsh, signal\n"
+            "assert signal.getsignal(signal.SIGINT) is signal.SIG_DFL, signal.getsignal(signal.SIGINT)\n"
+            "import fempdl\n"
+            "from fempdl import mesh\n"
+            "mesh.load('lshape', h=0.5)\n" + LOOP)
+    returncode, out, err = interrupt(code)
+    assert MARKER in out, (returncode, out, err[-3000:])
+    assert err.rstrip().endswith("KeyboardInterrupt"), err[-3000:]
+
+
 def test_a_handler_the_user_installed_survives_importing_and_meshing():
     """Whatever SIGINT handler was in place before fempdl imported gmsh stays in place, through
     imports, a bundled load and a gmsh meshing session."""

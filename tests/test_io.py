@@ -14,6 +14,7 @@ import torch
 
 from fempdl import forms, mesh
 from fempdl.core import io
+from fempdl.io import TimeSeries
 
 from helpers import smooth
 
@@ -184,8 +185,8 @@ def test_plot_data_is_signed_nodal_or_per_cell(poisson_p2, stokes, coarse):
 
 @pytest.mark.parametrize("schedule", [None, ("revolve", 2)])
 def test_a_rollout_writes_its_time_series_step_by_step(tmp_path, coarse, schedule):
-    """Every second state of a 5-step heat rollout with a varying dt, at t_k = dt_0 + ... + dt_k-1, with
-    the values the rollout returns; a schedule's recomputed steps write nothing more."""
+    """Every second state of a 5-step heat rollout with a varying dt and the last one, at t_k = dt_0 + ... +
+    dt_k-1, with the values the rollout returns; a schedule's recomputed steps write nothing more."""
     from fempdl import Rollout, SolveLayer
 
     step = SolveLayer(forms.heat.problem(coarse, controls=("u0", "f")), "lu")
@@ -194,13 +195,13 @@ def test_a_rollout_writes_its_time_series_step_by_step(tmp_path, coarse, schedul
     u0 = torch.linspace(0, 1, n, dtype=torch.float64).requires_grad_()
     f = torch.ones(2, step.problem.control_size("f"), dtype=torch.float64)
     dts = [0.1, 0.2, 0.05, 0.3, 0.1]
-    with io.TimeSeries(tmp_path / "heat", step.problem, every=2, sample=1, encoding="ascii") as series:
+    with TimeSeries(tmp_path / "heat", step.problem, every=2, sample=1, encoding="ascii") as series:
         states = rollout(u0, 5, constants={"dt": dts}, f=f, series=series)
         states[:, -1].sum().backward()
-    assert series.times == pytest.approx([0.0, 0.3, 0.65])
+    assert series.times == pytest.approx([0.0, 0.3, 0.65, 0.75])
     attrs, _ = _ascii_attributes(tmp_path / "heat.xdmf")
-    assert sorted(t for _, t in attrs) == pytest.approx([0.0, 0.3, 0.65])
-    for k, t in zip((0, 2, 4), series.times):
+    assert sorted(t for _, t in attrs) == pytest.approx([0.0, 0.3, 0.65, 0.75])
+    for k, t in zip((0, 2, 4, 5), series.times):
         written = next(v for (name, s), v in attrs.items() if name == "u" and abs(s - t) < 1e-12)
         # P1 values in node order: the same numbers as the state's DOF values
         np.testing.assert_allclose(np.sort(written[0][:, 0]), np.sort(states[1, k].detach().numpy()), atol=1e-14)
@@ -209,8 +210,130 @@ def test_a_rollout_writes_its_time_series_step_by_step(tmp_path, coarse, schedul
 def test_time_series_arguments_are_checked(tmp_path, coarse):
     prob = forms.heat.problem(coarse, controls=("u0",))
     with pytest.raises(ValueError, match="every"):
-        io.TimeSeries(tmp_path / "x", prob, every=0)
+        TimeSeries(tmp_path / "x", prob, every=0)
     with pytest.raises(ValueError, match="encoding"):
-        io.TimeSeries(tmp_path / "x", prob, encoding="csv")
-    with io.TimeSeries(tmp_path / "x", prob, sample=3) as series, pytest.raises(ValueError, match="3"):
+        TimeSeries(tmp_path / "x", prob, encoding="csv")
+    with TimeSeries(tmp_path / "x", prob, sample=3) as series, pytest.raises(ValueError, match="3"):
         series.write(0, 0.0, np.zeros((2, prob.output_size)))
+
+
+@pytest.mark.parametrize("schedule", [None, ("revolve", 2)])
+def test_every_k_also_writes_the_last_state(tmp_path, coarse, schedule):
+    """10 steps every 4th: states 0, 4, 8 and the last one, 10, at its own time and with its own values."""
+    from fempdl import Rollout, SolveLayer
+
+    step = SolveLayer(forms.heat.problem(coarse, controls=("u0", "f")), "lu")
+    u0 = torch.linspace(0, 1, step.problem.output_size, dtype=torch.float64)
+    f = torch.ones(step.problem.control_size("f"), dtype=torch.float64)
+    with TimeSeries(tmp_path / "heat", step.problem, every=4, encoding="ascii") as series:
+        states = Rollout(step, "u0", schedule=schedule)(u0, 10, constants={"dt": [0.01] * 10}, f=f, series=series)
+        assert series.times == pytest.approx([0.0, 0.04, 0.08, 0.1], abs=1e-15)    # written as the rollout ends
+    assert series.times == pytest.approx([0.0, 0.04, 0.08, 0.1], abs=1e-15)
+    attrs, _ = _ascii_attributes(tmp_path / "heat.xdmf")
+    assert sorted(t for _, t in attrs) == pytest.approx([0.0, 0.04, 0.08, 0.1], abs=1e-15)
+    last = next(v for (_, t), v in attrs.items() if t == pytest.approx(0.1, abs=1e-15))
+    np.testing.assert_allclose(np.sort(last[0][:, 0]), np.sort(states[10].numpy()), rtol=0, atol=1e-14)
+
+
+def test_time_series_refuses_to_replace_existing_files(tmp_path, coarse):
+    """An existing u.xdmf, or the user's data.h5 that TimeSeries("data.h5") would write its values into, stays
+    as it was unless overwrite=True."""
+    prob = forms.heat.problem(coarse, controls=("u0",))
+    u = np.ones(prob.output_size)
+    (tmp_path / "u.xdmf").write_text("mine")
+    (tmp_path / "data.h5").write_bytes(b"my data")
+    with pytest.raises(ValueError, match=rf"^TimeSeries path '{tmp_path}/u' would replace the existing "
+                                         rf"'{tmp_path}/u.xdmf' \(it writes '{tmp_path}/u.xdmf' and "
+                                         rf"'{tmp_path}/u.h5'\); pass overwrite=True to replace, or give another "
+                                         r"path$"):
+        TimeSeries(tmp_path / "u", prob).write(0, 0.0, u)
+    with pytest.raises(ValueError, match=rf"^TimeSeries path '{tmp_path}/data.h5' would replace the existing "
+                                         rf"'{tmp_path}/data.h5' \(it writes '{tmp_path}/data.xdmf' and "
+                                         rf"'{tmp_path}/data.h5'\); pass overwrite=True"):
+        TimeSeries(tmp_path / "data.h5", prob).write(0, 0.0, u)
+    assert (tmp_path / "u.xdmf").read_text() == "mine" and (tmp_path / "data.h5").read_bytes() == b"my data"
+    assert not (tmp_path / "data.xdmf").exists()
+    series = TimeSeries(tmp_path / "u", prob, encoding="ascii")      # ASCII writes no .h5: only u.xdmf counts
+    with pytest.raises(ValueError, match=r"the existing '[^']*u\.xdmf' \(it writes '[^']*u\.xdmf'\); pass"):
+        series.write(0, 0.0, u)
+    (tmp_path / "u.xdmf").unlink()
+    with series:
+        series.write(0, 0.0, u)                                          # the refused write, given again
+    assert series.times == [0.0]
+    with TimeSeries(tmp_path / "data.h5", prob, overwrite=True) as series:    # the refusal left no lock behind
+        series.write(0, 0.0, u)
+    assert (tmp_path / "data.h5").read_bytes()[:8] == b"\x89HDF\r\n\x1a\n"
+    with pytest.raises(TypeError, match="overwrite must be True or False, got 'yes'"):
+        TimeSeries(tmp_path / "u", prob, overwrite="yes")
+
+
+def test_a_reused_time_series_never_repeats_times(tmp_path, coarse):
+    """A second run of steps into one series, or a write after close: refused, the file keeping one value per
+    time (the first run's last state included); with overwrite=True the file starts afresh instead."""
+    prob = forms.heat.problem(coarse, controls=("u0",))
+    u = np.ones(prob.output_size)
+    path = tmp_path / "u.xdmf"
+    series = TimeSeries(path, prob, every=2, encoding="ascii")
+    for k in range(4):
+        series.write(k, 0.1 * k, k * u)
+    with pytest.raises(ValueError, match=rf"^TimeSeries '{path}' already holds times up to t=0\.3, so a write at "
+                                         r"t=0 would repeat times \(a second rollout into one series\?\); give each "
+                                         r"rollout its own TimeSeries \(or path\), or pass overwrite=True to start "
+                                         r"the file afresh$"):
+        series.write(0, 0.0, u)
+    series.close()
+    with pytest.raises(ValueError, match=rf"^TimeSeries '{path}' is closed and holds times up to t=0\.3; writing "
+                                         r"again would replace them: open a new TimeSeries on another path, or "
+                                         r"pass overwrite=True to start the file afresh$"):
+        series.write(4, 0.4, u)
+    attrs, _ = _ascii_attributes(path)
+    assert series.times == pytest.approx([0.0, 0.2, 0.3]) and sorted(t for _, t in attrs) == series.times
+    np.testing.assert_allclose(next(v for (_, t), v in attrs.items() if t == pytest.approx(0.3))[0], 3.0, atol=1e-14)
+
+    with TimeSeries(path, prob, encoding="ascii", overwrite=True) as again:
+        for run in range(2):
+            for k in range(3):
+                again.write(k, 0.1 * k, (10 * run + k) * u)
+    with again:
+        again.write(0, 0.0, -u)                          # after close: afresh too
+    attrs, _ = _ascii_attributes(path)
+    assert again.times == [0.0] and list(attrs) == [("u", 0.0)]
+    np.testing.assert_allclose(attrs[("u", 0.0)][0], -1.0, rtol=0, atol=1e-15)
+
+
+def test_a_busy_path_names_who_holds_it(tmp_path, coarse):
+    """An unclosed TimeSeries of this process blocks its path with a message saying so; one held by another
+    process names that process."""
+    import socket
+    import subprocess
+    import sys
+
+    prob = forms.heat.problem(coarse, controls=("u0",))
+    u = np.ones(prob.output_size)
+    first = TimeSeries(tmp_path / "u", prob, encoding="ascii")
+    first.write(0, 0.0, u)
+    with pytest.raises(ValueError, match=rf"^'{tmp_path}/u\.xdmf' is held by a TimeSeries in this process that is "
+                                         r"still open; close it \(series\.close\(\)\) or write it inside `with "
+                                         r"TimeSeries\(\.\.\.\) as series:`, or use another path$"):
+        TimeSeries(tmp_path / "u", prob).write(0, 0.0, u)
+    first.close()
+    with TimeSeries(tmp_path / "u", prob, overwrite=True) as second:
+        second.write(0, 0.0, u)
+
+    holder = ("import fcntl, os, socket, sys\n"
+              "fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT)\n"
+              "fcntl.flock(fd, fcntl.LOCK_EX)\n"
+              "os.write(fd, f'{socket.gethostname()} {os.getpid()} TimeSeries'.encode())\n"
+              "print('holding', flush=True)\n"
+              "sys.stdin.read()\n")
+    other = subprocess.Popen([sys.executable, "-c", holder, str(tmp_path / ".v.xdmf.writing")],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert other.stdout.readline() == "holding\n"
+        with pytest.raises(ValueError, match=rf"^another process is writing '{tmp_path}/v\.xdmf' at this moment "
+                                             rf"\(process {other.pid} on {socket.gethostname()}, TimeSeries\): a "
+                                             r"TimeSeries there still open on that path, or every rank of a "
+                                             r"data-parallel run writing one file\?; close that TimeSeries"):
+            TimeSeries(tmp_path / "v", prob).write(0, 0.0, u)
+    finally:
+        other.communicate("", timeout=30)

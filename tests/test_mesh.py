@@ -228,6 +228,35 @@ def test_load_errors_name_the_argument(kwargs, error, pattern):
         mesh.load(comm=COMM, **kwargs)
 
 
+def test_a_msh_path_that_is_not_a_regular_file_is_named_for_what_it_is(tmp_path):
+    """A directory or a FIFO named like a mesh: said so (not "no such file"), and a FIFO is never opened,
+    neither by load nor by source_digest (a run's fingerprint), which would wait for a writer forever."""
+    import threading
+
+    folder, fifo = tmp_path / "folder.msh", tmp_path / "pipe.msh"
+    folder.mkdir()
+    os.mkfifo(fifo)
+    with pytest.raises(IsADirectoryError, match=rf"^name_or_path: '{folder}' is a directory, not a \.msh file; "
+                                                r"give the path of a \.msh file$"):
+        mesh.load(folder, COMM)
+    with pytest.raises(ValueError, match=rf"^name_or_path: '{fifo}' is not a regular file \(a FIFO\); save the "
+                                         r"mesh to a \.msh file and give its path$"):
+        mesh.load(fifo, COMM)
+    (tmp_path / "plain").write_text("")
+    with pytest.raises(FileNotFoundError, match="no such .msh file"):
+        mesh.load(tmp_path / "plain" / "inner.msh", COMM)            # a file where a directory should be
+    digests = {}
+    reader = threading.Thread(target=lambda: digests.update(fifo=mesh.source_digest(fifo),
+                                                            folder=mesh.source_digest(folder)), daemon=True)
+    reader.start()
+    reader.join(10)
+    if reader.is_alive():
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))      # let the blocked reader go
+        reader.join()
+        pytest.fail("source_digest blocked opening a FIFO")
+    assert digests == {"fifo": None, "folder": None}
+
+
 def test_load_errors_for_paths(tmp_path):
     square = write_unit_square(tmp_path / "square.msh", named=False)
     with pytest.raises(ValueError, match="h applies to bundled meshes only, got h=0.1"):

@@ -198,8 +198,10 @@ def test_the_data_parallel_example_script_trains_a_scene(tmp_path):
 
 def test_ranks_that_disagree_get_an_error_not_a_hang(tmp_path):
     """A distributed layer called with other caps, batches, dtypes or grad modes on the ranks (both layer
-    types), and PRDP stepped with per-rank metrics, used to hang (one rank in KSPSolve, one in VecNorm);
-    now every rank raises."""
+    types), a Rollout with other steps, batches, per-step dt or caps (with a schedule, which calls the
+    system directly, or without), and PRDP stepped with per-rank metrics, used to hang (one rank in
+    KSPSolve, one in VecNorm); ranks at other Constants solved different physics, silently. Now every
+    rank raises."""
     out = tmp_path / "guards"
     done = mpirun(2, "guards.py", str(out), timeout=120)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -210,6 +212,14 @@ def test_ranks_that_disagree_get_an_error_not_a_hang(tmp_path):
         assert "(dtypes: [('float64',), ('float32',)], by rank)" in rank["dtype"]
         assert "(requires_grad: [(True,), (False,)], by rank)" in rank["grad"]
         assert "NonlinearSolveLayer differently (dtypes: [('float64',), ('float32',)], by rank)" in rank["newton_dtype"]
+        assert "SolveLayer differently (Constants: [(('dt', (0.01,)),), (('dt', (0.02,)),)], by rank)" \
+            in rank["constants"]
+        assert "called this distributed-mesh Rollout differently (steps: [3, 5]; outputs:" in rank["rollout_steps"]
+        assert "Rollout differently (batch: [1, 2]; shared (n,) or batched (B, n)" in rank["rollout_batch"]
+        assert "Rollout differently (per-step Constants: [{'dt': [0.01, 0.02, 0.01]}, {'dt': [0.01, 0.02, 0.02]}]" \
+            in rank["rollout_dt"]
+        assert "Rollout differently (caps: [4, 5], by rank)" in rank["rollout_caps"]
+        assert rank["rollout_agreed"] > 0
         assert "PRDP.step got different metrics on the 2 ranks ([0.5, 1.5])" in rank["prdp"]
         assert rank["k"] == 2 and rank["agreed"] > 0
 

@@ -76,8 +76,44 @@ def test_what_is_not_supported_is_named(lshape_coarse):
         PointObservation(prob, [[0.5, -0.5]])                 # the L-shape's missing quadrant
     with pytest.raises(NotImplementedError, match="Lagrange degree 1 and 2"):
         PointObservation(forms.poisson.problem(lshape_coarse, controls=("f",), degree=3), POINTS)
-    with pytest.raises(ValueError, match=r"u must have shape \(B, \d+\)"):
+    with pytest.raises(ValueError, match=r"u must have shape \(\.\.\., \d+\): .* got \(3,\)"):
         PointObservation(prob, POINTS)(torch.zeros(3, dtype=F64))
     with pytest.raises(ValueError, match="kind must be 'L2' or 'H1'"):
         MassInner(prob, kind="H2")
 
+
+def test_observations_take_any_leading_axes_such_as_a_rollouts_states(lshape_coarse):
+    """A heat rollout's states (B, T, n) observed at once: (B, T, N), each time as observed alone; the gradient
+    of a weighted sum is the weights times the interpolation matrix, and MassInner reduces (..., n) -> (...)."""
+    from fempdl import Rollout
+
+    step = SolveLayer(forms.heat.problem(lshape_coarse, controls=("u0", "f")), "lu")
+    prob, observe = step.problem, PointObservation(step.problem, POINTS)
+    u0 = torch.as_tensor(prob.interpolate(lambda x: 1 + x[0] * x[1]))
+    f = torch.stack([torch.ones(prob.control_size("f"), dtype=F64), -torch.ones(prob.control_size("f"), dtype=F64)])
+    states = Rollout(step, "u0")(u0, 3, f=f).detach().requires_grad_()         # (2, 4, n)
+    seen = observe(states)
+    assert seen.shape == (2, 4, len(POINTS))
+    for b in range(2):
+        for k in range(4):
+            torch.testing.assert_close(seen[b, k], observe(states[b, k]), rtol=0, atol=0)
+    weights = torch.rand(2, 4, len(POINTS), dtype=F64, generator=torch.Generator().manual_seed(2))
+    (seen * weights).sum().backward()
+    torch.testing.assert_close(states.grad, weights @ observe.matrix.to_dense(), rtol=0, atol=1e-14)
+    assert torch.autograd.gradcheck(observe, (states[:, :2, :].detach().clone().requires_grad_(),))
+
+    inner = MassInner(prob)
+    assert inner(states).shape == (2, 4) and inner.norm(states).shape == (2, 4)
+    torch.testing.assert_close(inner(states)[1, 2], inner(states[1, 2]), rtol=1e-14, atol=0)
+    # leading axes broadcast: one v for every state, and one u against a batch of v (not only the first)
+    torch.testing.assert_close(inner(states, u0), torch.stack([torch.stack([inner(s, u0) for s in row])
+                                                               for row in states]), rtol=1e-14, atol=0)
+    assert inner(u0, states[:, 0]).shape == (2,)
+    torch.testing.assert_close(inner(u0, states[:, 0])[1], inner(u0, states[1, 0]), rtol=1e-14, atol=0)
+    n = prob.output_size
+    with pytest.raises(ValueError, match=rf"u must have shape \(\.\.\., {n}\): {n} owned DOF values last, e\.g\. "
+                                         rf"\(B, {n}\) or a rollout's \(B, T, {n}\); got \(2, 4, {n + 1}\)"):
+        observe(torch.zeros(2, 4, n + 1, dtype=F64))
+    with pytest.raises(ValueError, match=rf"u \(2, 4, {n}\) and v \(3, {n}\) have leading axes that do not "
+                                         "broadcast"):
+        inner(states, torch.zeros(3, n, dtype=F64))

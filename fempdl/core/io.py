@@ -9,8 +9,8 @@ node layout: write its fields (``problem.to_function(x, "u")``, ``"p"``).
 
 Every call writes the mesh once and each field at each time step, under the
 field's name, so ParaView shows one array per field with a time slider.
-:class:`TimeSeries` writes a series one step at a time, as a long rollout
-advances (:class:`fempdl.Rollout`'s ``series=``), without keeping the states.
+:class:`fempdl.core.time_series.TimeSeries` writes a series one step at a time, as a long
+rollout advances (:class:`fempdl.Rollout`'s ``series=``), without keeping the states.
 ``encoding="ascii"`` puts the values into the .xdmf file itself (one process
 only); the default HDF5 encoding writes them beside it (``.h5``).
 """
@@ -20,6 +20,7 @@ import contextlib
 import fcntl
 import math
 import os
+import socket
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -28,12 +29,11 @@ import dolfinx.io
 import numpy as np
 
 from fempdl.core import _dolfinx
-from fempdl.core.checks import check_int
 from fempdl.core.locks import same_file
 
-__all__ = ["write_xdmf", "write_fields", "TimeSeries", "nodal_field", "plot_fields", "plot_data"]
+__all__ = ["write_xdmf", "write_fields", "one_writer", "nodal_field", "plot_fields", "plot_data", "ENCODINGS"]
 
-_ENCODINGS = {"hdf5": dolfinx.io.XDMFFile.Encoding.HDF5, "ascii": dolfinx.io.XDMFFile.Encoding.ASCII}
+ENCODINGS = {"hdf5": dolfinx.io.XDMFFile.Encoding.HDF5, "ascii": dolfinx.io.XDMFFile.Encoding.ASCII}
 
 
 def write_xdmf(path, fields, *, times: Sequence[float] | None = None, encoding: str = "hdf5") -> Path:
@@ -49,8 +49,8 @@ def write_xdmf(path, fields, *, times: Sequence[float] | None = None, encoding: 
         times: the time of each step; ``0, 1, 2, ...`` by default.
         encoding: ``"hdf5"`` (default) or ``"ascii"`` (values inline, serial only).
     """
-    if encoding not in _ENCODINGS:
-        raise ValueError(f"encoding must be one of {list(_ENCODINGS)}, got {encoding!r}")
+    if encoding not in ENCODINGS:
+        raise ValueError(f"encoding must be one of {list(ENCODINGS)}, got {encoding!r}")
     series = _as_series(fields)
     steps = len(next(iter(series.values())))
     if times is None:
@@ -67,7 +67,7 @@ def write_xdmf(path, fields, *, times: Sequence[float] | None = None, encoding: 
     path.parent.mkdir(parents=True, exist_ok=True)
     spaces: dict = {}
     with one_writer(path, msh.comm):
-        with dolfinx.io.XDMFFile(msh.comm, str(path), "w", encoding=_ENCODINGS[encoding]) as out:
+        with dolfinx.io.XDMFFile(msh.comm, str(path), "w", encoding=ENCODINGS[encoding]) as out:
             out.write_mesh(msh)
             for step, t in enumerate(times):
                 for name, fns in series.items():
@@ -76,14 +76,14 @@ def write_xdmf(path, fields, *, times: Sequence[float] | None = None, encoding: 
 
 
 @contextlib.contextmanager
-def one_writer(path: Path, comm):
+def one_writer(path: Path, comm, holder: str = "write_xdmf"):
     """Hold ``path`` for one writer: the ranks of ``comm`` (the mesh's: a distributed mesh is written by
     all of them together) take a kernel lock on a hidden file beside it, and a second writer at the same
     time, e.g. every rank of a data-parallel run writing one file from its own copy of the mesh, gets a
-    ValueError instead of a corrupted file."""
+    ValueError instead of a corrupted file. The hidden file names the holder (host, process id,
+    ``holder``), so that the refusal can say who holds the path."""
     guard = path.with_name(f".{path.name}.writing")
-    fd = None
-    busy = False
+    fd = refusal = None
     if comm.rank == 0:
         fd = os.open(guard, os.O_RDWR | os.O_CREAT, 0o666)
         try:
@@ -95,15 +95,37 @@ def one_writer(path: Path, comm):
         if busy:
             os.close(fd)
             fd = None
-    if comm.bcast(busy, root=0):
-        raise ValueError(f"another process is writing {str(path)!r} at this moment (every rank of a data-parallel "
-                         "run writing one file?); write from one rank (rank 0), or give each rank its own path")
+            refusal = _busy_message(path, guard)
+        else:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{socket.gethostname()} {os.getpid()} {holder}".encode())
+    refusal = comm.bcast(refusal, root=0)
+    if refusal:
+        raise ValueError(refusal)
     try:
         yield
     finally:
         if fd is not None:
             guard.unlink(missing_ok=True)
             os.close(fd)
+
+
+def _busy_message(path: Path, guard: Path) -> str:
+    """Why ``path`` cannot be written now, from what its holder wrote into ``guard``."""
+    try:
+        host, pid, holder = guard.read_text().split(" ", 2)
+    except (OSError, ValueError):     # gone, or its holder has not written its name yet
+        host = pid = holder = ""
+    if host == socket.gethostname() and pid == str(os.getpid()):
+        if holder == "TimeSeries":
+            return (f"{str(path)!r} is held by a TimeSeries in this process that is still open; close it "
+                    "(series.close()) or write it inside `with TimeSeries(...) as series:`, or use another path")
+        return f"{str(path)!r} is being written by {holder} in another thread of this process; wait for it or " \
+               "use another path"
+    who = f" (process {pid} on {host}, {holder})" if pid else ""
+    return (f"another process is writing {str(path)!r} at this moment{who}: a TimeSeries there still open on "
+            "that path, or every rank of a data-parallel run writing one file?; close that TimeSeries (or use "
+            "`with`), write from one rank (rank 0), or give each rank its own path")
 
 
 def write_fields(path, problem, values: Mapping, *, times: Sequence[float] | None = None,
@@ -142,83 +164,6 @@ def write_fields(path, problem, values: Mapping, *, times: Sequence[float] | Non
         else:
             series[label] = [problem.to_function(v, name) for v in steps]
     return write_xdmf(path, series, times=times, encoding=encoding)
-
-
-class TimeSeries:
-    """An XDMF time series of a problem's solution written one step at a time (a context manager).
-
-    The file opens at the first :meth:`write` (mesh included) and closes with :meth:`close`; every
-    rank of a distributed mesh calls both. A mixed solution is written field by field (``u_u``, ``u_p``).
-
-    Args:
-        path: the ``.xdmf`` file to create (replaced); HDF5 values go beside it (``.h5``).
-        problem: the problem whose solution space the values live in.
-        name: the array's name in the file.
-        sample: the row written when a value is a batch (B, n).
-        every: write the steps 0, every, 2 every, ... (a 5,000-step rollout every 50th).
-        encoding: ``"hdf5"`` or ``"ascii"`` (serial only).
-
-    Example:
-        >>> with TimeSeries("out/heat.xdmf", step.problem, every=10) as series:
-        ...     u = rollout(u0, 500, f=f, outputs=[-1], series=series)
-    """
-
-    def __init__(self, path, problem, *, name: str = "u", sample: int = 0, every: int = 1,
-                 encoding: str = "hdf5"):
-        if encoding not in _ENCODINGS:
-            raise ValueError(f"encoding must be one of {list(_ENCODINGS)}, got {encoding!r}")
-        check_int("every", every, minimum=1)
-        check_int("sample", sample, minimum=0)
-        self.path = Path(path).with_suffix(".xdmf")
-        self.problem, self.name, self.sample, self.every, self._encoding = problem, name, sample, every, encoding
-        self._stack: contextlib.ExitStack | None = None
-        self._file = None
-        self._spaces: dict = {}
-        #: The times written so far.
-        self.times: list = []
-
-    def write(self, step: int, t: float, value) -> None:
-        """Write ``value`` ((n,) or (B, n) owned DOF values) at time ``t`` if ``step`` is one to keep."""
-        if step % self.every:
-            return
-        value = value.detach().cpu() if hasattr(value, "detach") else np.asarray(value)
-        if value.ndim == 2:
-            if self.sample >= value.shape[0]:
-                raise ValueError(f"TimeSeries(sample={self.sample}) but the batch has {value.shape[0]} samples")
-            value = value[self.sample]
-        if self._file is None:
-            self._open()
-        p = self.problem
-        labels = {f"{self.name}_{field}": field for field in p.fields} if p.fields else {self.name: None}
-        for label, field in labels.items():
-            self._file.write_function(nodal_field(p.to_function(value, field), label, self._spaces), float(t))
-        self.times.append(float(t))
-
-    def _open(self) -> None:
-        msh = self.problem.V.mesh
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        stack = contextlib.ExitStack()
-        try:
-            stack.enter_context(one_writer(self.path, msh.comm))
-            self._file = stack.enter_context(dolfinx.io.XDMFFile(msh.comm, str(self.path), "w",
-                                                                 encoding=_ENCODINGS[self._encoding]))
-            self._file.write_mesh(msh)
-        except BaseException:
-            stack.close()
-            raise
-        self._stack = stack
-
-    def close(self) -> None:
-        """Close the file (written steps stay); a second call does nothing."""
-        if self._stack is not None:
-            self._stack.close()
-        self._stack = self._file = None
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 def plot_fields(path, problem, values: Mapping, *, title: str | None = None, same_scale=()) -> Path:

@@ -33,6 +33,7 @@ from __future__ import annotations
 import hashlib
 import importlib.resources
 import os
+import stat
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -158,8 +159,9 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
         ValueError: unknown name, ``h`` with a path or ``h`` not finite and > 0,
             ``h`` larger than the geometry's shortest feature or giving more
             than ``max_cells`` cells, ``gdim`` with a bundled name or invalid,
-            or an unreadable file.
+            a path that is not a regular file (a FIFO, a device), or an unreadable file.
         FileNotFoundError: the path does not exist.
+        IsADirectoryError: the path is a directory.
     """
     _check_int_choice("rank", rank, range(comm.size))
     h = meshgen.check_h(h)
@@ -219,7 +221,11 @@ def source_digest(name_or_path, h: float | None = None) -> str | None:
     else:
         path = Path(name_or_path)
     try:
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        # Non-blocking: opening a FIFO for reading would otherwise wait for a writer.
+        with open(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as file:
+            if not stat.S_ISREG(os.fstat(file.fileno()).st_mode):
+                return None           # a directory, a FIFO, a device: load refuses it
+            return hashlib.sha256(file.read()).hexdigest()
     except OSError:
         return None
 
@@ -274,10 +280,23 @@ def _as_msh_path(name_or_path) -> Path:
     if path.suffix != ".msh":
         raise ValueError(f"name_or_path must be a gmsh .msh file, got {str(path)!r}; convert other "
                          "formats with gmsh (gmsh FILE -save -format msh4)")
-    if not path.is_file():
+    try:
+        mode = path.stat().st_mode        # stat, not open: opening a FIFO blocks until someone writes to it
+    except (FileNotFoundError, NotADirectoryError):
         raise FileNotFoundError(f"name_or_path: no such .msh file {str(path)!r}; bundled meshes are "
-                                f"{available()}")
+                                f"{available()}") from None
+    if stat.S_ISDIR(mode):
+        raise IsADirectoryError(f"name_or_path: {str(path)!r} is a directory, not a .msh file; give the path of a "
+                                ".msh file")
+    if not stat.S_ISREG(mode):
+        kind = next((name for test, name in _SPECIAL_FILES if test(mode)), "a special file")
+        raise ValueError(f"name_or_path: {str(path)!r} is not a regular file ({kind}); save the mesh to a .msh "
+                         "file and give its path")
     return path
+
+
+_SPECIAL_FILES = ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+                  (stat.S_ISBLK, "a block device"))
 
 
 def _check_int_choice(arg: str, value, allowed) -> None:

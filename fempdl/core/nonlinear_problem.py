@@ -52,7 +52,7 @@ class NonlinearProblem(ProblemBase):
             linearisation) changes the Newton iteration, not its solution.
 
     Keyword Args:
-        fields, nullspace, constants, near_nullspace, positive: as for :class:`fempdl.Problem`.
+        fields, nullspace, constants, near_nullspace, positive, nonnegative: as for :class:`fempdl.Problem`.
 
     Attributes:
         V, u, lam: the solution space, the unknown and the adjoint work Function.
@@ -64,7 +64,7 @@ class NonlinearProblem(ProblemBase):
 
     def __init__(self, F: ufl.Form, u: dolfinx.fem.Function, bcs=(), controls: Mapping | None = None,
                  J: ufl.Form | None = None, *, fields: Mapping[str, int] | None = None, nullspace=(),
-                 constants: Mapping | None = None, near_nullspace=(), positive=()):
+                 constants: Mapping | None = None, near_nullspace=(), positive=(), nonnegative=()):
         if not isinstance(F, ufl.Form) or len(F.arguments()) != 1:
             raise TypeError(f"F must be a residual: a UFL form with one argument (the test function), "
                             f"got {describe_form(F)}")
@@ -91,7 +91,7 @@ class NonlinearProblem(ProblemBase):
                 raise ValueError(f"controls[{name!r}] is the unknown u itself; a control is an input of F")
         self.F, self.J = F, J
         self._init_spaces(V, bcs, checked, fields=fields, nullspace=nullspace, near_nullspace=near_nullspace,
-                          constants=constants, positive=positive)
+                          constants=constants, positive=positive, nonnegative=nonnegative)
         self.u = u
         self.step = dolfinx.fem.Function(V, name="newton_step")
         self.F_form = _dolfinx.compile_form(F)

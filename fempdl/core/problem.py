@@ -86,15 +86,18 @@ class Problem(ProblemBase):
             and columns are replaced alike), its adjoint solve is its forward solve,
             and the ``"cholesky"`` preset may factorise it (about half LU's work).
             Checked on the assembled A before the first Cholesky factorisation.
-        positive: names of controls whose values must be > 0 (a diffusivity, a
-            Young's modulus): a layer call passing a value <= 0 for one of them is
-            refused with a ValueError before any solve (``problem.positive``,
+        positive: names of controls and Constants whose values must be > 0 (a
+            diffusivity, a Young's modulus, a time step): a layer call passing a
+            value <= 0 for such a control, or made while such a Constant holds one,
+            is refused with a ValueError before any solve (``problem.positive``,
             assignable; the bundled forms declare theirs).
+        nonnegative: names of Constants whose values must be >= 0, checked alike
+            (``problem.nonnegative``).
     """
 
     def __init__(self, a: ufl.Form, L: ufl.Form, bcs=(), controls: Mapping | None = None, *,
                  fields: Mapping[str, int] | None = None, nullspace=(), constants: Mapping | None = None,
-                 near_nullspace=(), symmetric: bool = False, positive=()):
+                 near_nullspace=(), symmetric: bool = False, positive=(), nonnegative=()):
         if not isinstance(a, ufl.Form) or len(a.arguments()) != 2:
             raise TypeError(f"a must be a bilinear UFL form (two arguments), got {describe_form(a)}")
         if not isinstance(L, ufl.Form) or len(L.arguments()) != 1:
@@ -107,7 +110,7 @@ class Problem(ProblemBase):
         self.L = L
         self._init_spaces(V, bcs, validated_controls(controls or {}, {"a": a, "L": L}, V.mesh), fields=fields,
                           nullspace=nullspace, near_nullspace=near_nullspace, constants=constants,
-                          positive=positive)
+                          positive=positive, nonnegative=nonnegative)
         self.u = dolfinx.fem.Function(self.V, name="u")
         self.a_form = _dolfinx.compile_form(a)
         self.L_form = _dolfinx.compile_form(L)

@@ -36,10 +36,10 @@ class ProblemBase:
     """
 
     def _init_spaces(self, V, bcs, controls: dict, *, fields, nullspace, near_nullspace, constants,
-                     positive=()) -> None:
+                     positive=(), nonnegative=()) -> None:
         """Set V, bcs (checked to be Dirichlet conditions on V), the validated ``controls``,
-        the work Functions ``u`` and ``lam``, BC DOFs, fields, null spaces, constants and the
-        controls that must be positive."""
+        the work Functions ``u`` and ``lam``, BC DOFs, fields, null spaces, constants, the
+        controls and Constants that must be positive and the Constants that must be >= 0."""
         self.V = V
         if bcs is None:
             bcs = ()
@@ -70,6 +70,7 @@ class ProblemBase:
         self.near_nullspace = orthonormal(near_nullspace, "near_nullspace", self._n_owned, self.V.mesh.comm)
         self.constants = MappingProxyType(validated_constants(constants or {}))
         self.positive = positive
+        self.nonnegative = nonnegative
 
     @property
     def enclosed(self) -> bool:
@@ -79,24 +80,59 @@ class ProblemBase:
     # --------------------------------------------------------- control values
     @property
     def positive(self) -> frozenset:
-        """Names of the controls whose values must be > 0 (a diffusivity, a Young's modulus, a
-        viscosity): a layer refuses a call that passes a value <= 0 for one of them, before any
-        solve (:meth:`check_control_values`). Assign ``()`` to solve with such values on purpose."""
+        """Names of the controls and Constants whose values must be > 0 (a diffusivity, a Young's
+        modulus, a viscosity, a time step): a layer refuses a call that passes a control value <= 0
+        (:meth:`check_control_values`), or is made while such a Constant holds one (:meth:`check_constants`),
+        before any solve. Assign ``()`` to solve with such values on purpose."""
         return self._positive
 
     @positive.setter
     def positive(self, names) -> None:
+        self._positive = self._named("positive", names, (*self.control_names, *self.constants))
+
+    @property
+    def nonnegative(self) -> frozenset:
+        """Names of the Constants whose values must be >= 0 (a stabilisation weight, a Poisson ratio):
+        checked like :attr:`positive`'s."""
+        return self._nonnegative
+
+    @nonnegative.setter
+    def nonnegative(self, names) -> None:
+        self._nonnegative = self._named("nonnegative", names, tuple(self.constants))
+
+    @staticmethod
+    def _named(what: str, names, allowed: tuple) -> frozenset:
         if isinstance(names, str):
             names = (names,)
         try:
             names = frozenset(names)
         except TypeError:
-            raise TypeError(f"positive must be a collection of control names, got {type(names).__name__}") from None
-        unknown = sorted(str(n) for n in names - set(self.control_names))
+            raise TypeError(f"{what} must be a collection of names, got {type(names).__name__}") from None
+        unknown = sorted(str(n) for n in names - set(allowed))
         if unknown:
-            raise ValueError(f"positive names {unknown}, which are not controls of this problem; name controls "
-                             f"among {list(self.control_names)}")
-        self._positive = names
+            raise ValueError(f"{what} names {unknown}, which are not among this problem's "
+                             f"{'controls or Constants' if what == 'positive' else 'Constants'} {list(allowed)}")
+        return names
+
+    def check_constants(self, values: Mapping | None = None) -> None:
+        """Refuse a Constant in :attr:`positive` (> 0) or :attr:`nonnegative` (>= 0) whose value breaks its
+        bound, with a ValueError naming it, the value and the fix: the values the Constants hold now, or
+        ``values`` (name -> an array of per-step values, step first: a rollout's sequence). O(1) per
+        Constant; local (the ranks agree on the Constants before: a layer's call check)."""
+        for name in (values if values is not None else self.constants):
+            strict = name in self._positive
+            if not strict and name not in self._nonnegative:
+                continue
+            array = np.asarray(values[name] if values is not None else self.constants[name].value, dtype=np.float64)
+            bad = array <= 0 if strict else array < 0
+            if not bad.any():
+                continue
+            where = "" if values is None else f" at step {int(np.argwhere(bad)[0][0])}"
+            value = float(array[np.unravel_index(int(np.argmax(bad)), array.shape)]) if array.ndim else float(array)
+            sign = "> 0" if strict else ">= 0"
+            raise ValueError(f"Constant {name!r} must be {sign} (problem.{'positive' if strict else 'nonnegative'}), "
+                             f"got {value:g}{where}; pass {sign.replace('>', 'values >')} (a time step runs "
+                             "forward), or take the name out of that set to solve with it on purpose")
 
     def check_control_values(self, name: str, values) -> None:
         """Refuse the values a call passes for control ``name`` (a numpy array or a tensor, any shape:

@@ -35,6 +35,13 @@ class Ranks:
     def __init__(self, group, *, torch_group: bool):
         self.group, self._torch = group, torch_group
 
+    def __repr__(self) -> str:
+        if self._torch:
+            name = "default" if self.group is None else "given"
+            backend = dist.get_backend(self.group)
+            return f"Ranks({name} torch.distributed process group, backend {backend}, size {self.size})"
+        return f"Ranks(MPI communicator {self.group.Get_name()!r}, size {self.size})"
+
     @property
     def size(self) -> int:
         return dist.get_world_size(self.group) if self._torch else self.group.size

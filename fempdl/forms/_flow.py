@@ -137,4 +137,5 @@ def flow_problem(W, a, L, bcs, enclosed, fns, controls, constants) -> Problem:
         n_owned = W.dofmap.index_map.size_local * W.dofmap.index_map_bs
         nullspace = pressure_nullspace(p_dofs, n_owned)
     return Problem(a, L, bcs, controls={name: fns[name] for name in controls},
-                   fields={"u": 0, "p": 1}, nullspace=nullspace, constants=constants)
+                   fields={"u": 0, "p": 1}, nullspace=nullspace, constants=constants,
+                   positive={"nu", "dt"} & set(constants), nonnegative={"grad_div"} & set(constants))

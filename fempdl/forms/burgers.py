@@ -63,4 +63,5 @@ def problem(msh, controls=("w", "u_prev"), *, nu: float = 1e-2, dt: float = 0.1,
         residual = u / dt_c + ufl.dot(ufl.grad(u), w_fn) - nu_c * ufl.div(ufl.grad(u))
         a = a + tau * ufl.inner(streamline, residual) * supg_dx
         L = L + tau * ufl.inner(streamline, source) * supg_dx
-    return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, constants={"nu": nu_c, "dt": dt_c})
+    return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, constants={"nu": nu_c, "dt": dt_c},
+                   positive=("nu", "dt"))

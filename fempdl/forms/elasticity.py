@@ -82,5 +82,6 @@ def problem(msh, controls=("f",), *, degree: int = 1, E=1.0, nu: float = 0.3, E_
     L = ufl.inner(f_fn, v) * ufl.dx
     fns = {"f": f_fn, "E": E_fn}
     return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, constants={"nu": nu_c},
+                   nonnegative=("nu",),
                    near_nullspace=rigid_body_modes(V) if near_nullspace else (), symmetric=True,
                    positive={"E"} & set(controls))

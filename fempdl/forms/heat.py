@@ -82,4 +82,4 @@ def problem(msh, controls=("u0",), *, dt: float = 0.01, theta: float = 1.0, degr
         L = L - (1.0 - theta) * dt_c * kappa_fn * ufl.inner(ufl.grad(u0_fn), ufl.grad(v)) * ufl.dx
     fns = {"u0": u0_fn, "f": f_fn, "kappa": kappa_fn}
     return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, constants={"dt": dt_c},
-                   symmetric=True, positive={"kappa"} & set(controls))
+                   symmetric=True, positive={"kappa"} & set(controls) | {"dt"})

@@ -136,6 +136,7 @@ def problem(msh, controls=("T",), *, degree: int = 1, E=1.0, nu: float = 0.3, E_
     F = (ufl.inner(P, ufl.grad(v)) * dx_stress - ufl.inner(fns["B"], v) * ufl.dx
          - ufl.inner(fns["T"], v) * ds_loaded)
     return NonlinearProblem(F, u, bcs, controls={name: fns[name] for name in controls}, constants={"nu": nu_c},
+                            nonnegative=("nu",),
                             near_nullspace=rigid_body_modes(V) if near_nullspace else (),
                             positive={"E"} & set(controls))
 

@@ -84,4 +84,4 @@ def problem(msh, controls=("f",), *, nu: float = 1e-2, nu_space: str = "DG0", de
         _, p_dofs = _dolfinx.collapsed_subspace(W, 1)
         nullspace = pressure_nullspace(p_dofs, W.dofmap.index_map.size_local * W.dofmap.index_map_bs)
     return NonlinearProblem(F, w, bcs, controls={name: fns[name] for name in controls}, fields={"u": 0, "p": 1},
-                            nullspace=nullspace, constants=constants, positive={"nu"} & set(controls))
+                            nullspace=nullspace, constants=constants, positive={"nu"})

@@ -85,4 +85,4 @@ def problem(msh, controls=("f",), *, degree: int = 1, q=None, kappa=1.0, kappa_s
         F = F + (u - fns["u0"]) * v / dt_c * ufl.dx
         constants["dt"] = dt_c
     return NonlinearProblem(F, u, bcs, controls={name: fns[name] for name in controls}, constants=constants,
-                            positive={"kappa"} & set(controls))
+                            positive={"kappa"} & set(controls) | set(constants))

@@ -114,4 +114,4 @@ def problem(msh, controls=("w", "m_prev"), *, kappa: float = 1e-3, dt: float = 0
         a = a + tau * streamline * residual * supg_dx
         L = L + tau * streamline * source * supg_dx
     return Problem(a, L, bcs, controls={name: fns[name] for name in controls},
-                   constants={"kappa": kappa_c, "dt": dt_c})
+                   constants={"kappa": kappa_c, "dt": dt_c}, positive=("dt",), nonnegative=("kappa",))

@@ -10,8 +10,10 @@
   space, per sample; :meth:`MassInner.norm` is sqrt(<u, u>_M). Differentiable (M is symmetric:
   d<u, v>/du = M v), and on a distributed mesh collective (PETSc's product fetches the ghost values).
 
-Shapes: u, v (B, n) or (n,) with n the space's owned DOF values (``problem.output_size`` for the
-solution, ``problem.control_size(name)`` for a control); results (B, ...) or unbatched likewise.
+Shapes: u, v (..., n), any leading axes (one sample (n,), a batch (B, n), a rollout's states
+(B, T, n)), with n the space's owned DOF values (``problem.output_size`` for the solution,
+``problem.control_size(name)`` for a control); results keep the leading axes: (..., N * bs) values,
+(...) inner products, u's and v's leading axes broadcast against each other.
 Point evaluation supports Lagrange spaces of degree 1 and 2 (scalar or vector) on affine simplex
 meshes (straight-sided triangles and tetrahedra), where the pull-back to the reference cell is exact.
 """
@@ -47,7 +49,8 @@ def _space(problem: ProblemBase, name: str | None):
 
 
 class PointObservation(torch.nn.Module):
-    """Values of a layer tensor at ``points``: ``obs(u)`` (B, n) -> (B, N * bs).
+    """Values of a layer tensor at ``points``: ``obs(u)`` (..., n) -> (..., N * bs), e.g. a rollout's
+    states (B, T, n) -> (B, T, N * bs).
 
     Args:
         problem: the Problem or NonlinearProblem whose solution (``name=None``) or control ``name`` is
@@ -123,18 +126,19 @@ class PointObservation(torch.nn.Module):
         return gathered[0][own], gathered[1][own] - start, gathered[2][own]
 
     def forward(self, u: torch.Tensor) -> torch.Tensor:
-        batched = u.dim() == 2
-        u2 = u if batched else u[None]
-        if u2.dim() != 2 or u2.shape[1] != self.matrix.shape[1]:
-            raise ValueError(f"u must have shape (B, {self.matrix.shape[1]}) or ({self.matrix.shape[1]},), "
-                             f"got {tuple(u.shape)}")
-        local = (self.matrix @ u2.to(torch.float64).T).T
+        """u (..., n) -> (..., N * bs): P applied to every row of the flattened leading axes."""
+        n_obs, n = self.matrix.shape
+        if u.dim() == 0 or u.shape[-1] != n:
+            raise ValueError(f"u must have shape (..., {n}): {n} owned DOF values last, e.g. (B, {n}) or a "
+                             f"rollout's (B, T, {n}); got {tuple(u.shape)}")
+        rows = u.reshape(-1, n).to(torch.float64)
+        local = (self.matrix @ rows.T).T
         out = parallel.allreduce_sum(local, self.comm)
-        return (out if batched else out[0]).to(u.dtype)
+        return out.reshape(*u.shape[:-1], n_obs).to(u.dtype)
 
 
 class MassInner(torch.nn.Module):
-    """<u, v>_M per sample, with M the L2 (mass) or H1 matrix of a space; ``inner(u, v)`` (B,) or (),
+    """<u, v>_M per sample, with M the L2 (mass) or H1 matrix of a space; ``inner(u, v)`` (..., n) -> (...),
     ``inner.norm(u)`` its square root.
 
     Args:
@@ -168,14 +172,21 @@ class MassInner(torch.nn.Module):
         return out
 
     def forward(self, u: torch.Tensor, v: torch.Tensor | None = None) -> torch.Tensor:
-        batched = u.dim() == 2
-        v = u if v is None else v
-        u2, v2 = (u if batched else u[None]), (v if v.dim() == 2 else v[None])
-        for label, t in (("u", u2), ("v", v2)):
-            if t.dim() != 2 or t.shape[1] != self.size:
-                raise ValueError(f"{label} must have shape (B, {self.size}) or ({self.size},), got {tuple(t.shape)}")
-        out = _MassInnerFunction.apply(u2.to(torch.float64), v2.to(torch.float64), self)
-        return out if batched else out[0]
+        """<u, v>_M over the last axis: u, v (..., n) -> (...), leading axes broadcast; ``v=None``: <u, u>_M."""
+        for label, t in (("u", u), ("v", u if v is None else v)):
+            if t.dim() == 0 or t.shape[-1] != self.size:
+                raise ValueError(f"{label} must have shape (..., {self.size}): {self.size} owned DOF values "
+                                 f"last, e.g. (B, {self.size}); got {tuple(t.shape)}")
+        if v is None:             # one operand: M u is computed once
+            rows = u.reshape(-1, self.size).to(torch.float64)
+            return _MassInnerFunction.apply(rows, rows, self).reshape(u.shape[:-1])
+        try:
+            lead = torch.broadcast_shapes(u.shape[:-1], v.shape[:-1])
+        except RuntimeError:
+            raise ValueError(f"u {tuple(u.shape)} and v {tuple(v.shape)} have leading axes that do not broadcast; "
+                             "give equal leading axes, or 1 where one is shared") from None
+        u2, v2 = (t.expand(*lead, self.size).reshape(-1, self.size).to(torch.float64) for t in (u, v))
+        return _MassInnerFunction.apply(u2, v2, self).reshape(lead)
 
     def norm(self, u: torch.Tensor) -> torch.Tensor:
         return self(u).clamp_min(0.0).sqrt()

@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from fempdl.core.checks import check_int
+from fempdl.core.ranks import torch_group_initialised
 from fempdl.layer.rollout_checkpoint import CheckpointedRollout, ScheduleStats, make_schedule
 from fempdl.layer.system_layer import SystemLayer
 from fempdl.solve.linear_system import INITIAL_GUESS
@@ -124,6 +125,7 @@ class Rollout(torch.nn.Module):
         values = self._constant_values(constants or {}, steps)
         self._check_controls(controls, per_step, steps)
         indices = self._outputs(outputs, steps)
+        self._check_call(initial, steps, values, controls, per_step, indices)
         write = self._writer(series, values, steps)
         write(0, initial)
         if self.schedule is not None:
@@ -149,13 +151,48 @@ class Rollout(torch.nn.Module):
             states[0] = initial.expand_as(states[-1])        # one initial state shared by a batch
         return torch.stack([states[i] for i in indices], dim=-2)
 
+    def _check_call(self, initial, steps: int, values: dict, controls: dict, per_step: dict, indices: list) -> None:
+        """The step layer's checks of a step's call, made once for all steps: types, shapes and dtypes, and
+        (where no step layer call makes them: under a schedule) finite values, positive controls and the
+        caps over a torch.distributed group; the Constants' bounds at every step; and on a distributed mesh
+        one agreement of the whole call over the ranks, before anything collective runs."""
+        layer = self.step
+        if not isinstance(initial, torch.Tensor):
+            raise TypeError(f"initial must be a torch.Tensor, (B, n) or (n,), got {type(initial).__name__}; wrap "
+                            "arrays with torch.as_tensor(..., dtype=torch.float64)")
+        n = layer.problem.output_size
+        if initial.dtype not in (torch.float32, torch.float64):
+            raise TypeError(f"initial has dtype {initial.dtype}; use float32 or float64 (e.g. initial.double())")
+        if initial.dim() not in (1, 2) or initial.shape[-1] != n or initial.numel() == 0:
+            raise ValueError(f"initial must be (B, {n}) or ({n},): one value per owned DOF of the state's space, got "
+                             f"shape {tuple(initial.shape)}")
+        one_step = {**controls, **{name: t[..., 0, :] for name, t in per_step.items()}, self.state: initial}
+        names, tensors, batch, _ = layer._validate(one_step)
+        if layer._distributed:
+            extra = {"steps": steps, "outputs": tuple(indices), "schedule": repr(self.schedule),
+                     "warm_start": self.warm_start, "per-step Constants": {k: v.tolist() for k, v in values.items()}}
+            layer._check_ranks_agree(names, tensors, batch, extra, caller="this distributed-mesh Rollout")
+        problem = layer.problem
+        if self.schedule is not None:
+            whole = {**controls, **per_step, self.state: initial}
+            layer._check_finite(list(whole), list(whole.values()))
+            if torch_group_initialised() and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+                layer._check_caps_over_torch_group()
+            problem.check_constants()
+        problem.check_constants(values)
+
     def _constant_values(self, constants: Mapping, steps: int) -> dict:
         problem, values = self.step.problem, {}
+        if not isinstance(constants, Mapping):
+            raise TypeError(f"constants must be a mapping name -> one value per step, got {type(constants).__name__}")
         for name, seq in constants.items():
             if name not in problem.constants:
                 raise ValueError(f"the step problem has no Constant {name!r}; its Constants are "
                                  f"{sorted(problem.constants)}")
-            array = np.asarray(seq.detach().cpu() if isinstance(seq, torch.Tensor) else seq, dtype=np.float64)
+            try:
+                array = np.asarray(seq.detach().cpu() if isinstance(seq, torch.Tensor) else seq, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise TypeError(f"constants[{name!r}] must be numbers, one per step, got {seq!r}") from None
             shape = np.shape(problem.constants[name].value)
             if array.shape[:1] != (steps,) or array.shape[1:] != shape:
                 raise ValueError(f"constants[{name!r}] must hold one value per step, shape {(steps, *shape)}, "
@@ -195,12 +232,15 @@ class Rollout(torch.nn.Module):
         else:
             dts = np.ones(steps)
         times = np.concatenate([[0.0], np.cumsum(dts)])
-        return lambda k, u: series.write(k, times[k], u)
+        return lambda k, u: series.write(k, times[k], u, last=k == steps)
 
     @staticmethod
     def _outputs(outputs, steps: int) -> list:
         if outputs is None:
             return list(range(steps + 1))
+        if isinstance(outputs, (str, int, np.integer)) or not hasattr(outputs, "__iter__"):
+            raise TypeError(f"outputs must be a sequence of state indices into 0 ... {steps}, e.g. [{steps}] for the "
+                            f"last state, got {outputs!r}")
         indices = list(outputs)
         if not indices or not all(isinstance(i, (int, np.integer)) and not isinstance(i, bool)
                                   and -steps - 1 <= i <= steps for i in indices):
@@ -225,7 +265,7 @@ class _Scheduled(torch.autograd.Function):
             if first:
                 write(k + 1, u_next[0] if plan.unbatched else u_next)
             return u_next
-        runner = CheckpointedRollout(make_schedule(rollout.schedule, steps), steps, run, plan.adjoint, indices,
+        runner = CheckpointedRollout(rollout.schedule, steps, run, plan.adjoint, indices,
                                      rollout.disk_dir, rollout.step.problem.V.mesh.comm.rank)
         with plan.constants_kept():
             outs = runner.forward(plan.initial)
@@ -238,6 +278,10 @@ class _Scheduled(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_out):
         plan, runner = ctx.plan, ctx.runner
+        if runner.spent:        # a second backward (retain_graph=True): the schedule runs again from u_0
+            runner = ctx.runner = runner.again(lambda k, u, first: plan.run(k, u, False, True))
+            with plan.constants_kept():
+                runner.forward(plan.initial, first=False)
         G = grad_out.detach().to(device="cpu", dtype=torch.float64).numpy()
         G = G[None] if ctx.unbatched else G
         output_grads: dict = {}

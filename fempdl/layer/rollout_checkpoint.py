@@ -36,7 +36,8 @@ __all__ = ["ScheduleStats", "make_schedule", "CheckpointedRollout"]
 class ScheduleStats:
     """What the last checkpointed rollout ran: ``steps`` forward steps of the first sweep,
     ``recomputed`` steps run again from kept states, ``adjoint_steps``, and the most states held at
-    once in memory and on disk (the adjoint's dependencies included)."""
+    once in memory and on disk. In memory counts the snapshots and the working pair (u_k, u_k+1) of
+    the step whose adjoint runs: s + 2 for ``("revolve", s)``, N + 1 for ``"all"``."""
 
     steps: int = 0
     recomputed: int = 0
@@ -76,25 +77,42 @@ class _Store:
     def __init__(self, disk_dir: str | None, rank: int):
         self.memory: dict = {}
         self._disk: dict = {}
-        self._dir, self._rank, self._tmp = disk_dir, rank, None
+        self.disk_dir, self.rank, self._tmp = disk_dir, rank, None
 
     def put(self, storage, key, value: np.ndarray) -> None:
-        if storage == cs.StorageType.DISK:
-            if self._tmp is None:
-                self._tmp = tempfile.TemporaryDirectory(prefix="fempdl-rollout-", dir=self._dir)
-            path = os.path.join(self._tmp.name, f"{key}.rank{self._rank}.npy")
-            np.save(path, value)
-            self._disk[key] = path
-        else:
+        if storage != cs.StorageType.DISK:
             self.memory[key] = value
+            return
+        if self._tmp is None:
+            self._tmp = tempfile.TemporaryDirectory(prefix="fempdl-rollout-", dir=self.disk_dir)
+        path = os.path.join(self._tmp.name, f"{key}.rank{self.rank}.bin")
+        value = np.ascontiguousarray(value)
+        # Raw bytes through Python's file object, whose write and close raise on a short write (a full disk,
+        # a file-size limit); numpy's tofile, under np.save, can leave a truncated file without an error.
+        try:
+            with open(path, "wb") as file:
+                file.write(memoryview(value).cast("B"))
+        except OSError as err:
+            raise OSError(err.errno, f"a multistage rollout could not write its state of step {key} to {path} "
+                          f"({err.strerror}: a full disk or a file-size limit); free space there, give the Rollout "
+                          "another disk_dir, or keep more snapshots in memory") from None
+        self._disk[key] = (path, value.shape, value.dtype)
 
     def take(self, storage, key, *, keep: bool) -> np.ndarray:
-        if storage == cs.StorageType.DISK:
-            value = np.load(self._disk[key])
-            if not keep:
-                os.remove(self._disk.pop(key))
-            return value
-        return self.memory[key] if keep else self.memory.pop(key)
+        if storage != cs.StorageType.DISK:
+            return self.memory[key] if keep else self.memory.pop(key)
+        path, shape, dtype = self._disk[key]
+        expected = int(np.prod(shape)) * np.dtype(dtype).itemsize
+        size = os.path.getsize(path) if os.path.isfile(path) else -1
+        if size != expected:
+            raise OSError(f"the state of step {key} a multistage rollout wrote to {path} has "
+                          f"{'gone' if size < 0 else f'{size} bytes'} where {expected} were written: another "
+                          "process changed its disk_dir; give the Rollout a private disk_dir")
+        value = np.fromfile(path, dtype=dtype).reshape(shape)
+        if not keep:
+            os.remove(path)
+            del self._disk[key]
+        return value
 
     @property
     def on_disk(self) -> int:
@@ -107,34 +125,48 @@ class _Store:
 
 
 class CheckpointedRollout:
-    """One rollout call under a schedule: :meth:`forward` returns the output states, :meth:`backward`
-    the gradients. ``run(k, u, first)`` advances u_k to u_{k+1} ((B, n) arrays; ``first``: the first
-    sweep); ``adjoint(k, u_k, u_k1, lam)`` returns (lam_k, {control: dJ/dm_k}) for step k."""
+    """One rollout call under the schedule ``spec`` (:func:`make_schedule`): :meth:`forward` returns the
+    output states, :meth:`backward` the gradients. ``run(k, u, first)`` advances u_k to u_{k+1} ((B, n)
+    arrays; ``first``: the first sweep); ``adjoint(k, u_k, u_k1, lam)`` returns (lam_k, {control: dJ/dm_k})
+    for step k."""
 
-    def __init__(self, schedule: cs.CheckpointSchedule, steps: int, run, adjoint, outputs: list,
-                 disk_dir: str | None, rank: int):
-        self._schedule, self._actions = schedule, iter(schedule)
+    def __init__(self, spec, steps: int, run, adjoint, outputs: list, disk_dir: str | None, rank: int):
+        self._spec, self._schedule = spec, make_schedule(spec, steps)
+        self._actions = iter(self._schedule)
         self._steps, self._run, self._adjoint, self._outputs = steps, run, adjoint, outputs
         self._ics = _Store(disk_dir, rank)
         self._deps: dict = {}                     # step k -> (u_k, u_k+1): shared arrays, counted once
+        self._swept = 0                           # steps the forward sweep ran
         self.stats = ScheduleStats()
+        #: Whether :meth:`backward` ran: the schedule's actions are spent, a second backward needs a new sweep.
+        self.spent = False
 
-    def forward(self, initial: np.ndarray) -> list:
+    def again(self, run) -> CheckpointedRollout:
+        """A new rollout on the same schedule and counters whose steps run by ``run`` (a second backward)."""
+        other = CheckpointedRollout(self._spec, self._steps, run, self._adjoint, self._outputs, self._ics.disk_dir,
+                                    self._ics.rank)
+        other.stats = self.stats
+        return other
+
+    def forward(self, initial: np.ndarray, first: bool = True) -> list:
+        """The forward sweep from u_0; ``first=False``: a sweep run again for a second backward (its steps
+        counted as recomputed)."""
         kept = {0: initial} if 0 in self._outputs else {}
         u = initial
         for action in self._actions:
             if isinstance(action, cs.EndForward):
                 break
-            u = self._act(action, u, kept, first=True)
-            if self._schedule.max_n is None and self.stats.steps == self._steps:
+            u = self._act(action, u, kept, first=first)
+            if self._schedule.max_n is None and self._swept == self._steps:
                 self._schedule.finalize(self._steps)
         self._work = u
-        return [kept[i] for i in self._outputs]
+        return [kept[i] for i in self._outputs] if first else []
 
     def backward(self, output_grads: dict) -> tuple:
         """``output_grads``: state index -> dJ/du_i (B, n); returns (dJ/du_0, [per-step control grads])."""
         lam, controls = None, {}
         u = self._work
+        self.spent = True
         try:
             for action in self._actions:
                 if isinstance(action, cs.EndReverse):
@@ -161,6 +193,8 @@ class CheckpointedRollout:
                 if k == action.n0 and action.write_ics:
                     self._ics.put(action.storage, action.n0, u)
                 u_next = self._run(k, u, first)
+                if self._swept < self._steps and k == self._swept:
+                    self._swept += 1
                 if first:
                     self.stats.steps += 1
                     if kept is not None and k + 1 in self._outputs:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import numpy as np
 import torch
 
 from fempdl.core.ranks import torch_group_initialised, training_ranks
@@ -206,6 +207,7 @@ class SystemLayer(torch.nn.Module):
             self._check_ranks_agree(names, tensors, batch)
         elif torch_group_initialised() and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
             self._check_caps_over_torch_group()
+        self.problem.check_constants()         # after the ranks agree on them: a refusal on every rank or none
         dtype = tensors[0].dtype if tensors else torch.float64
         if any(t.dtype != dtype for t in tensors):
             dtype = torch.float64
@@ -218,25 +220,32 @@ class SystemLayer(torch.nn.Module):
         keep = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
         return ImplicitSolve.apply(self._handle, names, batch, keep, dtype != torch.float64, *tensors)[0]
 
-    def _check_ranks_agree(self, names, tensors, batch: int) -> None:
-        """On a distributed mesh every rank must make the same call (the solves are collective, and the
-        dtype, a control's sharing and the grad mode choose which collectives run): one allgather of
-        the call's signature, and a ValueError on every rank if they differ, instead of ranks waiting in
-        different collectives (a hang)."""
-        comm = self.problem.V.mesh.comm
-        mine = {"caps": self._caps(), "batch": batch, "controls": tuple(names),
+    def call_signature(self, names, tensors, batch: int) -> dict:
+        """What every rank's call of this layer on a distributed mesh must share (the solves are collective,
+        and the dtype, a control's sharing and the grad mode choose which collectives run; the Constants
+        are the physics: ranks at different dt would each assemble their rows of a different operator)."""
+        return {"caps": self._caps(), "batch": batch, "controls": tuple(names),
                 "dtypes": tuple(str(t.dtype).removeprefix("torch.") for t in tensors),
                 "shared (n,) or batched (B, n)": tuple("shared" if t.dim() == 1 else "batched" for t in tensors),
-                "requires_grad": tuple(t.requires_grad for t in tensors) if torch.is_grad_enabled() else "no_grad"}
+                "requires_grad": tuple(t.requires_grad for t in tensors) if torch.is_grad_enabled() else "no_grad",
+                "Constants": tuple((name, tuple(np.ravel(c.value).tolist()))
+                                   for name, c in self.problem.constants.items())}
+
+    def _check_ranks_agree(self, names, tensors, batch: int, extra: dict | None = None, caller: str = "") -> None:
+        """On a distributed mesh every rank must make the same call (:meth:`call_signature`, with ``extra``
+        entries of a caller's own): one allgather of it, and a ValueError on every rank if they differ,
+        instead of ranks waiting in different collectives (a hang) or solving different physics."""
+        comm = self.problem.V.mesh.comm
+        mine = {**self.call_signature(names, tensors, batch), **(extra or {})}
         every = comm.allgather(mine)
         differ = [key for key in mine if any(call[key] != mine[key] for call in every)]
         if differ:
             by_rank = "; ".join(f"{key}: {[call[key] for call in every]}" for key in differ)
-            raise ValueError(
-                f"the ranks called this distributed-mesh {type(self).__name__} differently ({by_rank}, by rank); "
-                "every rank must call it with the same caps, batch size, controls, dtypes, tensor shapes and "
-                "grad mode. A PRDP step on per-rank metrics moves the caps apart: step PRDP with the same "
-                "(reduced) metric on every rank")
+            what = caller or f"this distributed-mesh {type(self).__name__}"
+            hint = (". A PRDP step on per-rank metrics moves the caps apart: step PRDP with the same (reduced) "
+                    "metric on every rank") if "caps" in differ else ""
+            raise ValueError(f"the ranks called {what} differently ({by_rank}, by rank); every rank must call it "
+                             f"with the same {', '.join(differ)}{hint}")
 
     def _check_caps_over_torch_group(self) -> None:
         """Under torch.distributed (torchrun + DDP) each process holds the whole mesh, so no solve is

@@ -169,6 +169,11 @@ class NonlinearSystem(NewtonReversePass):
     def inner_max_it(self) -> int | None:
         return self._options.ksp.max_it
 
+    @inner_max_it.setter
+    def inner_max_it(self, value: int | None) -> None:
+        # A backward puts back the inner cap its forward ran at (fempdl.solve.call_state).
+        self.options = self._options.with_inner_max_it(value)      # validates; moves in place
+
     def _build(self, options: NewtonOptions) -> None:
         p = self.problem
         assembly.check_symmetric_factor(options.ksp, p)

@@ -1,13 +1,14 @@
-"""Under mpirun -n 2: a distributed-mesh layer called differently on the ranks, and PRDP stepped with
-per-rank metrics, raise the same ValueError on every rank (instead of one rank waiting in a collective
-the other never enters). Writes what each rank caught to OUT.rank<r>.json."""
+"""Under mpirun -n 2: a distributed-mesh layer or Rollout called differently on the ranks (at other
+Constants, steps, batches or caps, with a schedule or without), and PRDP stepped with per-rank
+metrics, raise the same ValueError on every rank (instead of one rank waiting in a collective the
+other never enters). Writes what each rank caught to OUT.rank<r>.json."""
 import json
 import sys
 
 from mpi4py import MPI
 import torch
 
-from fempdl import PRDP, KSPOptions, NonlinearSolveLayer, SolveLayer, forms, mesh
+from fempdl import PRDP, KSPOptions, NonlinearSolveLayer, Rollout, SolveLayer, forms, mesh
 
 comm = MPI.COMM_WORLD
 problem = forms.poisson.problem(mesh.load("lshape", comm, h=0.2), controls=("f",))
@@ -39,6 +40,36 @@ try:
     newton(f=f if comm.rank == 0 else f.float())
 except ValueError as err:
     caught["newton_dtype"] = str(err)
+
+heat = forms.heat.problem(problem.V.mesh, controls=("u0", "f"))
+step = SolveLayer(heat, "lu")
+u0 = torch.ones(heat.output_size, dtype=torch.float64, requires_grad=True)
+heat.constants["dt"].value = 0.01 * (1 + comm.rank)                              # Constants differ by rank
+try:
+    step(u0=u0)
+except ValueError as err:
+    caught["constants"] = str(err)
+heat.constants["dt"].value = 0.01
+try:
+    Rollout(step, "u0")(u0, 3 + 2 * comm.rank).sum().backward()                    # steps differ by rank
+except ValueError as err:
+    caught["rollout_steps"] = str(err)
+scheduled = Rollout(step, "u0", schedule=("revolve", 2))
+try:
+    scheduled(u0 if comm.rank == 0 else torch.stack([u0, u0]), 3).sum().backward()   # batches differ by rank
+except ValueError as err:
+    caught["rollout_batch"] = str(err)
+try:
+    scheduled(u0, 3, constants={"dt": [0.01, 0.02, 0.01 + 0.01 * comm.rank]}).sum().backward()
+except ValueError as err:
+    caught["rollout_dt"] = str(err)
+capped = Rollout(SolveLayer(heat, KSPOptions.preset("jacobi", max_it=4 + comm.rank)), "u0", schedule="all")
+try:
+    capped(u0, 3).sum().backward()                                                  # caps differ by rank
+except ValueError as err:
+    caught["rollout_caps"] = str(err)
+scheduled(u0, 3).sum().backward()
+caught["rollout_agreed"] = float(u0.grad.abs().max())                              # the same call works
 
 ctrl = PRDP(layer, k0=2, delta=2, ema_window=1)
 assert ctrl.comm.size == comm.size            # the mesh's communicator, taken from the layer
