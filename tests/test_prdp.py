@@ -170,3 +170,11 @@ def test_refinements_are_logged(caplog):
     step = decisions.index(True)
     assert [(r.name, r.levelname, r.getMessage()) for r in caplog.records] == [
         ("fempdl.methods.prdp", "INFO", f"PRDP: K 3 -> 5 (plateau) at step {step}, metric {improving[-1]:.3e}")]
+
+
+def test_ranks_print_as_their_group_and_size():
+    from mpi4py import MPI
+
+    from fempdl.core.ranks import Ranks
+
+    assert repr(Ranks(MPI.COMM_WORLD, torch_group=False)) == "Ranks(MPI communicator 'MPI_COMM_WORLD', size 1)"

@@ -63,3 +63,8 @@ def test_layers_refuse_training_at_drifted_caps(tmp_path):
     # rank 0's garbage solve refined both ranks' caps together (rank 1's own solves were healthy at K = 1)
     assert seen[0]["health_k"] == seen[1]["health_k"] > 1
     assert seen[0]["health_refinements"] == seen[1]["health_refinements"] == seen[0]["health_k"] - 1
+    for rank in seen:
+        assert rank["ranks"] == "Ranks(default torch.distributed process group, backend gloo, size 2)"
+        assert "PRDP.step ran on some ranks of the torch.distributed group only (steps by rank: [1, 0])" \
+            in rank["step_alone"]
+        assert rank["stepped_together"] == seen[0]["stepped_together"]

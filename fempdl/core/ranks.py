@@ -20,7 +20,7 @@ import math
 import torch
 import torch.distributed as dist
 
-__all__ = ["Ranks", "training_ranks", "torch_group_initialised"]
+__all__ = ["Ranks", "training_ranks", "torch_group_initialised", "different_metrics_message"]
 
 
 def torch_group_initialised() -> bool:
@@ -45,6 +45,11 @@ class Ranks:
     @property
     def size(self) -> int:
         return dist.get_world_size(self.group) if self._torch else self.group.size
+
+    @property
+    def torch_group(self) -> bool:
+        """Whether these are the processes of a torch.distributed group (else an MPI communicator's)."""
+        return self._torch
 
     @property
     def kind(self) -> str:
@@ -100,3 +105,12 @@ def training_ranks(comm=None, mesh_comm=None) -> Ranks | None:
 
 def _is_torch_group(comm) -> bool:
     return dist.is_available() and isinstance(comm, dist.ProcessGroup)
+
+
+def different_metrics_message(every: list, ranks: Ranks) -> str:
+    """The refusal of PRDP steps made with different metrics on the ranks (``every``: by rank)."""
+    reduce = ("torch.distributed.all_reduce(total) on the sums and counts the metric is made of" if ranks.torch_group
+              else "comm.allreduce(error_sum) / comm.allreduce(count)")
+    return (f"PRDP.step got different metrics on the {ranks.size} ranks ({every}) of its {ranks.kind}; every rank "
+            "must step with the same metric, or one rank refines K alone (the collective solves of a distributed "
+            f"mesh hang; data-parallel ranks train on different physics): reduce it first, e.g. {reduce}")

@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from fempdl.core.ranks import torch_group_initialised, training_ranks
+from fempdl.core.ranks import different_metrics_message, torch_group_initialised, training_ranks
 from fempdl.layer.implicit_diff import ImplicitSolve, count_on_all_ranks, nonfinite_control_message, register_layer
 from fempdl.solve.call_state import CallState
 from fempdl.solve.health import CallHealth, HealthCheck
@@ -67,6 +67,9 @@ class SystemLayer(torch.nn.Module):
         self.__dict__.update(route=None, reference_twin=None)
         #: Calls without gradients at a cap (a validation computed with capped physics), counted for PRDP.
         self.capped_eval_calls = 0
+        #: (steps, last metric, k_cap) of the PRDP moving this layer, which the ranks of a torch.distributed
+        #: group agree on with the caps at each training call (:meth:`_check_caps_over_torch_group`).
+        self.prdp_steps: tuple = (0, None, None)
 
     def __setattr__(self, name: str, value) -> None:
         if name in ("route", "reference_twin"):       # torch would register a Module value as a submodule
@@ -254,9 +257,23 @@ class SystemLayer(torch.nn.Module):
         all-reduce of the caps there cannot hang a loop that validates on rank 0 alone."""
         ranks = training_ranks()
         mine = self._caps()
-        if ranks is None or ranks.agree(mine if isinstance(mine, tuple) else (mine,)):
+        if ranks is None or ranks.agree((*(mine if isinstance(mine, tuple) else (mine,)), *self.prdp_steps)):
             return
-        every = ranks.allgather(mine)
+        every = ranks.allgather((mine, self.prdp_steps))
+        steps, metrics, k_caps = ([record[i] for _, record in every] for i in range(3))
+        if len(set(steps)) > 1:
+            raise ValueError(
+                f"PRDP.step ran on some ranks of the torch.distributed group only (steps by rank: {steps}); a step "
+                "on one rank moves its caps alone. Call ctrl.step on every rank with the same metric: validate on "
+                "rank 0 and share the value (torch.distributed.broadcast_object_list), or all-reduce the sums it "
+                "is made of")
+        if len(set(metrics)) > 1:
+            raise ValueError(different_metrics_message(metrics, ranks))
+        if len(set(k_caps)) > 1:
+            raise ValueError(
+                f"PRDP measured K_eps again to different k_caps on the ranks ({k_caps}, by rank); validate on the "
+                "same data on every rank (an all-reduced metric) so that the measurement agrees")
+        every = [caps for caps, _ in every]
         if any(caps != mine for caps in every):
             raise ValueError(
                 f"the ranks of the torch.distributed group train this {type(self).__name__} at different caps "

@@ -41,7 +41,7 @@ from collections.abc import Callable
 
 import torch
 
-from fempdl.core.ranks import Ranks, training_ranks
+from fempdl.core.ranks import Ranks, different_metrics_message, training_ranks
 from fempdl.layer.reference import reference_physics
 from fempdl.methods.k_eps import k_eps, layers_of, targets_of
 from fempdl.methods.prdp_settings import SETTING_NAMES, PRDPRecord, PRDPSettings
@@ -222,6 +222,8 @@ class PRDP:
             _log.info("PRDP: K %d -> %d (%s) at step %d, metric %.3e", k_used, self.k, cause,
                       len(self.history) - 1, metric)
         self._eval_calls = self._capped_eval_calls()
+        for layer in self.layers:
+            layer.prdp_steps = (len(self.history), metric, self.k_cap)
         return refine
 
     def _run(self, validate: Callable, at_reference: bool) -> float:
@@ -258,7 +260,7 @@ class PRDP:
         """Measure K_eps on the validation at the current model; raise ``k_cap`` if it lies above."""
         measured = k_eps(self._target, call=validate, rtol=self.k_eps_rtol)
         ranks = self.ranks
-        if ranks is not None and ranks.size > 1:
+        if ranks is not None and ranks.size > 1 and not ranks.torch_group:     # torch: agreed in prdp_steps
             measured = int(ranks.max(float(measured)))
         if measured <= self.k_cap:
             return False
@@ -306,18 +308,17 @@ class PRDP:
         return training_ranks(self._given_comm, self.comm)
 
     def _check_ranks_agree(self, metric: float) -> None:
+        """Over an MPI communicator, now (its ranks step in lockstep). Over a torch.distributed group, at the
+        layers' next training call (:attr:`SystemLayer.prdp_steps <fempdl.layer.system_layer.SystemLayer>`):
+        validating and stepping on rank 0 alone is a common DDP pattern, and a collective here would wait
+        for ranks that never come while they wait in DDP's all-reduce (a hang); a training call is
+        collective under DDP anyway, so every rank gets the refusal there."""
         ranks = self.ranks
-        if ranks is None or ranks.size == 1 or ranks.agree((metric,)):
+        if ranks is None or ranks.size == 1 or ranks.torch_group or ranks.agree((metric,)):
             return
         every = ranks.allgather(metric)
         if any(m != metric for m in every):
-            reduce = ("torch.distributed.all_reduce(total) on the sums and counts the metric is made of"
-                      if ranks.kind.startswith("torch") else "comm.allreduce(error_sum) / comm.allreduce(count)")
-            raise ValueError(
-                f"PRDP.step got different metrics on the {ranks.size} ranks ({every}) of its {ranks.kind}; every "
-                "rank must step with the same metric, or one rank refines K alone (the collective solves of a "
-                f"distributed mesh hang; data-parallel ranks train on different physics): reduce it first, e.g. "
-                f"{reduce}")
+            raise ValueError(different_metrics_message(every, ranks))
 
     def state_dict(self) -> dict:
         """Everything needed to continue: K, the checkpoint, the history and the settings."""
