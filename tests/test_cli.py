@@ -115,11 +115,11 @@ def test_run_prints_prdp_and_baseline_rows(default_run):
 
 def test_run_writes_metrics_and_checkpoints(default_run):
     out = default_run["out"]
-    assert sorted(p.name for p in out.iterdir()) == ["converged", "prdp", "time_split.png"]
+    assert sorted(p.name for p in out.iterdir()) == [".fempdl-record.json", "converged", "prdp", "time_split.png"]
     for sub in ("prdp", "converged"):
         names = {p.name for p in (out / sub).iterdir()}
         assert {"metrics.csv", "metrics.json", "checkpoint.pt"} <= names
-        assert not [n for n in names if n.startswith(".")], names  # no leftover temporary files
+        assert not [n for n in names if n.startswith(".") and n != ".fempdl-record.json"], names  # no temporary files
         with (out / sub / "metrics.csv").open() as fh:
             from_csv = list(csv.DictReader(fh))
         from_json = metrics(out / sub)
@@ -174,7 +174,7 @@ def test_fixed_k_run(tiny, tmp_path):
     code, stdout, stderr = call(["run", tiny, "--k", "3", "--epochs", "3", "--no-baseline", "--out", out,
                                  "--no-progress"])
     assert code == 0, stderr
-    assert sorted(p.name for p in out.iterdir()) == ["k3", "time_split.png"]
+    assert sorted(p.name for p in out.iterdir()) == [".fempdl-record.json", "k3", "time_split.png"]
     rows = metrics(out / "k3")
     assert [r["epoch"] for r in rows] == [0, 1, 2]  # --epochs overrides the scene's 6
     for epoch, row in enumerate(rows):
@@ -190,7 +190,7 @@ def test_converged_only(tiny, tmp_path):
     out = tmp_path / "out"
     code, stdout, stderr = call(["run", tiny, "--converged", "--epochs", "2", "--out", out, "--no-progress"])
     assert code == 0, stderr
-    assert sorted(p.name for p in out.iterdir()) == ["converged", "time_split.png"]
+    assert sorted(p.name for p in out.iterdir()) == [".fempdl-record.json", "converged", "time_split.png"]
     rows = metrics(out / "converged")
     keps = rows[0]["k"]
     assert [r["k"] for r in rows] == [keps, keps]

@@ -19,7 +19,7 @@ import torch
 
 from fempdl import forms, mesh
 from fempdl.app import cli, scene
-from fempdl.app.runs import checkpoints, rundir, runner
+from fempdl.app.runs import checkpoints, files, rundir, runner
 from fempdl.app.runs.checkpoints import CheckpointError
 from fempdl.ksp_adjoint import KSPOptions
 
@@ -74,6 +74,7 @@ def test_a_checkpoint_that_would_run_code_is_refused_and_nothing_runs(tmp_path):
     path.write_text(INVERSE)
     (tmp_path / "cli" / "converged").mkdir(parents=True)
     torch.save({"model": _Payload(marker)}, tmp_path / "cli" / "converged" / "checkpoint.pt")
+    files.record(tmp_path / "cli" / "converged", "checkpoint.pt")     # as if fempdl had written it
     code, err = call(["run", path, "--k", 4, "--out", tmp_path / "cli", "--resume", "--no-progress"])
     assert code == 2 and "holds objects other than tensors" in err
     assert not marker.exists()

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from fempdl.app import cli, scene
-from fempdl.app.runs import checkpoints, rundir, runner
+from fempdl.app.runs import checkpoints, files, rundir, runner
 
 from helpers import one_line_error, tiny_scene
 
@@ -37,7 +37,7 @@ def test_the_command_refuses_a_directory_of_your_files_and_overwrite_keeps_what_
     (out / "time_split.png").write_bytes(b"my plot")
     (out / "notes.txt").write_text("my notes")
     line = one_line_error(run_argv(scene_file, out), capsys)
-    assert f"{str(out)!r} holds no fempdl run but other files (notes.txt, time_split.png)" in line, line
+    assert f"{str(out)!r} holds no fempdl run but files fempdl did not write (notes.txt, time_split.png)" in line, line
     assert "choose another --out, or pass --overwrite" in line, line
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt", "time_split.png"]     # nothing written
     assert (out / "time_split.png").read_bytes() == b"my plot"
@@ -49,8 +49,9 @@ def test_the_command_refuses_a_directory_of_your_files_and_overwrite_keeps_what_
 def test_runner_run_refuses_a_directory_of_your_files_unless_overwrite(tmp_path):
     sc = scene.parse(SCENE)
     (tmp_path / "results.csv").write_text("mine")
-    with pytest.raises(rundir.RunDirectoryError, match=r"holds no fempdl run but other files \(results.csv\); .*"
-                                                       r"choose another out_dir, or pass overwrite=True"):
+    with pytest.raises(rundir.RunDirectoryError, match=r"holds no fempdl run but files fempdl did not write "
+                                                       r"\(results.csv\); .*choose another out_dir, or pass "
+                                                       r"overwrite=True"):
         runner.run(sc, "fixed", 4, out_dir=tmp_path, k_eps_value=20)
     assert not (tmp_path / "metrics.csv").exists()
     runner.run(sc, "fixed", 4, out_dir=tmp_path, k_eps_value=20, overwrite=True)
@@ -58,19 +59,26 @@ def test_runner_run_refuses_a_directory_of_your_files_unless_overwrite(tmp_path)
 
 
 def test_what_counts_as_a_directory_of_fempdls(tmp_path):
-    """Runs, a scene's tradeoff folder beside them, its lock and hidden files are fempdl's or harmless;
-    a visible file of another name is yours, and the message shows a few names."""
+    """What fempdl recorded writing (runs, a scene's tradeoff folder beside them with its reports), its
+    lock and hidden files are fempdl's or harmless; a visible file it did not record is yours, even
+    one of a name fempdl writes, and the message shows a few names."""
     base = tmp_path / "scene"
     (base / "tradeoff" / "k1").mkdir(parents=True)
     (base / "tradeoff" / "k1" / "metrics.csv").write_text("epoch\n")
+    files.record(base / "tradeoff" / "k1", "metrics.csv")
     (base / "tradeoff" / "metric_vs_cost.png").write_bytes(b"")
+    files.record(base / "tradeoff", "metric_vs_cost.png")
     (base / ".git").mkdir()
     (base / ".lock").write_text("")
     assert rundir.foreign_entries(base) == []
     rundir.check_output_directory(base, resume=False, overwrite=False)
+    (base / "tradeoff" / "k1" / "metrics.json").write_text("[]")            # not recorded: yours
+    assert rundir.foreign_entries(base) == ["tradeoff/k1/metrics.json"]
+    (base / "tradeoff" / "k1" / "metrics.json").unlink()
     for name in ("a.txt", "b.txt", "c.txt", "d.txt"):
         (base / name).write_text("")
-    with pytest.raises(rundir.RunDirectoryError, match=r"other files \(a.txt, b.txt, c.txt, ... \(4 entries\)\)"):
+    with pytest.raises(rundir.RunDirectoryError, match=r"files fempdl did not write \(a.txt, b.txt, c.txt, ... "
+                                                       r"\(4 entries\)\)"):
         rundir.check_output_directory(base, resume=False, overwrite=False)
 
 

@@ -50,7 +50,7 @@ def sign_changing(prob, name: str = "kappa") -> torch.Tensor:
 @pytest.mark.parametrize("module, controls, positive", [
     (forms.poisson, ("f", "kappa"), {"kappa"}),
     (forms.poisson, ("f",), set()),
-    (forms.heat, ("u0", "kappa"), {"kappa"}),
+    (forms.heat, ("u0", "kappa"), {"kappa", "dt"}),
     (forms.elasticity, ("f", "E"), {"E"}),
     (forms.nonlinear_diffusion, ("f", "kappa", "alpha"), {"kappa"}),
     (forms.hyperelasticity, ("E",), {"E"}),
@@ -78,10 +78,10 @@ def test_a_nonpositive_control_value_is_refused_with_its_count_and_the_fix(squar
 
 def test_positive_names_controls_and_can_be_switched_off(square):
     prob = forms.poisson.problem(square, controls=("f", "kappa"))
-    with pytest.raises(ValueError, match=r"positive names \['E'\], which are not controls of this problem; name "
-                                         r"controls among \['f', 'kappa'\]"):
+    with pytest.raises(ValueError, match=r"positive names \['E'\], which are not among this problem's controls or "
+                                         r"Constants \['f', 'kappa'\]"):
         prob.positive = {"E"}
-    with pytest.raises(TypeError, match="positive must be a collection of control names, got int"):
+    with pytest.raises(TypeError, match="positive must be a collection of names, got int"):
         prob.positive = 1
     prob.positive = ()
     prob.check_control_values("kappa", sign_changing(prob))        # the user solves such values on purpose

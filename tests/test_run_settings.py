@@ -35,12 +35,33 @@ def test_defaults_and_the_derived_values(tmp_path):
     ("stop_after", 2.5, "stop_after must be a positive int or None, got 2.5"),
     ("checkpoint_every", -1.0, r"checkpoint_every must be a finite number of seconds >= 0, got -1.0"),
     ("checkpoint_every", math.nan, "checkpoint_every must be a finite number of seconds >= 0, got nan"),
+    # Accepted before: -1 trained one epoch, nan was ignored, 'soon' failed only after the first epoch.
+    ("stop_at_time", -1, "stop_at_time must be a finite number of seconds > 0 or None, got -1"),
+    ("stop_at_time", 0.0, "stop_at_time must be a finite number of seconds > 0 or None, got 0.0"),
+    ("stop_at_time", math.nan, "stop_at_time must be a finite number of seconds > 0 or None, got nan"),
+    ("stop_at_time", "soon", "stop_at_time must be a finite number of seconds > 0 or None, got 'soon'"),
+    ("resume", "no", "resume must be True or False, got 'no'"),               # truthy: it resumed
+    ("overwrite", 1, "overwrite must be True or False, got 1"),
+    ("out_dir", "", r"out_dir must be a directory's path \(str or Path\) or None, got ''; for the working "
+                    r"directory give '.'"),                                   # it wrote into the working directory
+    ("out_dir", 3, r"out_dir must be a directory's path \(str or Path\) or None, got 3"),
 ])
 def test_bad_values_are_refused_when_built(field, value, message):
     with pytest.raises(ValueError, match=message):
         RunSettings(**{field: value})
     with pytest.raises(ValueError, match=message):          # a replace builds, and checks, anew
         dataclasses.replace(RunSettings(), **{field: value})
+
+
+def test_resume_and_overwrite_together_are_refused_when_built(tmp_path):
+    """The command refused the pair; RunSettings took it, and resumed."""
+    message = ("resume=True and overwrite=True contradict each other: resume continues the run in out_dir, "
+               "overwrite starts it afresh; give one")
+    with pytest.raises(ValueError, match=message):
+        RunSettings(out_dir=tmp_path, resume=True, overwrite=True)
+    with pytest.raises(ValueError, match=message):
+        dataclasses.replace(RunSettings(overwrite=True), resume=True)
+    assert RunSettings(out_dir=".").out_dir == Path(".")
 
 
 def test_outputs_without_a_directory_are_refused_when_a_run_starts():

@@ -19,10 +19,11 @@ predictions, references and errors (``fields.xdmf``, ``fields.png``).
 
 A command locks its output directory while it runs (a second command on it
 is refused) and refuses a directory that holds an earlier run unless told
-``--resume`` (continue it; a changed scene or setting is refused, naming
-what changed) or ``--overwrite`` (replace it), and a directory holding
-other files unless told ``--overwrite`` (files of the names fempdl writes
-are replaced, nothing else is deleted).
+``--resume`` (continue it; a changed scene, setting, ``--k``, mode or
+baseline is refused, naming what changed) or ``--overwrite`` (replace it),
+and a directory holding files fempdl did not write unless told
+``--overwrite`` (files of the names fempdl writes are replaced, nothing
+else is deleted), also with ``--resume``.
 """
 from __future__ import annotations
 

@@ -1,5 +1,9 @@
 """What the ``fempdl`` command does once its arguments are parsed (:mod:`fempdl.app.cli`): load the
-scene, lock the output directory, train the runs, print and write the reports."""
+scene, lock the output directory, train the runs, print and write the reports.
+
+The command records in its output directory what it trains there (command, mode, K, baseline;
+:func:`fempdl.app.runs.files.record_command`): a ``--resume`` asking for other runs is refused,
+naming what differs, instead of quietly starting them beside the ones it would continue."""
 from __future__ import annotations
 
 import contextlib
@@ -12,10 +16,9 @@ from mpi4py import MPI
 
 from fempdl.app import scene
 from fempdl.app.reports import compare, tradeoff
-from fempdl.app.runs import rundir, runner
+from fempdl.app.runs import files, rundir, runner
 from fempdl.app.runs.checkpoints import CheckpointError, remove_stale_temporaries
 from fempdl.app.runs.settings import RunSettings
-from fempdl.app.runs.training import CHECKPOINT
 from fempdl.app.tasks import spec_of
 from fempdl.core import parallel
 from fempdl.solve.stats import SolverFailedError
@@ -108,6 +111,7 @@ def _load_and_run(args) -> int:
     with rundir.RunLock(out) if MPI.COMM_WORLD.rank == 0 else contextlib.nullcontext():
         if MPI.COMM_WORLD.rank == 0:
             remove_stale_temporaries(out)       # of reports a killed command was writing
+            files.record_command(out, _command_record(args, sc))
         return _command(args, sc, out)
 
 
@@ -180,7 +184,57 @@ def _output_directory(args, sc) -> Path:
     if resume and args.overwrite:
         raise rundir.RunDirectoryError("--resume and --overwrite contradict each other: give one")
     rundir.check_output_directory(out, resume=resume, overwrite=args.overwrite)
+    earlier = files.command_of(out) if resume and rundir.holds_run(out) else None
+    refusal = None if earlier is None else _resume_refusal(out, earlier, _command_record(args, sc))
+    if refusal is not None:
+        raise rundir.RunDirectoryError(refusal)
     return out
+
+
+def _command_record(args, sc) -> dict:
+    """What the command trains into its output directory, which a --resume must ask for again."""
+    if args.command != "run":
+        return {"command": args.command}
+    baseline = args.converged or not args.no_baseline
+    if spec_of(sc.task).trains == "method":
+        return {"command": "run", "baseline": baseline}
+    mode = "converged" if args.converged else "fixed" if args.k else "prdp"
+    return {"command": "run", "mode": mode, "k": args.k, "baseline": baseline}
+
+
+def _resume_refusal(out: Path, earlier: dict, now: dict) -> str | None:
+    """Why --resume refuses (None: it does not): the runs in ``out`` were started by another command or
+    with another mode, K or baseline, so resuming would start new runs beside them."""
+    if earlier.get("command") != now["command"]:
+        changes = [f"they are of `fempdl {earlier.get('command')}`, not `fempdl {now['command']}`"]
+    else:
+        changes = []
+        if earlier.get("mode") != now.get("mode"):
+            changes.append(f"mode was {_mode_text(earlier)}, now {_mode_text(now)}")
+        elif earlier.get("k") != now.get("k"):
+            changes.append(f"k was {earlier.get('k')}, now {now.get('k')}")
+        if earlier.get("baseline") != now.get("baseline"):
+            trained = {True: "trained", False: "skipped (--no-baseline)"}
+            changes.append(f"the baseline was {trained.get(earlier.get('baseline'), 'not recorded')}, now "
+                           f"{trained[now['baseline']]}")
+    if not changes:
+        return None
+    # `fempdl tradeoff` has no --resume: its runs are not continued by any command line.
+    again = f"continue them with `{_command_line(earlier)}`, or " if earlier.get("command") != "tradeoff" else ""
+    return (f"--resume continues the runs in {str(out)!r} as they were started, and {'; '.join(changes)}: "
+            f"{again}start the new runs in another --out (or replace those with --overwrite instead of --resume)")
+
+
+def _mode_text(record: dict) -> str:
+    return f"fixed K={record.get('k')}" if record.get("mode") == "fixed" else str(record.get("mode"))
+
+
+def _command_line(record: dict) -> str:
+    """The options of ``fempdl run`` (or the command) that started the runs of ``record``, with --resume."""
+    flags = {"fixed": f"--k {record.get('k')}", "prdp": "--prdp", "converged": "--converged"}.get(record.get("mode"))
+    parts = [f"fempdl {record.get('command')}", *([flags] if flags else []),
+             *(["--no-baseline"] if record.get("baseline") is False and record.get("mode") != "converged" else [])]
+    return " ".join(parts + ["--resume"])
 
 
 def _command(args, sc, out: Path) -> int:
@@ -195,7 +249,7 @@ def _command(args, sc, out: Path) -> int:
     if method_scene:
         return _methods(args, sc, progress, out)
     if args.command == "tradeoff":
-        runs = tradeoff.sweep(sc, ks=args.ks, out_dir=out, progress=progress, overwrite=True)
+        runs = tradeoff.sweep(sc, ks=args.ks, out_dir=out, progress=progress, overwrite=args.overwrite)
         split = tradeoff.savings(runs, stop_at=sc.optimizer.stop_at, refine=sc.solver.refine)
         paths = tradeoff.write_report(sc, runs, split, out)
         print(tradeoff.comparison_table(runs))
@@ -214,16 +268,15 @@ def _command(args, sc, out: Path) -> int:
         return 2
     runs = {}
     baseline = None
-    # The command checked its directory (_output_directory): what is there may be replaced.
     common = RunSettings(progress=progress, parallel=args.parallel, seed=args.seed, save=args.save_fields,
-                         tensorboard=args.tensorboard, overwrite=True)
+                         tensorboard=args.tensorboard)
     if not args.no_baseline or args.converged:
         baseline = runner.run(sc, "converged", None, common, out_dir=out / "converged",
-                              resume=_can_resume(args, out / "converged"))
+                              **_run_files(args, out / "converged"))
     if not args.converged:
         mode, k, label = ("fixed", args.k, f"K={args.k}") if args.k else ("prdp", None, "PRDP")
         sub = out / (f"k{args.k}" if args.k else "prdp")
-        runs[label] = runner.run(sc, mode, k, common, out_dir=sub, resume=_can_resume(args, sub),
+        runs[label] = runner.run(sc, mode, k, common, out_dir=sub, **_run_files(args, sub),
                                  k_eps_value=None if baseline is None else baseline.k_eps,
                                  converged_caps=None if baseline is None else baseline.converged_caps)
     if baseline is not None:
@@ -253,15 +306,16 @@ def _methods(args, sc, progress: bool, out: Path) -> int:
                   f"the {sc.task} scene {sc.name!r} solves with LU on one process", file=sys.stderr)
             return 2
         names = [sc.task] + ([] if args.no_baseline else [compare.BASELINE])
-        common = RunSettings(progress=progress, overwrite=True, tensorboard=args.tensorboard)
-        runs = {name: runner.run_method(sc, name, common, out_dir=out / name, resume=_can_resume(args, out / name))
+        common = RunSettings(progress=progress, tensorboard=args.tensorboard)
+        runs = {name: runner.run_method(sc, name, common, out_dir=out / name, **_run_files(args, out / name))
                 for name in names}
         print(f"scene {sc.name}: {sc.description}")
         print(compare.table(sc, runs))
         print(f"metrics and checkpoints in {out}")
         return 0
     runs, split, paths = compare.compare_and_report(sc, out, equal_time=not args.equal_iterations_only,
-                                                    resume=args.resume, progress=progress, overwrite=True)
+                                                    resume=args.resume, progress=progress,
+                                                    overwrite=args.overwrite)
     print(f"scene {sc.name}: {sc.description}")
     print(compare.table(sc, runs))
     print("\n".join(compare.summary_lines(split)))
@@ -269,7 +323,14 @@ def _methods(args, sc, progress: bool, out: Path) -> int:
     return 0
 
 
-def _can_resume(args, run_dir: Path) -> bool:
-    """--resume continues every run that has a checkpoint (a finished run is not repeated)."""
-    return args.resume and (run_dir / CHECKPOINT).exists()
+def _run_files(args, run_dir: Path) -> dict:
+    """``resume`` and ``overwrite`` for one run of the command. --resume continues every run that has
+    a checkpoint fempdl wrote (a finished run is not repeated) and starts the others afresh (runs the
+    command had not begun, or that ended before their first checkpoint), replacing only files fempdl
+    wrote there: it never turns overwrite on for a directory holding files of yours. --overwrite
+    replaces them."""
+    resume = getattr(args, "resume", False)
+    again = resume and rundir.can_resume(run_dir)
+    return {"resume": again,
+            "overwrite": not again and (args.overwrite or (resume and not rundir.foreign_entries(run_dir)))}
 

@@ -24,10 +24,10 @@ from pathlib import Path
 
 from fempdl.app import tasks
 from fempdl.app.reports.tradeoff import write_figure
-from fempdl.app.runs import runner
+from fempdl.app.runs import rundir, runner
+from fempdl.app.runs.files import write_recorded
 from fempdl.app.runs.runner import RunResult
 from fempdl.app.runs.settings import RunSettings
-from fempdl.app.runs.training import CHECKPOINT, write_atomically
 from fempdl.app.schema import Scene
 
 __all__ = ["compare", "compare_and_report", "summary", "summary_lines", "table", "write_report"]
@@ -41,7 +41,8 @@ def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_tim
     """Train the scene's method and the baseline (module docstring); runs keyed by method.
 
     Each run keeps its metrics and checkpoint under ``out_dir``/<method>;
-    ``resume`` continues runs that have a checkpoint; ``overwrite`` replaces the others' files."""
+    ``resume`` continues runs that have a checkpoint fempdl wrote and starts the others afresh
+    (replacing only files fempdl wrote there); ``overwrite`` replaces the runs' files."""
     out_dir = Path(out_dir)
     method = tasks.method_of(scene)
 
@@ -49,9 +50,9 @@ def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_tim
 
     def train(name: str, **changes) -> RunResult:
         sub = out_dir / name
-        again = resume and (sub / CHECKPOINT).exists()
-        return runner.run_method(scene, name, common, out_dir=sub, resume=again, overwrite=overwrite and not again,
-                                 **changes)
+        again = resume and rundir.can_resume(sub)
+        anew = not again and (overwrite or (resume and not rundir.foreign_entries(sub)))
+        return runner.run_method(scene, name, common, out_dir=sub, resume=again, overwrite=anew, **changes)
 
     runs = {method: train(method, epochs=epochs)}
     n = len(runs[method].rows)
@@ -140,7 +141,7 @@ def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir:
     paths = [out_dir / "compare.json", out_dir / "compare.csv", out_dir / "error_vs_cost.png"]
     report = {"scene": scene.as_dict(), "summary": split,
               "runs": {name: {"final_metric": r.final_metric, "rows": r.rows} for name, r in runs.items()}}
-    write_atomically(paths[0], lambda p: p.write_text(json.dumps(report, indent=1)))
+    write_recorded(paths[0], lambda p: p.write_text(json.dumps(report, indent=1)))
 
     def write_csv(p: Path) -> None:
         with p.open("w", newline="") as fh:
@@ -150,7 +151,7 @@ def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir:
                 for row in r.rows:
                     writer.writerow([name, (row["epoch"] + 1) * steps_per_epoch(scene), row["val_metric"],
                                      row["train_loss"], row["train_time"]])
-    write_atomically(paths[1], write_csv)
+    write_recorded(paths[1], write_csv)
     _plot(scene, runs, split, paths[2])
     return paths
 

@@ -33,9 +33,10 @@ import json
 from pathlib import Path
 
 from fempdl.app.runs import runner
+from fempdl.app.runs.files import write_recorded
 from fempdl.app.runs.runner import RunResult
 from fempdl.app.runs.settings import RunSettings
-from fempdl.app.runs.training import TIME_PARTS, write_atomically
+from fempdl.app.runs.training import TIME_PARTS
 from fempdl.app.schema import Scene
 
 __all__ = ["sweep", "savings", "comparison_table", "write_report", "geometric_caps", "summary_lines",
@@ -159,7 +160,7 @@ def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir:
     }
     paths = [out_dir / "tradeoff.json", out_dir / "tradeoff.csv", out_dir / "metric_per_epoch.png",
              out_dir / "metric_vs_cost.png", out_dir / "time_split.png"]
-    write_atomically(paths[0], lambda p: p.write_text(json.dumps(summary, indent=1)))
+    write_recorded(paths[0], lambda p: p.write_text(json.dumps(summary, indent=1)))
 
     newton = any(r.newton_steps is not None for r in runs.values())
 
@@ -172,7 +173,7 @@ def write_report(scene: Scene, runs: dict[str, RunResult], split: dict, out_dir:
                 writer.writerow([label, r.mode, _schedule_text(r.k_schedule), r.final_metric,
                                  r.total_iterations, r.wall_time, *time_split(r).values(),
                                  *([r.newton_steps] if newton else [])])
-    write_atomically(paths[1], write_csv)
+    write_recorded(paths[1], write_csv)
     _plot_per_epoch(runs, paths[2], scene.name)
     _plot_against_cost(runs, paths[3], scene.name)
     plot_time_split(runs, paths[4], scene.name)
@@ -287,4 +288,4 @@ def _parts_text(split: dict) -> str:
 
 def write_figure(fig, path: Path) -> None:
     """Write ``fig`` (a matplotlib Figure) as a PNG atomically: an interrupted write leaves no half file."""
-    write_atomically(path, lambda p: fig.savefig(p, format="png", dpi=120))
+    write_recorded(path, lambda p: fig.savefig(p, format="png", dpi=120))

@@ -1,4 +1,4 @@
-"""Run files: atomic writes with the user's umask, and checkpoints that load without running code.
+"""Checkpoints that load without running code, and only from a regular file of a bounded size.
 
 A checkpoint is loaded with ``torch.load(..., weights_only=True)``: its
 unpickler rebuilds tensors, dicts, lists, tuples, strings and numbers, and
@@ -14,12 +14,13 @@ turns every way a file can be unreadable (truncated, empty, not a zip, bytes
 that do not match the zip's checksums, not written by fempdl, missing keys,
 values out of their types or ranges: :mod:`fempdl.app.runs.checkpoint_values`)
 into one :class:`CheckpointError` that names the file and says what to do.
+It reads only a regular file (a checkpoint that is a device such as
+``/dev/zero`` or a named pipe is refused before a byte is read: read, it grew
+the process until the kernel killed it) of at most ``max_bytes``.
 
-Files are written to a temporary file beside the target (``.<name>.<random>.tmp``,
-created with mode 0666 so the umask applies, as for any file the user
-creates) and moved into place with ``os.replace``; a run
-killed mid-write leaves such a temporary file, which :func:`remove_stale_temporaries`
-deletes on the next start.
+Files are written atomically with the user's umask and recorded as fempdl's
+(:mod:`fempdl.app.runs.files`); a run killed mid-write leaves a temporary file,
+which :func:`remove_stale_temporaries` deletes on the next start.
 """
 from __future__ import annotations
 
@@ -27,53 +28,29 @@ import os
 import pickle
 import random
 import re
-import secrets
 import shutil
+import stat
 import zipfile
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from fempdl.app.runs import files
 from fempdl.app.runs.checkpoint_values import CheckpointError, malformed
+from fempdl.app.runs.files import is_temporary, write_atomically
+from fempdl.core.resources import format_bytes, memory_budget
 
 __all__ = ["CHECKPOINT", "PREVIOUS", "CheckpointError", "write_atomically", "save", "load", "plain",
-           "rng_state", "restore_rng", "remove_stale_temporaries"]
+           "rng_state", "restore_rng", "remove_stale_temporaries", "size_bound"]
 
 CHECKPOINT = "checkpoint.pt"
 PREVIOUS = "checkpoint.prev.pt"
-_TEMP_SUFFIX = ".tmp"
-# ``.<name>.<8 hex digits>.tmp``: what write_atomically creates, and nothing a user is likely to name so.
-_TEMPORARY = re.compile(r"\..+\.[0-9a-f]{8}\.tmp")
+# Room in a checkpoint beside its tensors' multiple (size_bound): metric rows, RNG states, counters.
+ALLOWANCE = 256 << 20
 # Keys every checkpoint written by fempdl holds.
 REQUIRED_KEYS = ("epoch", "rows", "elapsed", "model", "optimizer", "scheduler", "prdp", "k",
                  "layer_stats_by_rank", "rng", "fingerprint")
-
-
-def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
-    """Call ``write(file_path)`` on a temporary file next to ``path``, then move it into place.
-
-    The temporary file is created with mode 0666 minus the umask (not
-    mkstemp's 0600) and removed if ``write`` fails. A killed process leaves
-    the old file or the new one, never a mix; the file is not fsync'ed (that
-    guards against power loss only, and costs about 7 ms per file here, which
-    per epoch of a fast scene is more than the epoch)."""
-    path = Path(path)
-    while True:
-        tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}{_TEMP_SUFFIX}"
-        try:
-            fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
-            break
-        except FileExistsError:
-            continue
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def remove_stale_temporaries(directory: Path) -> list[Path]:
@@ -85,15 +62,10 @@ def remove_stale_temporaries(directory: Path) -> list[Path]:
     kill) are removed too."""
     removed = []
     for entry in Path(directory).iterdir():
-        if entry.is_file() and not entry.is_symlink() and (_is_temporary(entry.name) or _legacy_temporary(entry)):
+        if entry.is_file() and not entry.is_symlink() and (is_temporary(entry.name) or _legacy_temporary(entry)):
             entry.unlink(missing_ok=True)
             removed.append(entry)
     return removed
-
-
-def _is_temporary(name: str) -> bool:
-    """Whether ``name`` is that of a temporary file :func:`write_atomically` creates."""
-    return _TEMPORARY.fullmatch(name) is not None
 
 
 def _legacy_temporary(entry: Path) -> bool:
@@ -146,13 +118,15 @@ def restore_rng(state: dict, shuffle: torch.Generator) -> None:
 
 def save(directory: Path, state: dict) -> Path:
     """Write ``state`` (made :func:`plain`) as ``directory/checkpoint.pt``; the previous one becomes
-    ``checkpoint.prev.pt``. Returns the path."""
+    ``checkpoint.prev.pt``. Returns the path. A failed write raises OSError (torch's writer reports
+    one, such as a full disk, as a RuntimeError "iostream error"); the checkpoint before stays."""
     directory = Path(directory)
     path, previous = directory / CHECKPOINT, directory / PREVIOUS
     state = plain(state)
+    files.record(directory, CHECKPOINT, PREVIOUS)
     if path.exists():
         # A hard link (then an atomic rename onto checkpoint.prev.pt): checkpoint.pt never goes missing.
-        link = directory / f".{PREVIOUS}.{secrets.token_hex(4)}{_TEMP_SUFFIX}"
+        link = files.temporary_path(previous)
         try:
             try:
                 os.link(path, link)
@@ -163,10 +137,23 @@ def save(directory: Path, state: dict) -> Path:
             link.unlink(missing_ok=True)
     try:
         write_atomically(path, lambda p: torch.save(state, p))
-    except RuntimeError as err:     # torch's writer reports a failed write (a full disk) as "iostream error"
-        raise CheckpointError(f"cannot write the checkpoint {str(path)!r} ({str(err).splitlines()[0]}); is the "
-                              "disk full? Free some space and continue the run with --resume") from None
+    except RuntimeError as err:
+        raise OSError(str(err).splitlines()[0] if str(err) else type(err).__name__) from None
     return path
+
+
+def size_bound(*states) -> int:
+    """The most bytes a checkpoint of ``states`` (a model's and a task's state dicts) may hold: 16 times
+    their tensors (the model, an optimizer's moments, ...) and :data:`ALLOWANCE` for the rest."""
+    def nbytes(value) -> int:
+        if isinstance(value, torch.Tensor):
+            return value.numel() * value.element_size()
+        if isinstance(value, dict):
+            return sum(nbytes(item) for item in value.values())
+        if isinstance(value, (list, tuple)):
+            return sum(nbytes(item) for item in value)
+        return 0
+    return ALLOWANCE + 16 * sum(nbytes(state) for state in states)
 
 
 def _refused_object(err: Exception) -> str | None:
@@ -176,35 +163,40 @@ def _refused_object(err: Exception) -> str | None:
     return f"it refers to {found.group(1)}" if found else None
 
 
-def load(path: Path, row_fields: tuple | None = None) -> dict:
+def load(path: Path, row_fields: tuple | None = None, max_bytes: int | None = None) -> dict:
     """The checkpoint at ``path``, loaded with ``weights_only=True`` (nothing in it is executed).
 
-    ``row_fields``: the keys a metric row may hold (None: any).
+    ``row_fields``: the keys a metric row may hold (None: any). ``max_bytes``: the largest file read
+    (:func:`size_bound` of the run's model; default half the available memory, beyond which loading
+    would endanger the machine).
 
     Raises:
         FileNotFoundError: no such file.
-        CheckpointError: the file is unreadable, damaged or incomplete, holds objects
-            other than tensors and plain values, lacks keys fempdl writes, or holds
-            values out of their types and ranges.
+        CheckpointError: the file is no regular file or larger than ``max_bytes``, is unreadable,
+            damaged or incomplete, holds objects other than tensors and plain values, lacks keys
+            fempdl writes, or holds values out of their types and ranges.
     """
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"no checkpoint {str(path)!r}")
     previous = path.parent / PREVIOUS
     remedy = ("start the run afresh (fempdl run ... --overwrite, or without resume in Python)"
               + (f", or restore the previous checkpoint: mv {previous} {path}" if previous.exists() and
                  previous.resolve() != path.resolve() else ""))
     try:
-        damaged = _damaged_record(path)
-        state = None if damaged else torch.load(path, weights_only=True, map_location="cpu")
-    except pickle.UnpicklingError as err:
-        if _refused_object(err) is None:
-            raise _unreadable(path, err, remedy) from None
-        raise CheckpointError(f"checkpoint {str(path)!r} holds objects other than tensors and plain values "
-                              f"({_refused_object(err)}); it was not written by this version of fempdl and is "
-                              f"not loaded, since unpickling objects can run code. To continue: {remedy}") from None
-    except Exception as err:    # a damaged file fails anywhere in the zip reader and unpickler (struct.error, ...)
-        raise _unreadable(path, err, remedy) from None
+        # Not blocking: opening a named pipe for reading would wait for a writer.
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"no checkpoint {str(path)!r}") from None
+    with os.fdopen(fd, "rb") as fh:
+        info = os.fstat(fd)     # of the file opened, so a link swapped meanwhile cannot slip through
+        limit = memory_budget() if max_bytes is None else max_bytes
+        if not stat.S_ISREG(info.st_mode):
+            raise CheckpointError(f"checkpoint {str(path)!r} is {files.kind(info.st_mode)}, not a file fempdl "
+                                  f"wrote, and is not read; to continue: {remedy}")
+        if info.st_size > limit:
+            raise CheckpointError(f"checkpoint {str(path)!r} is {format_bytes(info.st_size)}, more than a "
+                                  f"checkpoint of this run can be ({format_bytes(limit)}), and is not read; to "
+                                  f"continue: {remedy}")
+        state, damaged = _read(fh, path, remedy)
     if damaged:
         raise CheckpointError(f"checkpoint {str(path)!r} is damaged (its part {damaged!r} does not match the "
                               f"checksum written with it); to continue: {remedy}")
@@ -225,10 +217,28 @@ def load(path: Path, row_fields: tuple | None = None) -> dict:
     return state
 
 
-def _damaged_record(path: Path) -> str | None:
+def _read(fh, path: Path, remedy: str) -> tuple[object, str | None]:
+    """(the unpickled state, None), or (None, the name of a damaged part of the zip)."""
+    try:
+        damaged = _damaged_record(fh)
+        if damaged:
+            return None, damaged
+        fh.seek(0)
+        return torch.load(fh, weights_only=True, map_location="cpu"), None
+    except pickle.UnpicklingError as err:
+        if _refused_object(err) is None:
+            raise _unreadable(path, err, remedy) from None
+        raise CheckpointError(f"checkpoint {str(path)!r} holds objects other than tensors and plain values "
+                              f"({_refused_object(err)}); it was not written by this version of fempdl and is "
+                              f"not loaded, since unpickling objects can run code. To continue: {remedy}") from None
+    except Exception as err:    # a damaged file fails anywhere in the zip reader and unpickler (struct.error, ...)
+        raise _unreadable(path, err, remedy) from None
+
+
+def _damaged_record(fh) -> str | None:
     """The first part of the checkpoint's zip whose bytes do not match their CRC-32 (torch's reader
     does not compare them, so a changed byte would load as a changed number); None when all match."""
-    with zipfile.ZipFile(path) as archive:
+    with zipfile.ZipFile(fh) as archive:
         return archive.testzip()
 
 

@@ -10,12 +10,18 @@
   and a process that dies frees it; a lock file written by a live process
   that holds no kernel lock is respected too. It is removed when the run
   ends, also on an exception or Ctrl-C. A second run on the same directory
-  is refused with a message naming the owner.
+  is refused with a message naming the owner. A ``.lock`` that is a symbolic
+  link or no regular file is refused, never written through or deleted: it
+  is not fempdl's, and writing the owner into a link's target would replace
+  that file.
 * :func:`check_output_directory`: a run writes only into a new or empty
   directory, or into one holding an earlier run when told to resume or
-  overwrite it; a directory holding files of the user's (anything visible but
-  a run's files) needs ``overwrite``, which replaces only files of the names
-  fempdl writes and deletes nothing else.
+  overwrite it; a directory holding files of the user's needs ``overwrite``,
+  which replaces only files of the names fempdl writes and deletes nothing
+  else. What is fempdl's is what it recorded writing
+  (:mod:`fempdl.app.runs.files`), never a name alone: a folder of your own
+  ``metrics.csv`` and ``time_split.png`` holds no run, so ``resume`` does not
+  make it writable.
 * :func:`fingerprint` and :func:`differences`: what defines a run (the parsed
   scene, the mode, K, the number of ranks, the package version, ...) as a
   flat dict of plain values; a resumed run compares its own with the
@@ -25,28 +31,34 @@
 from __future__ import annotations
 
 import fcntl
+import itertools
 import os
 import socket
+import stat
 from pathlib import Path
 
-from fempdl.app.runs.checkpoints import CHECKPOINT, PREVIOUS
+from fempdl.app.runs import files
+from fempdl.app.runs.checkpoints import CHECKPOINT
 from fempdl.app.schema import check_slug
 from fempdl.core.locks import same_file
 
 __all__ = ["LOCK", "ResumeError", "RunDirectoryError", "RunLock", "check_slug", "child", "fingerprint", "differences",
-           "holds_run", "foreign_entries", "check_output_directory", "COMMAND_FLAGS", "PYTHON_FLAGS"]
+           "holds_run", "foreign_entries", "check_output_directory", "can_resume", "COMMAND_FLAGS", "PYTHON_FLAGS"]
 
 LOCK = ".lock"
 #: In :func:`differences`' ``absent_means``: a checkpoint written before the key existed did not record it.
 NOT_RECORDED = object()
-# Files whose presence means a directory holds a run.
+# Files whose presence (recorded by fempdl) means a directory holds a run.
 RUN_FILES = (CHECKPOINT, "metrics.csv", "metrics.json")
-# The other files a run writes into its directory (fields and TensorBoard files when asked for).
-RUN_OUTPUTS = RUN_FILES + (PREVIOUS, "tensorboard", "fields.xdmf", "fields.h5", "fields.png")
 #: How the command and the Python API spell the choices a refusal names.
 COMMAND_FLAGS = {"resume": "--resume", "overwrite": "--overwrite", "out": "--out"}
 PYTHON_FLAGS = {"resume": "resume=True", "overwrite": "overwrite=True (the command: --overwrite)", "out": "out_dir"}
 _NAMES_SHOWN = 3
+# How deep folders fempdl recorded nothing in are looked into (a scene's folder, its tradeoff folder,
+# that folder's runs), and how many foreign entries are listed at most: a directory of yours is refused
+# on its first few, and --out at a large tree must not walk all of it.
+_DEPTH = 3
+_MOST_LISTED = 1000
 
 
 class RunDirectoryError(RuntimeError):
@@ -66,57 +78,83 @@ def child(parent: Path, name: str, what: str = "name") -> Path:
 
 
 def holds_run(directory: Path, nested: bool = True) -> bool:
-    """Whether ``directory`` (or, ``nested``, a directory directly inside it) holds run files (a
-    checkpoint or metrics)."""
+    """Whether ``directory`` (or, ``nested``, a directory directly inside it) holds a run: a checkpoint
+    or metrics that fempdl recorded writing there."""
     directory = Path(directory)
     if not directory.is_dir():
         return False
-    candidates = [directory] + ([d for d in directory.iterdir() if d.is_dir()] if nested else [])
-    return any((d / name).exists() for d in candidates for name in RUN_FILES)
+    candidates = [directory] + ([d for d in directory.iterdir() if d.is_dir() and not d.is_symlink()]
+                                if nested else [])
+    return any(_run_in(d) for d in candidates)
+
+
+def _run_in(directory: Path) -> bool:
+    names = files.recorded(directory)
+    return any(name in names and (directory / name).exists() for name in RUN_FILES)
+
+
+def can_resume(directory: Path) -> bool:
+    """Whether ``directory`` holds a checkpoint fempdl wrote (a run to continue, not to start afresh)."""
+    return CHECKPOINT in files.recorded(directory) and (Path(directory) / CHECKPOINT).exists()
 
 
 def foreign_entries(directory: Path) -> list[str]:
-    """The sorted names in ``directory`` that are no run's: neither a file a run writes
-    (:data:`RUN_OUTPUTS`) nor a folder holding a run (such as a scene's ``tradeoff`` folder beside
-    its runs) or only such files. Hidden names do not count: fempdl's own (its lock, temporary
-    files) are hidden, and no file it writes could replace one of yours (``.DS_Store``, ``.git``).
-    Empty for a new or empty directory."""
+    """The sorted paths (relative to ``directory``) of the entries fempdl did not write: not recorded in
+    their directory (:mod:`fempdl.app.runs.files`), looking into folders it recorded nothing in (a
+    scene's run folders beside its ``tradeoff`` folder) a few levels deep, at most
+    :data:`_MOST_LISTED`. Hidden names do not count: fempdl's own (its record, lock, temporary files)
+    are hidden, and no file it writes could replace one of yours (``.DS_Store``, ``.git``). Empty for
+    a new or empty directory."""
     directory = Path(directory)
     if not directory.is_dir():
         return []
-    return sorted(entry.name for entry in directory.iterdir() if not _ours(entry, depth=1))
+    return sorted(itertools.islice(_foreign(directory, _DEPTH, ""), _MOST_LISTED))
 
 
-def _ours(entry: Path, depth: int) -> bool:
-    if entry.name in RUN_OUTPUTS or entry.name.startswith("."):
-        return True
-    if not entry.is_dir() or entry.is_symlink():
-        return False
-    return holds_run(entry) or (depth > 0 and all(_ours(inner, depth - 1) for inner in entry.iterdir()))
+def _foreign(directory: Path, depth: int, prefix: str):
+    names = files.recorded(directory)
+    try:
+        entries = sorted(directory.iterdir())
+    except OSError:             # unreadable: what it holds is unknown, so it is not fempdl's
+        yield prefix.rstrip("/") or "."
+        return
+    for entry in entries:
+        if entry.name.startswith(".") or entry.name in names:
+            continue
+        if depth > 1 and entry.is_dir() and not entry.is_symlink():
+            yield from _foreign(entry, depth - 1, f"{prefix}{entry.name}/")
+        else:
+            yield f"{prefix}{entry.name}"
 
 
 def check_output_directory(directory: Path, *, resume: bool, overwrite: bool, nested: bool = True,
                            flags: dict = COMMAND_FLAGS) -> None:
-    """Raise :class:`RunDirectoryError` unless runs may write into ``directory``: it is new or empty,
-    or holds an earlier run (:func:`holds_run`, ``nested`` as there) and ``resume`` or ``overwrite`` is
-    given, or it holds other files (the user's: a plot of the same name as one fempdl writes would be
-    replaced) and ``overwrite`` is given. ``flags`` spell the choices in the message."""
+    """Raise :class:`RunDirectoryError` unless runs may write into ``directory``: it is new or empty
+    or holds only what fempdl wrote, and when that includes an earlier run (:func:`holds_run`,
+    ``nested`` as there) ``resume`` or ``overwrite`` is given; a directory holding other files (the
+    user's: a plot of the same name as one fempdl writes would be replaced) needs ``overwrite``,
+    also to resume. ``flags`` spell the choices in the message."""
     directory = Path(directory)
-    if holds_run(directory, nested):
-        if not (resume or overwrite):
+    foreign = [] if overwrite else foreign_entries(directory)
+    run = holds_run(directory, nested)
+    if foreign:
+        shown = ", ".join(foreign[:_NAMES_SHOWN]) + (
+            "" if len(foreign) <= _NAMES_SHOWN else
+            f", ... ({len(foreign)}{'+' if len(foreign) == _MOST_LISTED else ''} entries)")
+        if run:
             raise RunDirectoryError(
-                f"{str(directory)!r} holds the files of an earlier run; pass {flags['resume']} to continue it, "
-                f"{flags['overwrite']} to replace it, or choose another {flags['out']}")
-        return
-    foreign = foreign_entries(directory)
-    if foreign and not overwrite:
-        shown = ", ".join(foreign[:_NAMES_SHOWN]) + (f", ... ({len(foreign)} entries)"
-                                                     if len(foreign) > _NAMES_SHOWN else "")
+                f"{str(directory)!r} holds an earlier run and files fempdl did not write ({shown}); move those "
+                f"out and pass {flags['resume']} to continue the run, or choose another {flags['out']} "
+                f"({flags['overwrite']} would replace the run, and files of yours named as fempdl's)")
         raise RunDirectoryError(
-            f"{str(directory)!r} holds no fempdl run but other files ({shown}); runs write into a new or empty "
-            f"directory or one of their own: choose another {flags['out']}, or pass {flags['overwrite']} to write "
-            "into it anyway (files named as fempdl's, such as metrics.csv or time_split.png, are then replaced; "
-            "nothing else is touched)")
+            f"{str(directory)!r} holds no fempdl run but files fempdl did not write ({shown}); runs write into "
+            f"a new or empty directory or one of their own: choose another {flags['out']}, or pass "
+            f"{flags['overwrite']} to write into it anyway (files named as fempdl's, such as metrics.csv or "
+            "time_split.png, are then replaced; nothing else is touched)")
+    if run and not (resume or overwrite):
+        raise RunDirectoryError(
+            f"{str(directory)!r} holds the files of an earlier run; pass {flags['resume']} to continue it, "
+            f"{flags['overwrite']} to replace it, or choose another {flags['out']}")
 
 
 class RunLock:
@@ -189,17 +227,34 @@ class RunLock:
         self._mine = False
         # Unlinked while still locked, so no process can lock this file after it left the directory
         # and believe it holds the directory's lock (acquire checks the path still names its file).
+        # Only while the path names this very file: whatever took its place is not ours to delete.
         if same_file(self._fd, self.path):
             self.path.unlink(missing_ok=True)
         os.close(self._fd)
         self._fd = None
 
     def _open(self) -> int:
+        """The lock file, created if missing, never through a symbolic link (O_NOFOLLOW: the owner
+        written into a link's target would replace that file), and only a regular file."""
         try:
-            return os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o666)
         except OSError as err:
+            mode = _mode(self.path)
+            if mode is not None and not stat.S_ISREG(mode):       # a link (ELOOP), a directory (EISDIR)
+                raise self._not_a_lock(mode) from None
             raise RunDirectoryError(f"cannot write to {str(self.directory)!r} ({err.strerror}); choose another "
                                     "output directory (--out)") from None
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):        # a named pipe or device opens; it is not a lock file
+            os.close(fd)
+            raise self._not_a_lock(mode)
+        return fd
+
+    def _not_a_lock(self, mode: int) -> RunDirectoryError:
+        return RunDirectoryError(
+            f"the lock file {str(self.path)!r} is {files.kind(mode)}, not a file fempdl created, so it is neither "
+            f"written nor deleted; remove it yourself if no run uses {str(self.directory)!r}, or choose another "
+            "output directory (--out)")
 
     def _in_use(self, owner) -> RunDirectoryError:
         who = f"process {owner[1]} on {owner[0]}" if owner else "a process that is starting"
@@ -211,9 +266,23 @@ class RunLock:
     def _owner(self) -> tuple[str, int] | None:
         """(host, pid) written in the lock file, or None when it is unreadable (being written, or garbage)."""
         try:
-            return _parse_owner(self.path.read_text())
+            fd = os.open(self.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
         except OSError:
             return None
+        try:
+            return _read_owner(fd) if stat.S_ISREG(os.fstat(fd).st_mode) else None
+        except OSError:
+            return None
+        finally:
+            os.close(fd)
+
+
+def _mode(path: Path) -> int | None:
+    """``path``'s own st_mode (of a link, not its target), or None when it does not exist."""
+    try:
+        return os.lstat(path).st_mode
+    except OSError:
+        return None
 
 
 def _read_owner(fd: int) -> tuple[str, int] | None:

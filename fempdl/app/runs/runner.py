@@ -26,6 +26,7 @@ from pathlib import Path
 from mpi4py import MPI
 import torch
 
+from fempdl.app.runs import files
 from fempdl.app.runs.settings import RunSettings
 from fempdl.app.runs.training import Trainer
 from fempdl.app.schema import NONLINEAR_PDES, Scene
@@ -176,9 +177,13 @@ def save_fields(task, out_dir: Path, samples: int = 4, title: str | None = None)
     distributed mesh every rank calls it (the XDMF file is written together)."""
     idx = torch.arange(min(samples, task.val_size))
     name, prediction, reference = task.validation_fields(idx)
+    comm = task.problem.V.mesh.comm
+    plot = task.problem.V.mesh.topology.dim == 2 and comm.size == 1
+    if comm.rank == 0:      # recorded as fempdl's before they are written (fempdl.app.runs.files)
+        files.record(out_dir, "fields.xdmf", "fields.h5", *(["fields.png"] if plot else []))
     fields = {"prediction": (name, prediction), "reference": (name, reference), "error": (name, prediction - reference)}
     paths = [io.write_fields(Path(out_dir) / "fields.xdmf", task.problem, fields, times=range(len(prediction)))]
-    if task.problem.V.mesh.topology.dim == 2 and task.problem.V.mesh.comm.size == 1:
+    if plot:
         paths.append(io.plot_fields(Path(out_dir) / "fields.png", task.problem,
                                     {label: (n, v[0]) for label, (n, v) in fields.items()}, title=title,
                                     same_scale=("prediction", "reference")))

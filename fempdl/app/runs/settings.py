@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from pathlib import Path
 
 from mpi4py import MPI
@@ -31,14 +32,15 @@ class RunSettings:
         resume: continue the run ``out_dir`` holds (the same settings; only the epochs may grow).
         overwrite: a fresh run replaces the files of a run already in ``out_dir``, or writes into a
             directory holding other files (fempdl's names replaced, nothing deleted); without it
-            both are refused (:func:`~fempdl.app.runs.rundir.check_output_directory`).
+            both are refused (:func:`~fempdl.app.runs.rundir.check_output_directory`). Not with
+            ``resume``.
         epochs: the loop's length (``None``: the scene's ``[optimizer] epochs``).
         seed: the network initialisation and the minibatch order (``None``: the scene's data seed;
             the data are the scene's either way).
         progress: show a tqdm bar with epoch, loss, metric and K.
         stop_after: stop, as if interrupted, after this many epochs of this call.
         stop_at_time: end training once its steps took this many seconds (a comparison at equal
-            training time).
+            training time; > 0).
         tensorboard: also write every metric row as TensorBoard scalars into ``out_dir``/tensorboard
             (rank 0; needs the ``tensorboard`` package).
         checkpoint_every: write the files after an epoch that ends at least this many seconds of the
@@ -64,7 +66,23 @@ class RunSettings:
 
     def __post_init__(self):
         if self.out_dir is not None:
+            # An empty string is Path("."): a run would write into the working directory unasked.
+            if not isinstance(self.out_dir, (str, os.PathLike)) or (isinstance(self.out_dir, str)
+                                                                     and not self.out_dir.strip()):
+                raise ValueError(f"out_dir must be a directory's path (str or Path) or None, got {self.out_dir!r}; "
+                                 "for the working directory give '.'")
             object.__setattr__(self, "out_dir", Path(self.out_dir))
+        for name in ("resume", "overwrite", "progress", "tensorboard", "save"):
+            if not isinstance(getattr(self, name), bool):     # resume="no" is truthy: it resumed
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        if self.resume and self.overwrite:
+            raise ValueError("resume=True and overwrite=True contradict each other: resume continues the run in "
+                             "out_dir, overwrite starts it afresh; give one")
+        if self.stop_at_time is not None and not (isinstance(self.stop_at_time, (int, float))
+                                                  and not isinstance(self.stop_at_time, bool)
+                                                  and 0 < self.stop_at_time < math.inf):
+            raise ValueError(f"stop_at_time must be a finite number of seconds > 0 or None, got "
+                             f"{self.stop_at_time!r}")
         if self.parallel not in (None, *PARALLEL_MODES):
             raise ValueError(f"parallel must be None or one of {list(PARALLEL_MODES)}, got {self.parallel!r}")
         if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, int)

@@ -11,10 +11,11 @@ its iterations being the inner Krylov ones; rows written before have no ``backwa
 ``checkpoint.pt`` (model, optimizer, scheduler, PRDP, layer counters, each rank's task state, RNG states, rows) after
 the last epoch and after every epoch that ends ``checkpoint_every`` seconds or more after the
 files were last written (every epoch of a run whose epochs take longer). Every file is written
-atomically (:mod:`fempdl.app.runs.checkpoints`), so an interrupted run keeps the epochs finished
-up to ``checkpoint_every`` seconds before it; a run with ``resume=True`` continues it with the same
-metrics as an uninterrupted run, and refuses a resume whose settings differ
-(:meth:`Trainer.fingerprint`).
+atomically and recorded as fempdl's (:mod:`fempdl.app.runs.files`), so an interrupted run keeps the
+epochs finished up to ``checkpoint_every`` seconds before it; a run with ``resume=True`` continues it
+with the same metrics as an uninterrupted run, and refuses a resume whose settings differ
+(:meth:`Trainer.fingerprint`). Files that cannot be written end the run with the advice that
+fits whether a checkpoint was written yet (:meth:`Trainer._unwritable`).
 
 Under MPI (``parallel="data"`` or ``"mesh"``) every rank runs this loop in
 step: data mode shards every batch and the validation samples, mesh mode has
@@ -24,6 +25,7 @@ rank 0 writes the files.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import json
@@ -36,10 +38,11 @@ import torch
 from tqdm import tqdm
 
 from fempdl import __version__
-from fempdl.app.runs import checkpoints, rundir
+from fempdl.app.runs import checkpoints, files, rundir
 from fempdl.app.runs.board import tensorboard_writer
 from fempdl.app.runs.checkpoint_values import check_optimizer, check_stats, fitting
-from fempdl.app.runs.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError, write_atomically
+from fempdl.app.runs.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError
+from fempdl.app.runs.files import write_atomically, write_recorded
 from fempdl.app.runs.settings import RunSettings
 from fempdl.app.runs.timesplit import TIME_FIELDS, TIME_PARTS, TimeSplit
 from fempdl.app.tasks.base import cap_target, set_cap
@@ -101,10 +104,10 @@ class Trainer:
         self._shuffle = torch.Generator().manual_seed(self._seed)
         self._clock = TimeSplit(self.task)
         self._saved_at = None         # the clock's elapsed time at the last checkpoint
+        self._saved_epoch = None      # the epoch of the last checkpoint written or resumed from
         if self.out_dir is not None and self._writer:
             self.out_dir.mkdir(parents=True, exist_ok=True)
-        board = self.settings.board_dir
-        self._board = tensorboard_writer(board) if board is not None and self._writer else None
+        self._board = None            # opened once the directory is checked and locked (run)
 
     @property
     def k(self) -> int | None:
@@ -120,7 +123,7 @@ class Trainer:
         The output directory is locked for the run (:class:`fempdl.app.runs.rundir.RunLock`:
         a second run on it is refused); temporary files an interrupted write
         left there are removed; a fresh run (``settings.resume`` False) first removes
-        the checkpoints of a run it replaces."""
+        the checkpoints of a run it replaces (those fempdl recorded writing)."""
         resume = self.settings.resume
         refusal = None
         if self.out_dir is not None and self._writer:
@@ -138,8 +141,11 @@ class Trainer:
             if lock is not None:
                 checkpoints.remove_stale_temporaries(self.out_dir)
                 if not resume:
-                    for name in (CHECKPOINT, PREVIOUS):
+                    for name in files.recorded(self.out_dir) & {CHECKPOINT, PREVIOUS}:
                         (self.out_dir / name).unlink(missing_ok=True)
+                if self.settings.board_dir is not None:
+                    files.record(self.out_dir, self.settings.board_dir.name)
+                    self._board = tensorboard_writer(self.settings.board_dir)
             return self._train(resume)
         finally:
             if self._board is not None:
@@ -276,15 +282,6 @@ class Trainer:
         task_states = self.comm.gather(getattr(self.task, "state_dict", dict)())
         if not self._writer:
             return
-        write_atomically(self.out_dir / "metrics.json", lambda p: p.write_text(json.dumps(self.rows, indent=1)))
-
-        def write_csv(p: Path) -> None:
-            with p.open("w", newline="") as fh:
-                extra = tuple(key for key in NEWTON_FIELDS if any(key in row for row in self.rows))
-                writer = csv.DictWriter(fh, fieldnames=METRIC_FIELDS + extra)
-                writer.writeheader()
-                writer.writerows(self.rows)
-        write_atomically(self.out_dir / "metrics.csv", write_csv)
         state = {
             "epoch": epoch, "rows": self.rows, "elapsed": self._clock.elapsed, "train_time": self._clock.train_time,
             "times": dict(self._clock.seconds),
@@ -297,7 +294,42 @@ class Trainer:
             "rng": checkpoints.rng_state(self._shuffle),
             "fingerprint": self.fingerprint(),
         }
+        try:
+            self._write(state)
+        except OSError as err:      # no space left, no permission, a read-only file system
+            raise self._unwritable(err) from None
+        self._saved_epoch = epoch
+
+    def _write(self, state: dict) -> None:
+        self._written = []          # what this call replaced, for _unwritable
+        write_recorded(self.out_dir / "metrics.json", lambda p: p.write_text(json.dumps(self.rows, indent=1)))
+        self._written.append("metrics.json")
+
+        def write_csv(p: Path) -> None:
+            with p.open("w", newline="") as fh:
+                extra = tuple(key for key in NEWTON_FIELDS if any(key in row for row in self.rows))
+                writer = csv.DictWriter(fh, fieldnames=METRIC_FIELDS + extra)
+                writer.writeheader()
+                writer.writerows(self.rows)
+        write_recorded(self.out_dir / "metrics.csv", write_csv)
+        self._written.append("metrics.csv")
         checkpoints.save(self.out_dir, state)
+
+    def _unwritable(self, err: OSError) -> rundir.RunDirectoryError:
+        """The error for files that could not be written. Before the first checkpoint a resume would
+        only start afresh, so the metrics just written without one go (the directory then holds no
+        run) and the advice is to start again; after it, a resume continues from the last one."""
+        where = f"cannot write the run's files in {str(self.out_dir)!r} ({err.strerror or err})"
+        if self._saved_epoch is None:
+            for name in self._written:
+                with contextlib.suppress(OSError):
+                    (self.out_dir / name).unlink()
+            return rundir.RunDirectoryError(
+                f"{where}; no checkpoint was saved, so there is nothing to resume: free some space on its file "
+                "system or make it writable, then start the run again")
+        return rundir.RunDirectoryError(
+            f"{where}; its checkpoint after epoch {self._saved_epoch + 1} is kept: free some space or make the "
+            "directory writable, then continue the run with --resume (Python: resume=True)")
 
     def fingerprint(self) -> dict:
         """What defines this run (``run_fingerprint`` and the Trainer's own), flat; stored in the checkpoint."""
@@ -311,7 +343,8 @@ class Trainer:
         if path is None or not path.exists():
             raise FileNotFoundError(f"resume: no checkpoint {CHECKPOINT} in {self.out_dir}; "
                                     "start the run without resume first")
-        state = checkpoints.load(path, row_fields=METRIC_FIELDS + NEWTON_FIELDS)
+        state = checkpoints.load(path, row_fields=METRIC_FIELDS + NEWTON_FIELDS, max_bytes=checkpoints.size_bound(
+            self.task.model.state_dict(), getattr(self.task, "state_dict", dict)()))
         changed = rundir.differences(state["fingerprint"], self.fingerprint(), RESUMABLE_CHANGES, KEYS_ADDED_LATER)
         if changed:
             raise rundir.ResumeError(
@@ -357,6 +390,7 @@ class Trainer:
         checkpoints.restore_rng(state["rng"], self._shuffle)
         self.rows = list(state["rows"])
         self._clock.elapsed = self._saved_at = state["elapsed"]
+        self._saved_epoch = state["epoch"]
         if "train_time" not in state and self.settings.stop_at_time is not None:
             raise ValueError(f"{path} was written before fempdl timed training steps (no train_time); it cannot "
                              "be extended to a training time: rerun it without resume")
