@@ -244,3 +244,28 @@ def test_resume_of_another_commands_runs_is_refused(tmp_path, capsys):
     line = one_line_error(run_argv(path, out, "--resume"), capsys)
     assert (f"--resume continues the runs in {str(out)!r} as they were started, and they are of `fempdl tradeoff`, "
             "not `fempdl run`: start the new runs in another --out") in line, line
+
+
+@pytest.mark.parametrize("checkpoint", [False, True])
+def test_ctrl_c_advises_resume_only_when_a_checkpoint_was_kept(tmp_path, monkeypatch, capsys, checkpoint):
+    """Interrupted before a run's first checkpoint there is nothing to continue: --resume would start afresh."""
+    from fempdl.app import commands
+    from fempdl.app.runs import files
+
+    def interrupted(args, sc, out):
+        if checkpoint:
+            (out / "k4").mkdir()
+            files.write_recorded(out / "k4" / "checkpoint.pt", lambda p: p.write_bytes(b"epochs"))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(commands, "_command", interrupted)
+    path = tmp_path / "tiny.toml"
+    path.write_text(SCENE)
+    assert cli.main([str(a) for a in run_argv(path, tmp_path / "out")]) == 130
+    err = capsys.readouterr().err
+    if checkpoint:
+        assert "fempdl: interrupted; a run's checkpoint holds its epochs finished" in err
+        assert "(continue with --resume)" in err
+    else:
+        assert "fempdl: interrupted; no checkpoint was written yet, so there is nothing to resume: run the " \
+               "command again" in err

@@ -36,9 +36,13 @@ def execute(args) -> int:
             return _scenes(args)
         with _library_log(getattr(args, "log_every", None), MPI.COMM_WORLD.rank):
             return _load_and_run(args)
-    except KeyboardInterrupt:
-        print("fempdl: interrupted; a run's checkpoint holds its epochs finished up to a second before "
-              "(continue with --resume)", file=sys.stderr)
+    except KeyboardInterrupt as interrupted:
+        out = getattr(interrupted, "out", None)          # None: interrupted before runs began
+        kept = out is not None and _checkpoint_kept(out)
+        print("fempdl: interrupted; " + ("a run's checkpoint holds its epochs finished up to a second before "
+                                         "(continue with --resume)" if kept else
+                                         "no checkpoint was written yet, so there is nothing to resume: run the "
+                                         "command again"), file=sys.stderr)
         return 130
     except USER_ERRORS as err:
         return _refuse(err)
@@ -112,7 +116,24 @@ def _load_and_run(args) -> int:
         if MPI.COMM_WORLD.rank == 0:
             remove_stale_temporaries(out)       # of reports a killed command was writing
             files.record_command(out, _command_record(args, sc))
-        return _command(args, sc, out)
+        try:
+            return _command(args, sc, out)
+        except KeyboardInterrupt as err:
+            raise _Interrupted(out) from err
+
+
+class _Interrupted(KeyboardInterrupt):
+    """Ctrl-C while a command's runs trained into ``out``."""
+
+    def __init__(self, out: Path):
+        super().__init__()
+        self.out = out
+
+
+def _checkpoint_kept(out: Path) -> bool:
+    """Whether a run under ``out`` (``out`` itself or a folder in it) has a checkpoint to continue from."""
+    return rundir.can_resume(out) or any(rundir.can_resume(d) for d in Path(out).iterdir()
+                                         if d.is_dir() and not d.is_symlink())
 
 
 @contextlib.contextmanager
