@@ -41,7 +41,8 @@ FLOORS = [
     ("iterative", [["fempdl.iterative"]]),
     ("layer", [["fempdl.layer.implicit_diff", "fempdl.layer.unrolled_diff", "fempdl.layer.observation"],
                ["fempdl.layer.system_layer", "fempdl.layer.newton_unrolled"],
-               ["fempdl.layer.newton_layer", "fempdl.layer.rollout_checkpoint"], ["fempdl.layer.rollout"],
+               ["fempdl.layer.newton_layer", "fempdl.layer.revolve", "fempdl.layer.rollout_checkpoint"],
+               ["fempdl.layer.rollout"],
                ["fempdl.layer.solve_layer"], ["fempdl.layer.reference"], ["fempdl.layer"]]),
     ("methods", [["fempdl.methods"]]),
     # __init__ (the public names, lazily) and the card's import paths, thin re-exports of the floors below

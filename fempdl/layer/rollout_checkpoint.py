@@ -9,11 +9,14 @@ where (dS_k/d.)^T lam is the step layer's own adjoint at the states (u_k,
 u_{k+1}) (``system.adjoint``: one transposed solve per sample; through a warm
 start also the adjoint residual), at the Constants and caps step k's forward
 ran with. Which states are kept, and which steps are run again from a kept
-state, follows a schedule of the ``checkpoint_schedules`` package (pyadjoint's
-and Firedrake's): ``"all"`` keeps every state (no step run twice),
-``("revolve", s)`` keeps s states in memory (binomial checkpointing, the least
-recomputation for s snapshots), ``("multistage", s_ram, s_disk)`` keeps s_ram
-in memory and s_disk on disk (``disk_dir``). The gradient is the same under
+state, follows a schedule in the action language of the ``checkpoint_schedules``
+package (pyadjoint's and Firedrake's): ``"all"`` keeps every state (no step run
+twice); ``("revolve", s)`` keeps s states in memory under binomial
+checkpointing, the fewest steps run again for s snapshots, by
+:class:`~fempdl.layer.revolve.BinomialRevolve`, which makes its actions as
+they are asked for (``checkpoint_schedules.Revolve`` builds the whole schedule
+before the first step); ``("multistage", s_ram, s_disk)`` keeps s_ram in
+memory and s_disk on disk (``disk_dir``). The gradient is the same under
 every schedule: a step run again from the same state with the same Constants
 and caps gives the same bits. :class:`ScheduleStats` counts what ran.
 
@@ -29,6 +32,8 @@ import tempfile
 import checkpoint_schedules as cs
 import numpy as np
 
+from fempdl.layer.revolve import BinomialRevolve
+
 __all__ = ["ScheduleStats", "make_schedule", "CheckpointedRollout"]
 
 
@@ -37,7 +42,7 @@ class ScheduleStats:
     """What the last checkpointed rollout ran: ``steps`` forward steps of the first sweep,
     ``recomputed`` steps run again from kept states, ``adjoint_steps``, and the most states held at
     once in memory and on disk. In memory counts the snapshots and the working pair (u_k, u_k+1) of
-    the step whose adjoint runs: s + 2 for ``("revolve", s)``, N + 1 for ``"all"``."""
+    the step whose adjoint runs: s + 2 for ``("revolve", s)`` (N + 1 when s >= N), N + 1 for ``"all"``."""
 
     steps: int = 0
     recomputed: int = 0
@@ -51,8 +56,7 @@ def make_schedule(spec, steps: int) -> cs.CheckpointSchedule:
     if spec == "all":
         return cs.SingleMemoryStorageSchedule()       # online: finalised at N by the forward sweep
     if isinstance(spec, tuple) and spec and spec[0] == "revolve" and len(spec) == 2:
-        snapshots = _count("revolve snapshots", spec[1], steps)
-        return cs.Revolve(steps, snapshots)
+        return BinomialRevolve(steps, _count("revolve snapshots", spec[1]))
     if isinstance(spec, tuple) and spec and spec[0] == "multistage" and len(spec) == 3:
         in_ram, on_disk = spec[1], spec[2]
         for name, value in (("in memory", in_ram), ("on disk", on_disk)):
@@ -65,10 +69,10 @@ def make_schedule(spec, steps: int) -> cs.CheckpointSchedule:
                      f"got {spec!r}")
 
 
-def _count(name: str, value, steps: int) -> int:
+def _count(name: str, value) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise ValueError(f"{name} must be an int >= 1, got {value!r}")
-    return min(value, steps)
+    return value
 
 
 class _Store:
