@@ -41,9 +41,8 @@ from contextlib import contextmanager
 import numpy as np
 import torch
 
-from fempdl.core.checks import check_int
-from fempdl.core.ranks import torch_group_initialised
 from fempdl.layer.rollout_checkpoint import CheckpointedRollout, ScheduleStats, make_schedule
+from fempdl.layer.rollout_inputs import checked_call
 from fempdl.layer.system_layer import SystemLayer
 from fempdl.solve.linear_system import INITIAL_GUESS
 
@@ -120,12 +119,8 @@ class Rollout(torch.nn.Module):
             series: a :class:`fempdl.io.TimeSeries` the states are written to (module docstring).
             controls: controls constant in time, (B, n_m) or (n_m,).
         """
-        check_int("steps", steps, minimum=1)
         per_step = dict(per_step or {})
-        values = self._constant_values(constants or {}, steps)
-        self._check_controls(controls, per_step, steps)
-        indices = self._outputs(outputs, steps)
-        self._check_call(initial, steps, values, controls, per_step, indices)
+        values, indices = checked_call(self, initial, steps, constants or {}, controls, per_step, outputs)
         write = self._writer(series, values, steps)
         write(0, initial)
         if self.schedule is not None:
@@ -151,73 +146,6 @@ class Rollout(torch.nn.Module):
             states[0] = initial.expand_as(states[-1])        # one initial state shared by a batch
         return torch.stack([states[i] for i in indices], dim=-2)
 
-    def _check_call(self, initial, steps: int, values: dict, controls: dict, per_step: dict, indices: list) -> None:
-        """The step layer's checks of a step's call, made once for all steps: types, shapes and dtypes, and
-        (where no step layer call makes them: under a schedule) finite values, positive controls and the
-        caps over a torch.distributed group; the Constants' bounds at every step; and on a distributed mesh
-        one agreement of the whole call over the ranks, before anything collective runs."""
-        layer = self.step
-        if not isinstance(initial, torch.Tensor):
-            raise TypeError(f"initial must be a torch.Tensor, (B, n) or (n,), got {type(initial).__name__}; wrap "
-                            "arrays with torch.as_tensor(..., dtype=torch.float64)")
-        n = layer.problem.output_size
-        if initial.dtype not in (torch.float32, torch.float64):
-            raise TypeError(f"initial has dtype {initial.dtype}; use float32 or float64 (e.g. initial.double())")
-        if initial.dim() not in (1, 2) or initial.shape[-1] != n or initial.numel() == 0:
-            raise ValueError(f"initial must be (B, {n}) or ({n},): one value per owned DOF of the state's space, got "
-                             f"shape {tuple(initial.shape)}")
-        one_step = {**controls, **{name: t[..., 0, :] for name, t in per_step.items()}, self.state: initial}
-        names, tensors, batch, _ = layer._validate(one_step)
-        if layer._distributed:
-            extra = {"steps": steps, "outputs": tuple(indices), "schedule": repr(self.schedule),
-                     "warm_start": self.warm_start, "per-step Constants": {k: v.tolist() for k, v in values.items()}}
-            layer._check_ranks_agree(names, tensors, batch, extra, caller="this distributed-mesh Rollout")
-        problem = layer.problem
-        if self.schedule is not None:
-            whole = {**controls, **per_step, self.state: initial}
-            layer._check_finite(list(whole), list(whole.values()))
-            if torch_group_initialised() and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-                layer._check_caps_over_torch_group()
-            problem.check_constants()
-        problem.check_constants(values)
-
-    def _constant_values(self, constants: Mapping, steps: int) -> dict:
-        problem, values = self.step.problem, {}
-        if not isinstance(constants, Mapping):
-            raise TypeError(f"constants must be a mapping name -> one value per step, got {type(constants).__name__}")
-        for name, seq in constants.items():
-            if name not in problem.constants:
-                raise ValueError(f"the step problem has no Constant {name!r}; its Constants are "
-                                 f"{sorted(problem.constants)}")
-            try:
-                array = np.asarray(seq.detach().cpu() if isinstance(seq, torch.Tensor) else seq, dtype=np.float64)
-            except (TypeError, ValueError):
-                raise TypeError(f"constants[{name!r}] must be numbers, one per step, got {seq!r}") from None
-            shape = np.shape(problem.constants[name].value)
-            if array.shape[:1] != (steps,) or array.shape[1:] != shape:
-                raise ValueError(f"constants[{name!r}] must hold one value per step, shape {(steps, *shape)}, "
-                                 f"got {array.shape}")
-            if not np.isfinite(array).all():
-                raise ValueError(f"constants[{name!r}] has NaN/inf values")
-            values[name] = array
-        return values
-
-    def _check_controls(self, controls: dict, per_step: dict, steps: int) -> None:
-        names = set(self.step.problem.control_names)
-        for name in (*controls, *per_step):
-            if name == self.state:
-                raise ValueError(f"{self.state!r} is the rollout's state: pass it as `initial`")
-            if name not in names:
-                raise ValueError(f"unknown control {name!r}; the step's controls are {sorted(names)}")
-        both = sorted(set(controls) & set(per_step))
-        if both:
-            raise ValueError(f"controls {both} are given both constant in time and per step")
-        for name, t in per_step.items():
-            if not isinstance(t, torch.Tensor) or t.dim() not in (2, 3) or t.shape[-2] != steps:
-                shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
-                raise ValueError(f"per_step[{name!r}] must be (B, N, n_m) or (N, n_m) with N = steps = {steps}, "
-                                 f"got {shape}")
-
     def _writer(self, series, values: dict, steps: int):
         """write(k, u_k): to ``series`` at t_k, or nothing."""
         if series is None:
@@ -233,19 +161,6 @@ class Rollout(torch.nn.Module):
             dts = np.ones(steps)
         times = np.concatenate([[0.0], np.cumsum(dts)])
         return lambda k, u: series.write(k, times[k], u, last=k == steps)
-
-    @staticmethod
-    def _outputs(outputs, steps: int) -> list:
-        if outputs is None:
-            return list(range(steps + 1))
-        if isinstance(outputs, (str, int, np.integer)) or not hasattr(outputs, "__iter__"):
-            raise TypeError(f"outputs must be a sequence of state indices into 0 ... {steps}, e.g. [{steps}] for the "
-                            f"last state, got {outputs!r}")
-        indices = list(outputs)
-        if not indices or not all(isinstance(i, (int, np.integer)) and not isinstance(i, bool)
-                                  and -steps - 1 <= i <= steps for i in indices):
-            raise ValueError(f"outputs must be state indices in 0 ... {steps} (negative from the end), got {outputs!r}")
-        return [int(i) % (steps + 1) for i in indices]
 
     def extra_repr(self) -> str:
         return f"state={self.state!r}, warm_start={self.warm_start}, schedule={self.schedule!r}, max_it={self.max_it}"
