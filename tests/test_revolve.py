@@ -154,8 +154,10 @@ def heat():
 
 def test_rollout_gradient_equals_autograd_and_recomputes_as_predicted(heat):
     """A 9-step heat rollout with a varying dt and a source per step: the gradient under ("revolve", s) equals
-    autograd's through every step to 1e-12 relative, runs recomputed_steps(9, s) steps again, and holds the
-    s snapshots and the working pair (N + 1 states when s >= N: every state)."""
+    autograd's through every step to 1e-12 relative, runs recomputed_steps(9, s) - (N - 1) steps again (the
+    schedule's run of each step but the last before its reversal gives the state the previous reversal
+    holds, so it is reused, not run), and holds the s snapshots and the working pair (N + 1 states when
+    s >= N: every state)."""
     steps = 9
     g = torch.Generator().manual_seed(0)
     n = heat.problem.output_size
@@ -178,6 +180,7 @@ def test_rollout_gradient_equals_autograd_and_recomputes_as_predicted(heat):
             scale = float(b.abs().max())
             assert scale > 0 and float((a - b).abs().max()) <= 1e-12 * scale, (s, float((a - b).abs().max()), scale)
         assert stats.steps == stats.adjoint_steps == steps, (s, stats)
-        assert stats.recomputed == recomputed_steps(steps, s), (s, stats)
+        reused = steps - 1 if s < steps else 0
+        assert stats.reused == reused and stats.recomputed == recomputed_steps(steps, s) - reused, (s, stats)
         assert stats.most_in_memory == (s + 2 if s < steps else steps + 1), (s, stats)
     assert recomputed_steps(steps, 1) == 36 and recomputed_steps(steps, 3) == 13      # the formula is not trivially 0

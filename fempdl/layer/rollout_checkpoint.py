@@ -40,12 +40,15 @@ __all__ = ["ScheduleStats", "make_schedule", "CheckpointedRollout"]
 @dataclasses.dataclass
 class ScheduleStats:
     """What the last checkpointed rollout ran: ``steps`` forward steps of the first sweep,
-    ``recomputed`` steps run again from kept states, ``adjoint_steps``, and the most states held at
-    once in memory and on disk. In memory counts the snapshots and the working pair (u_k, u_k+1) of
-    the step whose adjoint runs: s + 2 for ``("revolve", s)`` (N + 1 when s >= N), N + 1 for ``"all"``."""
+    ``recomputed`` steps run again from kept states, ``reused`` steps a schedule asked to run again
+    whose result the last reversal held (u_k+1, the first state of step k+1's adjoint: not run),
+    ``adjoint_steps``, and the most states held at once in memory and on disk. In memory counts the
+    snapshots and the working pair (u_k, u_k+1) of the step whose adjoint runs: s + 2 for
+    ``("revolve", s)`` (N + 1 when s >= N), N + 1 for ``"all"``."""
 
     steps: int = 0
     recomputed: int = 0
+    reused: int = 0
     adjoint_steps: int = 0
     most_in_memory: int = 0
     most_on_disk: int = 0
@@ -141,6 +144,9 @@ class CheckpointedRollout:
         self._ics = _Store(disk_dir, rank)
         self._deps: dict = {}                     # step k -> (u_k, u_k+1): shared arrays, counted once
         self._swept = 0                           # steps the forward sweep ran
+        # (k, u_k) of the step reversed last: u_k is the state step k - 1 makes, which a schedule's run of
+        # that step (to keep its adjoint dependencies) would compute again, bit for bit.
+        self._reversed: tuple | None = None
         self.stats = ScheduleStats()
         #: Whether :meth:`backward` ran: the schedule's actions are spent, a second backward needs a new sweep.
         self.spent = False
@@ -183,6 +189,7 @@ class CheckpointedRollout:
                             lam = np.zeros_like(uk1)
                         lam, controls[k] = self._adjoint(k, uk, uk1, lam)
                         self.stats.adjoint_steps += 1
+                        self._reversed = (k, uk)
                         if action.clear_adj_deps:
                             del self._deps[k]
                 else:
@@ -196,15 +203,19 @@ class CheckpointedRollout:
             for k in range(action.n0, min(action.n1, self._steps)):
                 if k == action.n0 and action.write_ics:
                     self._ics.put(action.storage, action.n0, u)
-                u_next = self._run(k, u, first)
+                if not first and self._reversed is not None and self._reversed[0] == k + 1:
+                    u_next = self._reversed[1]      # in hand since the last reversal: not run again
+                    self.stats.reused += 1
+                else:
+                    u_next = self._run(k, u, first)
+                    if first:
+                        self.stats.steps += 1
+                    else:
+                        self.stats.recomputed += 1
                 if self._swept < self._steps and k == self._swept:
                     self._swept += 1
-                if first:
-                    self.stats.steps += 1
-                    if kept is not None and k + 1 in self._outputs:
-                        kept[k + 1] = u_next
-                else:
-                    self.stats.recomputed += 1
+                if first and kept is not None and k + 1 in self._outputs:
+                    kept[k + 1] = u_next
                 if action.write_adj_deps:
                     self._deps[k] = (u, u_next)
                 u = u_next
@@ -219,6 +230,8 @@ class CheckpointedRollout:
     def _count(self) -> None:
         arrays = {id(a): a for pair in self._deps.values() for a in pair}
         arrays.update((id(a), a) for a in self._ics.memory.values())
+        if self._reversed is not None:
+            arrays[id(self._reversed[1])] = self._reversed[1]
         self.stats.most_in_memory = max(self.stats.most_in_memory, len(arrays))
         self.stats.most_on_disk = max(self.stats.most_on_disk, self._ics.on_disk)
 
