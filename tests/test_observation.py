@@ -117,3 +117,12 @@ def test_observations_take_any_leading_axes_such_as_a_rollouts_states(lshape_coa
     with pytest.raises(ValueError, match=rf"u \(2, 4, {n}\) and v \(3, {n}\) have leading axes that do not "
                                          "broadcast"):
         inner(states, torch.zeros(3, n, dtype=F64))
+
+
+def test_rows_of_a_rank_that_owns_no_dofs():
+    """A rank of a distributed mesh may own no DOFs: (..., 0) tensors become (prod(...), 0) rows, where
+    reshape(-1, 0) is ambiguous and raised while the other ranks waited in the collective product."""
+    from fempdl.layer.observation import _rows
+
+    assert _rows(torch.zeros(2, 3, 0), 0).shape == (6, 0)
+    assert _rows(torch.zeros(0), 0).shape == (1, 0)

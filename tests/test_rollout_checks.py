@@ -91,6 +91,21 @@ def test_a_time_step_at_or_below_zero_is_refused_at_every_step(heat, newton, kin
     assert float(rollout(u0, 2)[-1].abs().max()) < 1.0                    # a positive dt still runs
 
 
+def test_a_constant_given_per_step_is_checked_per_step_not_at_its_value_now(heat):
+    """dt given for every step: the value the Constant holds outside the rollout is not the one it runs."""
+    u0 = torch.full((heat.problem.output_size,), 0.1, dtype=torch.float64)
+    heat.problem.constants["dt"].value = 0.0
+    try:
+        for schedule in SCHEDULES:
+            states = Rollout(heat, "u0", schedule=schedule)(u0, 3, constants={"dt": [0.01] * 3})
+            assert float(states[-1].abs().max()) > 0
+        heat.problem.constants["dt"].value = float("nan")
+        with pytest.raises(ValueError, match=r"^Constant 'dt' is nan; give it a finite value$"):
+            heat(u0=u0)
+    finally:
+        heat.problem.constants["dt"].value = 0.01
+
+
 def test_declared_bounds_of_constants_can_be_lifted_and_are_checked(lshape):
     problem = forms.oseen.problem(lshape, controls=("u_prev",))
     assert problem.positive == {"nu", "dt"} and problem.nonnegative == {"grad_div"}
@@ -106,23 +121,31 @@ def test_declared_bounds_of_constants_can_be_lifted_and_are_checked(lshape):
 
 
 @pytest.mark.parametrize("schedule", ["all", ("revolve", 2), ("multistage", 1, 1)])
-def test_a_second_backward_under_a_schedule_adds_the_gradient_again(heat, schedule, tmp_path):
-    n = heat.problem.output_size
+def test_a_second_backward_under_a_schedule_adds_the_gradient_again(newton, schedule, tmp_path):
+    """retain_graph=True and a second backward: the schedule runs again from u_0 at the forward's dt (moved
+    since), so a Newton rollout's adjoint, which needs its states, gets them as the forward made them."""
+    n = newton.problem.output_size
     g = torch.Generator().manual_seed(0)
-    u0 = torch.rand(n, dtype=torch.float64, generator=g, requires_grad=True)
-    f = torch.rand(2, 5, heat.problem.control_size("f"), dtype=torch.float64, generator=g, requires_grad=True)
+    u0 = (0.5 * torch.rand(n, dtype=torch.float64, generator=g)).requires_grad_()
+    kappa = (1.0 + torch.rand(2, newton.problem.control_size("kappa"), dtype=torch.float64, generator=g))
+    kappa.requires_grad_()
     w = torch.rand(n, dtype=torch.float64, generator=g)
+    dt = newton.problem.constants["dt"]
     grads = {}
     for how in (None, schedule):
-        u0.grad = f.grad = None
-        rollout = Rollout(heat, "u0", schedule=how, disk_dir=str(tmp_path))
-        loss = (w * rollout(u0, 5, per_step={"f": f}, outputs=[3, 5])).square().sum()
-        loss.backward(retain_graph=True)
-        loss.backward()
-        grads[how] = (u0.grad.clone(), f.grad.clone())
+        u0.grad = kappa.grad = None
+        rollout = Rollout(newton, "u0", schedule=how, disk_dir=str(tmp_path))
+        loss = (w * rollout(u0, 5, kappa=kappa, outputs=[3, 5])).square().sum()
+        dt.value = 0.1                     # moved after the forward: both backwards run at the forward's 0.01
+        try:
+            loss.backward(retain_graph=True)
+            loss.backward()
+        finally:
+            dt.value = 0.01
+        grads[how] = (u0.grad.clone(), kappa.grad.clone())
     for unscheduled, scheduled in zip(grads[None], grads[schedule]):
-        torch.testing.assert_close(scheduled, unscheduled, rtol=1e-10, atol=1e-14)
-    assert float(grads[None][0].abs().max()) > 0
+        torch.testing.assert_close(scheduled, unscheduled, rtol=1e-9, atol=1e-14)
+    assert float(grads[None][1].abs().max()) > 0
 
 
 FILE_SIZE_LIMIT = """

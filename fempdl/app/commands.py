@@ -38,7 +38,8 @@ def execute(args) -> int:
             return _load_and_run(args)
     except KeyboardInterrupt as interrupted:
         out = getattr(interrupted, "out", None)          # None: interrupted before runs began
-        kept = out is not None and _checkpoint_kept(out)
+        # `fempdl tradeoff` has no --resume: its runs start again whatever they kept.
+        kept = out is not None and hasattr(args, "resume") and _checkpoint_kept(out)
         print("fempdl: interrupted; " + ("a run's checkpoint holds its epochs finished up to a second before "
                                          "(continue with --resume)" if kept else
                                          "no checkpoint was written yet, so there is nothing to resume: run the "

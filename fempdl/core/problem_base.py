@@ -114,25 +114,30 @@ class ProblemBase:
                              f"{'controls or Constants' if what == 'positive' else 'Constants'} {list(allowed)}")
         return names
 
-    def check_constants(self, values: Mapping | None = None) -> None:
-        """Refuse a Constant in :attr:`positive` (> 0) or :attr:`nonnegative` (>= 0) whose value breaks its
-        bound, with a ValueError naming it, the value and the fix: the values the Constants hold now, or
-        ``values`` (name -> an array of per-step values, step first: a rollout's sequence). O(1) per
-        Constant; local (the ranks agree on the Constants before: a layer's call check)."""
-        for name in (values if values is not None else self.constants):
-            strict = name in self._positive
-            if not strict and name not in self._nonnegative:
-                continue
+    def check_constants(self, values: Mapping | None = None, *, skip=()) -> None:
+        """Refuse a non-finite Constant, or one in :attr:`positive` (> 0) or :attr:`nonnegative` (>= 0)
+        whose value breaks its bound, with a ValueError naming it, the value and the fix: the values the
+        Constants hold now (but those in ``skip``), or ``values`` (name -> an array of per-step values,
+        step first: a rollout's sequence). O(1) per Constant; local (the ranks agree on the Constants
+        before: a layer's call check)."""
+        names = values if values is not None else [n for n in self.constants if n not in skip]
+        for name in names:
             array = np.asarray(values[name] if values is not None else self.constants[name].value, dtype=np.float64)
-            bad = array <= 0 if strict else array < 0
+            strict = name in self._positive
+            bad = ~np.isfinite(array)
+            if not bad.any() and (strict or name in self._nonnegative):
+                bad = array <= 0 if strict else array < 0
             if not bad.any():
                 continue
-            where = "" if values is None else f" at step {int(np.argwhere(bad)[0][0])}"
-            value = float(array[np.unravel_index(int(np.argmax(bad)), array.shape)]) if array.ndim else float(array)
+            first = np.unravel_index(int(np.argmax(bad)), array.shape) if array.ndim else ()
+            where = "" if values is None else f" at step {first[0]}"
+            value = float(array[first])
+            if not np.isfinite(value):
+                raise ValueError(f"Constant {name!r} is {value:g}{where}; give it a finite value")
             sign = "> 0" if strict else ">= 0"
             raise ValueError(f"Constant {name!r} must be {sign} (problem.{'positive' if strict else 'nonnegative'}), "
-                             f"got {value:g}{where}; pass {sign.replace('>', 'values >')} (a time step runs "
-                             "forward), or take the name out of that set to solve with it on purpose")
+                             f"got {value:g}{where}; give it a value {sign}, or take the name out of that set to "
+                             "solve with it on purpose")
 
     def check_control_values(self, name: str, values) -> None:
         """Refuse the values a call passes for control ``name`` (a numpy array or a tensor, any shape:

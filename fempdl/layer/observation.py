@@ -19,6 +19,8 @@ meshes (straight-sided triangles and tetrahedra), where the pull-back to the ref
 """
 from __future__ import annotations
 
+import math
+
 from mpi4py import MPI
 import basix
 import numpy as np
@@ -131,7 +133,7 @@ class PointObservation(torch.nn.Module):
         if u.dim() == 0 or u.shape[-1] != n:
             raise ValueError(f"u must have shape (..., {n}): {n} owned DOF values last, e.g. (B, {n}) or a "
                              f"rollout's (B, T, {n}); got {tuple(u.shape)}")
-        rows = u.reshape(-1, n).to(torch.float64)
+        rows = _rows(u, n)
         local = (self.matrix @ rows.T).T
         out = parallel.allreduce_sum(local, self.comm)
         return out.reshape(*u.shape[:-1], n_obs).to(u.dtype)
@@ -178,14 +180,14 @@ class MassInner(torch.nn.Module):
                 raise ValueError(f"{label} must have shape (..., {self.size}): {self.size} owned DOF values "
                                  f"last, e.g. (B, {self.size}); got {tuple(t.shape)}")
         if v is None:             # one operand: M u is computed once
-            rows = u.reshape(-1, self.size).to(torch.float64)
+            rows = _rows(u, self.size)
             return _MassInnerFunction.apply(rows, rows, self).reshape(u.shape[:-1])
         try:
             lead = torch.broadcast_shapes(u.shape[:-1], v.shape[:-1])
         except RuntimeError:
             raise ValueError(f"u {tuple(u.shape)} and v {tuple(v.shape)} have leading axes that do not broadcast; "
                              "give equal leading axes, or 1 where one is shared") from None
-        u2, v2 = (t.expand(*lead, self.size).reshape(-1, self.size).to(torch.float64) for t in (u, v))
+        u2, v2 = (_rows(t.expand(*lead, self.size), self.size) for t in (u, v))
         return _MassInnerFunction.apply(u2, v2, self).reshape(lead)
 
     def norm(self, u: torch.Tensor) -> torch.Tensor:
@@ -211,3 +213,9 @@ class _MassInnerFunction(torch.autograd.Function):
     def backward(ctx, grad):
         Mu, Mv = ctx.saved_tensors
         return grad[:, None] * Mv, grad[:, None] * Mu, None
+
+
+def _rows(u: torch.Tensor, n: int) -> torch.Tensor:
+    """u (..., n) as float64 rows (prod(...), n); explicit, since reshape(-1, 0) is ambiguous on a rank of a
+    distributed mesh that owns no DOFs (n = 0)."""
+    return u.reshape(math.prod(u.shape[:-1]), n).to(torch.float64)

@@ -195,7 +195,7 @@ class _Scheduled(torch.autograd.Function):
         plan, runner = ctx.plan, ctx.runner
         if runner.spent:        # a second backward (retain_graph=True): the schedule runs again from u_0
             runner = ctx.runner = runner.again(lambda k, u, first: plan.run(k, u, False, True))
-            with plan.constants_kept():
+            with plan.constants_kept(), plan.call_state():     # the states of the forward's inputs
                 runner.forward(plan.initial, first=False)
         G = grad_out.detach().to(device="cpu", dtype=torch.float64).numpy()
         G = G[None] if ctx.unbatched else G

@@ -143,6 +143,7 @@ class CheckpointedRollout:
         self._steps, self._run, self._adjoint, self._outputs = steps, run, adjoint, outputs
         self._ics = _Store(disk_dir, rank)
         self._deps: dict = {}                     # step k -> (u_k, u_k+1): shared arrays, counted once
+        self._dep_arrays: dict = {}               # id -> pairs of _deps holding that array: O(1) per step
         self._swept = 0                           # steps the forward sweep ran
         # (k, u_k) of the step reversed last: u_k is the state step k - 1 makes, which a schedule's run of
         # that step (to keep its adjoint dependencies) would compute again, bit for bit.
@@ -191,7 +192,7 @@ class CheckpointedRollout:
                         self.stats.adjoint_steps += 1
                         self._reversed = (k, uk)
                         if action.clear_adj_deps:
-                            del self._deps[k]
+                            self._set_deps(k, None)
                 else:
                     u = self._act(action, u, None, first=False)
         finally:
@@ -217,7 +218,7 @@ class CheckpointedRollout:
                 if first and kept is not None and k + 1 in self._outputs:
                     kept[k + 1] = u_next
                 if action.write_adj_deps:
-                    self._deps[k] = (u, u_next)
+                    self._set_deps(k, (u, u_next))
                 u = u_next
                 self._count()
             return u
@@ -227,12 +228,24 @@ class CheckpointedRollout:
             return self._ics.take(action.from_storage, action.n, keep=isinstance(action, cs.Copy))
         raise NotImplementedError(f"checkpoint action {action!r} is not one a rollout runs")
 
+    def _set_deps(self, k: int, pair: tuple | None) -> None:
+        """Keep (or, ``None``, free) step k's adjoint dependencies, counting the distinct arrays held."""
+        for a in self._deps.pop(k, ()):
+            self._dep_arrays[id(a)] -= 1
+            if not self._dep_arrays[id(a)]:
+                del self._dep_arrays[id(a)]
+        if pair is not None:
+            self._deps[k] = pair
+            for a in pair:
+                self._dep_arrays[id(a)] = self._dep_arrays.get(id(a), 0) + 1
+
     def _count(self) -> None:
-        arrays = {id(a): a for pair in self._deps.values() for a in pair}
-        arrays.update((id(a), a) for a in self._ics.memory.values())
+        """The most distinct states held so far: O(snapshots in memory) a step, not O(steps kept)."""
+        others = {id(a) for a in self._ics.memory.values()}
         if self._reversed is not None:
-            arrays[id(self._reversed[1])] = self._reversed[1]
-        self.stats.most_in_memory = max(self.stats.most_in_memory, len(arrays))
+            others.add(id(self._reversed[1]))
+        held = len(self._dep_arrays) + len(others - self._dep_arrays.keys())
+        self.stats.most_in_memory = max(self.stats.most_in_memory, held)
         self.stats.most_on_disk = max(self.stats.most_on_disk, self._ics.on_disk)
 
 

@@ -42,7 +42,8 @@ def _check_call(rollout, initial, steps: int, values: dict, controls: dict, per_
     n = layer.problem.output_size
     if initial.dtype not in (torch.float32, torch.float64):
         raise TypeError(f"initial has dtype {initial.dtype}; use float32 or float64 (e.g. initial.double())")
-    if initial.dim() not in (1, 2) or initial.shape[-1] != n or initial.numel() == 0:
+    # A rank of a distributed mesh may own no DOFs (n = 0): only an empty batch is refused.
+    if initial.dim() not in (1, 2) or initial.shape[-1] != n or (initial.dim() == 2 and initial.shape[0] == 0):
         raise ValueError(f"initial must be (B, {n}) or ({n},): one value per owned DOF of the state's space, got "
                          f"shape {tuple(initial.shape)}")
     one_step = {**controls, **{name: t[..., 0, :] for name, t in per_step.items()}, rollout.state: initial}
@@ -57,7 +58,7 @@ def _check_call(rollout, initial, steps: int, values: dict, controls: dict, per_
         layer._check_finite(list(whole), list(whole.values()))
         if torch_group_initialised() and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
             layer._check_caps_over_torch_group()
-        problem.check_constants()
+        problem.check_constants(skip=values)           # those given per step are checked per step below
     problem.check_constants(values)
 
 

@@ -241,7 +241,8 @@ class SystemLayer(torch.nn.Module):
         comm = self.problem.V.mesh.comm
         mine = {**self.call_signature(names, tensors, batch), **(extra or {})}
         every = comm.allgather(mine)
-        differ = [key for key in mine if any(call[key] != mine[key] for call in every)]
+        # Compared as text: a NaN Constant equal on every rank is no disagreement (the finite check names it).
+        differ = [key for key in mine if any(repr(call[key]) != repr(mine[key]) for call in every)]
         if differ:
             by_rank = "; ".join(f"{key}: {[call[key] for call in every]}" for key in differ)
             what = caller or f"this distributed-mesh {type(self).__name__}"

@@ -260,7 +260,10 @@ class PRDP:
         """Measure K_eps on the validation at the current model; raise ``k_cap`` if it lies above."""
         measured = k_eps(self._target, call=validate, rtol=self.k_eps_rtol)
         ranks = self.ranks
-        if ranks is not None and ranks.size > 1 and not ranks.torch_group:     # torch: agreed in prdp_steps
+        # The largest over the ranks, which may each validate a shard: a measurement runs the validation
+        # function, which every rank calls (a step made on one rank alone passes a number, and never
+        # measures).
+        if ranks is not None and ranks.size > 1:
             measured = int(ranks.max(float(measured)))
         if measured <= self.k_cap:
             return False

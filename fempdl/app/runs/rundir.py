@@ -146,11 +146,15 @@ def check_output_directory(directory: Path, *, resume: bool, overwrite: bool, ne
                 f"{str(directory)!r} holds an earlier run and files fempdl did not write ({shown}); move those "
                 f"out and pass {flags['resume']} to continue the run, or choose another {flags['out']} "
                 f"({flags['overwrite']} would replace the run, and files of yours named as fempdl's)")
+        # Run files with no record beside them: the user's, or a run of a fempdl from before the record.
+        earlier = any(Path(name).name in RUN_FILES for name in foreign)
         raise RunDirectoryError(
             f"{str(directory)!r} holds no fempdl run but files fempdl did not write ({shown}); runs write into "
             f"a new or empty directory or one of their own: choose another {flags['out']}, or pass "
             f"{flags['overwrite']} to write into it anyway (files named as fempdl's, such as metrics.csv or "
-            "time_split.png, are then replaced; nothing else is touched)")
+            "time_split.png, are then replaced; nothing else is touched)" + (
+                ". A run written by a fempdl older than its record of the files it writes (.fempdl-record.json) "
+                "counts as such files: continue it with the version that wrote it" if earlier else ""))
     if run and not (resume or overwrite):
         raise RunDirectoryError(
             f"{str(directory)!r} holds the files of an earlier run; pass {flags['resume']} to continue it, "
