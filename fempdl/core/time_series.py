@@ -68,7 +68,7 @@ class TimeSeries:
         t = float(t)
         if not math.isfinite(t):
             raise ValueError(f"t must be a finite time, got {t}")
-        value = value.detach().cpu() if hasattr(value, "detach") else np.asarray(value)
+        value = value.detach().cpu().numpy() if hasattr(value, "detach") else np.asarray(value)
         if value.ndim == 2:
             if self.sample >= value.shape[0]:
                 raise ValueError(f"TimeSeries(sample={self.sample}) but the batch has {value.shape[0]} samples")
