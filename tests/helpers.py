@@ -220,3 +220,15 @@ def one_line_error(argv, capsys) -> str:
     # Log lines of the run may come first (stderr is no terminal here); the error is the last line.
     assert "Traceback" not in err and all(line.startswith("fempdl: ") for line in lines), err
     return lines[-1]
+
+
+def finished_run(root, scene_text: str):
+    """(scene file, output directory): ``scene_text`` written under ``root`` and one finished run of it by
+    ``fempdl run --k 4 --no-baseline`` in ``root / "out"`` (its run folder ``out/k4``)."""
+    from fempdl.app import cli
+
+    path = root / "tiny.toml"
+    path.write_text(scene_text)
+    argv = ["run", path, "--k", 4, "--out", root / "out", "--no-progress", "--no-baseline"]
+    assert cli.main([str(a) for a in argv]) == 0
+    return path, root / "out"

@@ -12,7 +12,7 @@ import torch
 from fempdl.app import cli, scene
 from fempdl.app.runs import checkpoints, files, rundir, runner
 
-from helpers import one_line_error, tiny_scene
+from helpers import finished_run, one_line_error, tiny_scene
 
 SCENE = tiny_scene("inverse", name="app-safety", optimizer={"epochs": 2})
 
@@ -20,11 +20,7 @@ SCENE = tiny_scene("inverse", name="app-safety", optimizer={"epochs": 2})
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     """A scene file and a directory holding one finished 2-epoch run of `fempdl run --k 4 --no-baseline`."""
-    root = tmp_path_factory.mktemp("trained")
-    path = root / "tiny.toml"
-    path.write_text(SCENE)
-    assert cli.main([str(a) for a in run_argv(path, root / "out")]) == 0
-    return path, root / "out"
+    return finished_run(tmp_path_factory.mktemp("trained"), SCENE)
 
 
 def run_argv(scene_file, out, *extra, k=4):
