@@ -43,7 +43,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from fempdl import forms, mesh
-from fempdl.core import _dolfinx
+from fempdl.core import _dolfinx, matrices
 from fempdl.ksp_adjoint import CappedSolver, KSPOptions, SolverFailedError
 
 from bench_common import machine_info, write_json_atomically
@@ -93,8 +93,8 @@ def preconditioners(saddle_point: bool) -> dict:
 
 
 def assembled_system(prob):
-    A = _dolfinx.create_matrix(prob.a_form)
-    _dolfinx.assemble_matrix_into(A, prob.a_form, prob.bcs)
+    A = matrices.create_matrix(prob.a_form)
+    matrices.assemble_matrix_into(A, prob.a_form, prob.bcs)
     return A
 
 

@@ -46,7 +46,7 @@ from petsc4py import PETSc
 
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
-from fempdl.core import _dolfinx
+from fempdl.core import _dolfinx, matrices
 from fempdl.ksp_adjoint import KSPOptions
 
 from bench_common import machine_info, write_json_atomically
@@ -83,8 +83,8 @@ def layer_timings(repeats: int) -> dict:
 
 def solve_columns_timings() -> dict:
     prob = forms.poisson.problem(mesh.load("lshape", MPI.COMM_SELF, h=0.01), controls=("f",))
-    A = _dolfinx.create_matrix(prob.a_form)
-    _dolfinx.assemble_matrix_into(A, prob.a_form, prob.bcs)
+    A = matrices.create_matrix(prob.a_form)
+    matrices.assemble_matrix_into(A, prob.a_form, prob.bcs)
     ksp = PETSc.KSP().create(MPI.COMM_SELF)
     ksp.setOperators(A)
     ksp.setType("preonly")

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from fempdl.bridge_torch import SolveLayer
-from fempdl.core import _dolfinx
+from fempdl.core import matrices
 from fempdl.ksp_adjoint import KSPOptions
 
 from helpers import CAPPED, CONVERGED, FORM_CONTROL_PAIRS, build, control_values
@@ -170,8 +170,8 @@ def test_only_what_the_call_needs_is_assembled(coarse_lshape, monkeypatch):
     prob = build("poisson", coarse_lshape)
     layer = SolveLayer(prob, CAPPED["jacobi"](5))
     calls = []
-    original = _dolfinx.assemble_matrix_into
-    monkeypatch.setattr(_dolfinx, "assemble_matrix_into",
+    original = matrices.assemble_matrix_into
+    monkeypatch.setattr(matrices, "assemble_matrix_into",
                         lambda A, form, *a, **k: (calls.append(form), original(A, form, *a, **k))[1])
     f = control_values(prob, "f", batch=4).requires_grad_()
     for _ in range(3):

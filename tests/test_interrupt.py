@@ -148,11 +148,11 @@ def test_a_matrix_interrupted_while_assembled_takes_the_next_assembly(coarse_lsh
     """Ctrl-C between setting a matrix's values and assembling them left it unassembled, and PETSc refuses
     to zero such a matrix: every later solve of the layer failed with PETSc error 73. The interrupt now
     finishes the assembly on its way out, and the next solve is the one a fresh layer gives."""
-    import dolfinx.fem.petsc
     import torch
     from petsc4py import PETSc
 
     from fempdl import SolveLayer, forms
+    from fempdl.core import _dolfinx
 
     prob = forms.poisson.problem(coarse_lshape, controls=("f", "kappa"))
     layer = SolveLayer(prob, "lu")
@@ -160,12 +160,15 @@ def test_a_matrix_interrupted_while_assembled_takes_the_next_assembly(coarse_lsh
     kappa = torch.ones(prob.control_size("kappa"), dtype=torch.float64)
     layer(f=f, kappa=kappa)
 
-    def interrupted(A, *args):
-        A.setValue(0, 0, 1.0, addv=PETSc.InsertMode.ADD_VALUES)
+    def interrupted(*args):
+        # Half-way: the entries summed so far, a value set through PETSc and not yet assembled.
+        layer.system._A.setValue(0, 0, 1.0, addv=PETSc.InsertMode.ADD_VALUES)
         raise KeyboardInterrupt
 
     with monkeypatch.context() as patch:
-        patch.setattr(dolfinx.fem.petsc, "assemble_matrix", interrupted)
+        # Both assembly paths: through PETSc, and DOLFINx's CSR assembly into the arrays PETSc shares.
+        patch.setattr(_dolfinx, "assemble_petsc_matrix", interrupted)
+        patch.setattr(_dolfinx, "assemble_csr_matrix", interrupted)
         with pytest.raises(KeyboardInterrupt):
             layer(f=f, kappa=2 * kappa)
     u = layer(f=f, kappa=2 * kappa)

@@ -15,7 +15,7 @@ import pytest
 from petsc4py import PETSc
 
 from fempdl import forms, mesh
-from fempdl.core import _dolfinx
+from fempdl.core import _dolfinx, matrices
 from fempdl.ksp_adjoint import KSPOptions
 
 COMM = MPI.COMM_WORLD
@@ -46,8 +46,8 @@ def poisson():
 
 @pytest.fixture(scope="module")
 def matrix(poisson):
-    A = _dolfinx.create_matrix(poisson.a_form)
-    _dolfinx.assemble_matrix_into(A, poisson.a_form, poisson.bcs)
+    A = matrices.create_matrix(poisson.a_form)
+    matrices.assemble_matrix_into(A, poisson.a_form, poisson.bcs)
     yield A
     A.destroy()
 

@@ -208,7 +208,7 @@ def test_unrolled_matrix_control_gradcheck_and_forward(coarse_problems, form, ot
 
 @pytest.mark.parametrize("form", ["poisson-p2-dg0", "heat"])
 def test_matrix_jacobian_reproduces_the_assembled_matrix(coarse_lshape, form):
-    from fempdl.core import _dolfinx
+    from fempdl.core import matrices
     from fempdl.solve.petsc import petsc_to_scipy
     prob = build(form, coarse_lshape)
     layer = SolveLayer(prob, KSPOptions(max_it=3))
@@ -216,8 +216,8 @@ def test_matrix_jacobian_reproduces_the_assembled_matrix(coarse_lshape, form):
     kappa = control_values(prob, "kappa", batch=1)[0].numpy()
     fn = prob.control("kappa")
     fn.x.array[: len(kappa)] = kappa
-    A = _dolfinx.create_matrix(prob.a_form)
-    _dolfinx.assemble_matrix_into(A, prob.a_form, prob.bcs)
+    A = matrices.create_matrix(prob.a_form)
+    matrices.assemble_matrix_into(A, prob.a_form, prob.bcs)
     S = petsc_to_scipy(A)
     assert np.array_equal(S.indices, pattern.indices)
     np.testing.assert_allclose(v0 + J @ kappa, S.data, rtol=0, atol=1e-13 * np.abs(S.data).max())

@@ -183,8 +183,14 @@ def dirichlet_bc(V, value, facets: np.ndarray):
     return dolfinx.fem.dirichletbc(value, dofs, V)
 
 
-def create_matrix(a_form) -> PETSc.Mat:
+def create_petsc_matrix(a_form) -> PETSc.Mat:
     return dolfinx.fem.petsc.create_matrix(a_form)
+
+
+def create_csr_matrix(a_form):
+    """DOLFINx's own CSR matrix (``la.MatrixCSR``) with the sparsity of ``a_form``, zeroed."""
+    create = getattr(dolfinx.fem, "create_matrix", None) or dolfinx.fem.assemble.create_matrix   # 0.5: not exported
+    return create(a_form)
 
 
 def create_vector(L_form) -> PETSc.Vec:
@@ -200,21 +206,16 @@ def create_vector(L_form) -> PETSc.Vec:
                                    comm=space.mesh.comm)
 
 
-def assemble_matrix_into(A: PETSc.Mat, a_form, bcs=(), diagonal: float = 1.0) -> PETSc.Mat:
-    """Zero ``A`` and assemble ``a_form`` into it; BC rows and columns are zeroed
-    and ``diagonal`` is put on BC rows (only when ``bcs`` is given)."""
-    try:
-        A.zeroEntries()
-        # Positional: the keyword is ``diagonal`` up to 0.9 and ``diag`` from 0.10.
-        dolfinx.fem.petsc.assemble_matrix(A, a_form, list(bcs), diagonal)
-    except BaseException:
-        # Interrupted (Ctrl-C) between setting values and assembling them, A would stay unassembled, which
-        # PETSc refuses to zero: every later solve would fail. Serial only (under MPI an error ends the job).
-        if A.getComm().getSize() == 1:
-            A.assemble()
-        raise
-    A.assemble()
-    return A
+def assemble_petsc_matrix(A: PETSc.Mat, a_form, bcs=(), diagonal: float = 1.0) -> None:
+    """Add ``a_form`` into the PETSc matrix ``A`` (not assembled); with ``bcs``, BC rows and
+    columns are left out and ``diagonal`` is set on BC rows."""
+    # Positional: the keyword is ``diagonal`` up to 0.9 and ``diag`` from 0.10.
+    dolfinx.fem.petsc.assemble_matrix(A, a_form, list(bcs), diagonal)
+
+
+def assemble_csr_matrix(A, a_form, bcs=(), diagonal: float = 1.0) -> None:
+    """Add ``a_form`` into DOLFINx's CSR matrix ``A``, as :func:`assemble_petsc_matrix` does."""
+    dolfinx.fem.assemble_matrix(A, a_form, list(bcs), diagonal)
 
 
 def assemble_vector_into(b: PETSc.Vec, L_form, a_form=None, bcs=()) -> PETSc.Vec:

@@ -27,7 +27,7 @@ from fempdl.forms._common import (
     check_degree,
     coefficient_space,
     dirichlet_bcs,
-    make_function,
+    make_coefficient,
     nonnegative_constant,
 )
 from fempdl.forms._flow import vector_function
@@ -63,7 +63,7 @@ def problem(msh, controls=("f",), *, degree: int = 1, E=1.0, nu: float = 0.3, E_
     gdim = tagged.mesh.geometry.dim
     V = _dolfinx.function_space(tagged.mesh, "Lagrange", degree, shape=(gdim,))
     f_fn = vector_function(V, f, "f")
-    E_fn = make_function(coefficient_space(tagged.mesh, E_space), E, "E", positive=True)
+    E_fn = make_coefficient(coefficient_space(tagged.mesh, E_space), E, "E", control="E" in controls, positive=True)
     nu_c = nonnegative_constant(tagged.mesh, nu, "nu")
     bcs = dirichlet_bcs(tagged, V, g, dirichlet)
     if not bcs:

@@ -32,6 +32,7 @@ from fempdl.forms._common import (
     check_degree,
     coefficient_space,
     dirichlet_bcs,
+    make_coefficient,
     make_function,
     positive_constant,
 )
@@ -68,7 +69,8 @@ def problem(msh, controls=("u0",), *, dt: float = 0.01, theta: float = 1.0, degr
     dt_c = positive_constant(msh_, dt, "dt")
     u0_fn = make_function(V, u0, "u0")
     f_fn = make_function(V, f, "f")
-    kappa_fn = make_function(coefficient_space(msh_, kappa_space), kappa, "kappa", positive=True)
+    kappa_fn = make_coefficient(coefficient_space(msh_, kappa_space), kappa, "kappa", control="kappa" in controls,
+                                positive=True)
     bcs = dirichlet_bcs(tagged, V, g, dirichlet)
 
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)

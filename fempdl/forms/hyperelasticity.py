@@ -55,7 +55,7 @@ from fempdl.forms._common import (
     check_controls,
     check_degree,
     coefficient_space,
-    make_function,
+    make_coefficient,
     nonnegative_constant,
     tagged_facets,
 )
@@ -113,7 +113,8 @@ def problem(msh, controls=("T",), *, degree: int = 1, E=1.0, nu: float = 0.3, E_
     fns = {"T": vector_function(V if T_space == "V" else _dolfinx.function_space(tagged.mesh, "Lagrange", 1,
                                                                                  shape=(gdim,)), T, "T"),
            "B": vector_function(V, B, "B"),
-           "E": make_function(coefficient_space(tagged.mesh, E_space), E, "E", positive=True)}
+           "E": make_coefficient(coefficient_space(tagged.mesh, E_space), E, "E", control="E" in controls,
+                                 positive=True)}
     zero = vector_function(V, 0.0, "clamped")
     bcs = (_dolfinx.dirichlet_bc(V, zero, clamped),)
     nu_c = nonnegative_constant(tagged.mesh, nu, "nu")

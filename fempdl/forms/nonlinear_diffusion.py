@@ -27,6 +27,7 @@ from fempdl.forms._common import (
     check_degree,
     coefficient_space,
     dirichlet_bcs,
+    make_coefficient,
     make_function,
     positive_constant,
 )
@@ -68,8 +69,10 @@ def problem(msh, controls=("f",), *, degree: int = 1, q=None, kappa=1.0, kappa_s
     check_degree(degree)
     V = _dolfinx.function_space(tagged.mesh, "Lagrange", degree)
     fns = {"f": make_function(V, f, "f"),
-           "kappa": make_function(coefficient_space(tagged.mesh, kappa_space), kappa, "kappa", positive=True),
-           "alpha": make_function(coefficient_space(tagged.mesh, alpha_space), alpha, "alpha")}
+           "kappa": make_coefficient(coefficient_space(tagged.mesh, kappa_space), kappa, "kappa",
+                                     control="kappa" in controls, positive=True),
+           "alpha": make_coefficient(coefficient_space(tagged.mesh, alpha_space), alpha, "alpha",
+                                     control="alpha" in controls)}
     bcs = dirichlet_bcs(tagged, V, g, dirichlet)
     if not bcs and dt is None:
         raise ValueError("nonlinear_diffusion: dirichlet=() leaves the steady u determined only up to a constant; "

@@ -19,7 +19,14 @@ import ufl
 from fempdl.core import _dolfinx
 from fempdl.core.mesh import as_tagged
 from fempdl.core.problem import Problem
-from fempdl.forms._common import check_controls, check_degree, coefficient_space, dirichlet_bcs, make_function
+from fempdl.forms._common import (
+    check_controls,
+    check_degree,
+    coefficient_space,
+    dirichlet_bcs,
+    make_coefficient,
+    make_function,
+)
 
 CONTROLS = ("f", "kappa")
 
@@ -45,7 +52,8 @@ def problem(msh, controls=("f",), *, degree: int = 1, kappa_space: str = "P1",
     check_degree(degree)
     V = _dolfinx.function_space(tagged.mesh, "Lagrange", degree)
     f_fn = make_function(V, f, "f")
-    kappa_fn = make_function(coefficient_space(tagged.mesh, kappa_space), kappa, "kappa", positive=True)
+    kappa_fn = make_coefficient(coefficient_space(tagged.mesh, kappa_space), kappa, "kappa",
+                                control="kappa" in controls, positive=True)
     bcs = dirichlet_bcs(tagged, V, g, dirichlet)
     if not bcs:
         raise ValueError("poisson: dirichlet=() leaves u determined only up to a constant; "

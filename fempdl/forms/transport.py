@@ -92,7 +92,8 @@ def problem(msh, controls=("w", "m_prev"), *, kappa: float = 1e-3, dt: float = 0
     kappa_c = nonnegative_constant(msh_, kappa, "kappa")
     dt_c = positive_constant(msh_, dt, "dt")
     bcs = dirichlet_bcs(tagged, V, g, dirichlet)
-    fns = {"w": vector_function(velocity_space, w, "w"), "m_prev": make_function(V, m_prev, "m_prev"),
+    fns = {"w": vector_function(velocity_space, w, "w"),
+           "m_prev": make_function(V, m_prev, "m_prev"),
            "f": make_function(V, f, "f")}
     w_fn, source = fns["w"], fns["f"] + fns["m_prev"] / dt_c
     if kappa == 0 and not supg:

@@ -28,7 +28,7 @@ import scipy.sparse as sp
 import torch
 import ufl
 
-from fempdl.core import _dolfinx, parallel
+from fempdl.core import _dolfinx, matrices, parallel
 from fempdl.core.problem_base import ProblemBase
 from fempdl.iterative.sparse import sparse_to_torch
 
@@ -159,8 +159,8 @@ class MassInner(torch.nn.Module):
             form = form + ufl.inner(ufl.grad(trial), ufl.grad(test)) * ufl.dx
         self.kind = kind
         self.size = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
-        self._M = _dolfinx.create_matrix(_dolfinx.compile_form(form))
-        _dolfinx.assemble_matrix_into(self._M, _dolfinx.compile_form(form))
+        self._M = matrices.create_matrix(_dolfinx.compile_form(form))
+        matrices.assemble_matrix_into(self._M, _dolfinx.compile_form(form))
         self._x, self._y = self._M.createVecs()
         self.comm = space.mesh.comm
 

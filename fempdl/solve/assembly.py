@@ -18,7 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
-from fempdl.core import _dolfinx
+from fempdl.core import matrices
 from fempdl.core.problem import Problem
 from fempdl.solve.petsc import petsc_to_scipy
 
@@ -197,9 +197,9 @@ def value_of(obj) -> np.ndarray:
 
 def assemble_scipy(form) -> sp.csr_matrix:
     """A compiled bilinear form assembled without boundary conditions, as scipy CSR (local rows)."""
-    A = _dolfinx.create_matrix(form)
+    A = matrices.create_matrix(form)
     try:
-        _dolfinx.assemble_matrix_into(A, form)
+        matrices.assemble_matrix_into(A, form)
         return petsc_to_scipy(A)
     finally:
         A.destroy()

@@ -14,7 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
-from fempdl.core import _dolfinx
+from fempdl.core import _dolfinx, matrices
 from fempdl.core.problem import Problem
 from fempdl.solve.assembly import ControlValues, fingerprint, fingerprint_matches
 from fempdl.solve.petsc import petsc_to_scipy
@@ -57,12 +57,12 @@ class ControlForms:
             return cached
         form = p.rhs_matrix_form(name)
         if cached is None:
-            C = _dolfinx.create_matrix(form)
+            C = matrices.create_matrix(form)
             vin, out = C.createVecs()
         else:
             C, vin, out, _ = cached
         with self._assembling():
-            _dolfinx.assemble_matrix_into(C, form)
+            matrices.assemble_matrix_into(C, form)
         entry = (C, vin, out, fingerprint(inputs))
         self._matrices[name] = entry
         return entry

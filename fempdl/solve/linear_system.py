@@ -28,7 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
-from fempdl.core import _dolfinx
+from fempdl.core import _dolfinx, matrices
 from fempdl.core.problem import Problem
 from fempdl.solve import assembly
 from fempdl.solve.assembly import ControlValues, Timer
@@ -71,7 +71,7 @@ class LinearSystem:
         # A symmetric factorisation's first matrix is checked for symmetry (the flag is the user's word).
         self._symmetry_unchecked = options.pc_type in assembly.SYMMETRIC_PC_TYPES
         self._batched_version = -1                             # A version the batched copy holds
-        self._A = _dolfinx.create_matrix(problem.a_form)
+        self._A = matrices.create_matrix(problem.a_form)
         self._destroyed = False
         self._b = _dolfinx.create_vector(problem.L_form)       # ghosted: assembly target
         self._x, self._rhs = self._A.createVecs()              # solution / transposed RHS
@@ -274,7 +274,7 @@ class LinearSystem:
         with ControlValues(p, {name: np.asarray(values)[None]}) as ctl:
             ctl.set_sample(0)
             with self._assembling():
-                _dolfinx.assemble_matrix_into(self._A, p.a_form, p.bcs, diagonal=bc_diagonal)
+                matrices.assemble_matrix_into(self._A, p.a_form, p.bcs, diagonal=bc_diagonal)
             self._A_version += 1
             self._A_inputs = None          # A holds these values now: reassemble when next needed
             return petsc_to_scipy(self._A)
@@ -365,7 +365,7 @@ class LinearSystem:
         (:func:`~fempdl.solve.assembly.check_operator`), naming the matrix ``controls`` set for it."""
         self._A_inputs = None
         with self._assembling():
-            _dolfinx.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
+            matrices.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
             assembly.check_operator(self._A, sorted(frozenset(controls) & self.problem.matrix_controls))
             if self._symmetry_unchecked:
                 assembly.check_symmetric(self._A)

@@ -38,7 +38,7 @@ from mpi4py import MPI
 import numpy as np
 from petsc4py import PETSc
 
-from fempdl.core import _dolfinx
+from fempdl.core import _dolfinx, matrices
 from fempdl.core.nonlinear_problem import NonlinearProblem
 from fempdl.core.tuning import LAGGED_REFRESH_ITERATIONS
 from fempdl.solve import assembly
@@ -98,14 +98,14 @@ class NonlinearSystem(NewtonReversePass):
         self.problem = problem
         self._comm = problem.V.mesh.comm
         self._destroyed = False
-        self._J = _dolfinx.create_matrix(problem.J_form)
+        self._J = matrices.create_matrix(problem.J_form)
         self._b = _dolfinx.create_vector(problem.F_form)        # residual
         self._sol = _dolfinx.create_vector(problem.F_form)      # SNES's iterate
         self._accepted = self._sol.duplicate()                   # the monitor's last: a failure's result
         self._nonfinite_state = self._sol.duplicate()            # the last state whose residual was NaN or inf
         self._u_vec = _dolfinx.function_vector(problem.u)
         # dF/du for the implicit adjoint: the iteration's J unless the problem's J is another one.
-        self._dFdu = self._J if problem.exact_J_form is problem.J_form else _dolfinx.create_matrix(problem.exact_J_form)
+        self._dFdu = self._J if problem.exact_J_form is problem.J_form else matrices.create_matrix(problem.exact_J_form)
         self._rhs, self._lam = self._J.createVecs()
         self._nullspaces = [nsp for A in {id(M): M for M in (self._J, self._dFdu)}.values()
                             for nsp in (assembly.attach_nullspace(A, problem.nullspace),
@@ -179,7 +179,7 @@ class NonlinearSystem(NewtonReversePass):
         assembly.check_symmetric_factor(options.ksp, p)
         lagged = options.ksp.lag_preconditioner
         if lagged and self._P is None:      # J's pattern, assembled: refreshes copy values only
-            self._P = _dolfinx.assemble_matrix_into(_dolfinx.create_matrix(p.J_form), p.J_form, p.bcs)
+            self._P = matrices.assemble_matrix_into(matrices.create_matrix(p.J_form), p.J_form, p.bcs)
         self._refresh_P = lagged                          # set up on the first Jacobian
         stop = (NewtonStop(options.rtol, options.atol, force_step=self._force_step)
                 if self._stops_at_tolerances(options) else None)
@@ -206,7 +206,7 @@ class NonlinearSystem(NewtonReversePass):
     def _jacobian(self, snes, x, J, P) -> None:
         with Timer(self.stats, "assembly_time"):
             self._set_state(x)
-            _dolfinx.assemble_matrix_into(J, self.problem.J_form, self.problem.bcs)
+            matrices.assemble_matrix_into(J, self.problem.J_form, self.problem.bcs)
             # A singular J (an empty row) would give MUMPS a tiny or huge finite step: a failed solve.
             self._jacobian_defect = assembly.operator_defect(J)
         if self._jacobian_defect is not None:
@@ -334,7 +334,7 @@ class NonlinearSystem(NewtonReversePass):
             F = _dolfinx.assemble_vector_into(_dolfinx.create_vector(p.F_form), p.F_form)
             alone = math.isfinite(F.norm(PETSc.NormType.NORM_INFINITY))
             F.destroy()
-            defect = assembly.operator_defect(_dolfinx.assemble_matrix_into(self._J, p.J_form, p.bcs))
+            defect = assembly.operator_defect(matrices.assemble_matrix_into(self._J, p.J_form, p.bcs))
         named = tuple(sorted(self._called_controls & p.jacobian_controls))
         return NewtonFailure(inner_reason=REASON_NAMES.get(inner, str(inner)),
                              inner_iterations=ksp.getIterationNumber(), jacobian_defect=defect,
@@ -364,7 +364,7 @@ class NonlinearSystem(NewtonReversePass):
         A, form, solver = ((self._dFdu, p.exact_J_form, self._solvers.exact_adjoint) if exact
                            else (self._J, p.J_form, self._solvers.adjoint))
         with Timer(self.stats, "assembly_time"):
-            _dolfinx.assemble_matrix_into(A, form, p.bcs)
+            matrices.assemble_matrix_into(A, form, p.bcs)
             assembly.check_operator(A, sorted(self._called_controls & (p.exact_jacobian_controls if exact
                                                               else p.jacobian_controls)), _AT_STATE)
         self._rhs.setArray(g)
