@@ -154,14 +154,14 @@ def test_every_schedule_gives_the_autograd_gradient(lshape, make_step, tmp_path)
         (weights[:, 0] * v[:, 0]).sum().backward()
         return u.detach(), x.grad, g.grad, c.grad
 
-    reference = run(Rollout(step, "u0"))
-    for schedule in SCHEDULES:
+    reference = run(Rollout(step, "u0", schedule="autograd"))
+    for schedule in (None, *SCHEDULES):           # None: one node, as "all"
         rollout = Rollout(step, "u0", schedule=schedule, disk_dir=str(tmp_path))
         for got, want in zip(run(rollout), reference):
             torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-14)
         stats = rollout.schedule_stats
         assert stats.steps == steps and stats.adjoint_steps == steps
-        if schedule == "all":
+        if schedule in (None, "all"):
             assert stats.recomputed == 0 and stats.most_in_memory == steps + 1
         elif schedule[0] == "revolve":
             assert stats.recomputed > 0 and stats.most_in_memory <= 2 + 2
@@ -235,3 +235,44 @@ def test_float32_inputs_give_float32_states_and_the_float64_gradient_to_single_p
     for x64, x32 in zip(results[torch.float64], results[torch.float32]):
         # float32 inputs and outputs: round-off of a few units of 2^-24 relative to the largest entry
         assert float((x64 - x32.double()).abs().max()) <= 1e-5 * float(x64.abs().max())
+
+
+def test_a_rollout_without_a_schedule_is_one_node_unless_its_steps_must_be_layer_calls(lshape):
+    """schedule=None runs an eager call as "all" (no layer call per step) and gives the gradient of autograd
+    through every step; a hooked step and torch.func get the step's calls, with the same gradient."""
+    step = nonlinear_step(lshape)
+    steps = 4
+    u0, f = inputs(step.problem, steps)
+    rollout = Rollout(step, "u0")
+
+    def loss(m):
+        return (rollout(u0, steps, f=m, outputs=[2, -1]) ** 2).sum()
+
+    calls = []
+    m = f[:, 0].clone().requires_grad_()
+    (one_node,) = torch.autograd.grad(loss(m), m)
+    assert rollout.schedule_stats.steps == steps and rollout.schedule_stats.recomputed == 0
+    handle = step.register_forward_pre_hook(lambda *_: calls.append(1))
+    rollout.schedule_stats = None
+    (hooked,) = torch.autograd.grad(loss(m), m)
+    handle.remove()
+    assert len(calls) == steps and rollout.schedule_stats is None
+    by_func = torch.func.grad(loss)(f[:, 0].clone())
+    assert rollout.schedule_stats is None
+    for other in (hooked, by_func):
+        torch.testing.assert_close(other, one_node, rtol=1e-12, atol=1e-14)
+    step.close()
+
+
+@pytest.mark.parametrize("schedule", [None, ("revolve", 2)])
+def test_a_second_derivative_through_a_one_node_rollout_is_refused(lshape, schedule):
+    """create_graph=True gives the first-order gradient; differentiating it again raises instead of silently
+    dropping the step adjoints' second-order terms."""
+    step = heat_step(lshape)
+    u0, f = inputs(step.problem, 3)
+    m = f[:, 0].clone().requires_grad_()
+    u = Rollout(step, "u0", schedule=schedule)(u0, 3, f=m, outputs=[-1])
+    (g,) = torch.autograd.grad((u ** 2).sum(), m, create_graph=True)
+    with pytest.raises(RuntimeError, match="second derivatives"):
+        g.sum().backward()
+    step.close()

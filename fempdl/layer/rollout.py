@@ -15,14 +15,20 @@ gradient by construction. Each step starts its solve from the state it
 advances (``initial_guess=u_k``, differentiable), as time steppers do.
 
 The step layer's caps apply to every step; PRDP moves them for the whole
-rollout (``PRDP(rollout, ...)`` or ``PRDP(step, ...)``). Without a
-``schedule`` the gradient flows through every step by autograd, which keeps
-every state (O(N B n) floats) and works for any step layer; with one
-(``"all"``, ``("revolve", s)``, ``("multistage", s_ram, s_disk)``) the rollout is one
-autograd node whose backward runs the step adjoints under that checkpoint
-schedule (:mod:`fempdl.layer.rollout_checkpoint`): O(s B n) floats, steps run
-again counted in :attr:`Rollout.schedule_stats`, the same gradient. A schedule
-needs a step differentiated implicitly (the step layers' default).
+rollout (``PRDP(rollout, ...)`` or ``PRDP(step, ...)``). With ``schedule="autograd"``
+every step is a call of the step layer and the gradient flows through every
+step by autograd, which keeps every state (O(N B n) floats) and works for any
+step layer; with a checkpoint schedule (``"all"``, ``("revolve", s)``,
+``("multistage", s_ram, s_disk)``) the rollout is one autograd node whose
+backward runs the step adjoints under that schedule
+(:mod:`fempdl.layer.rollout_checkpoint`): O(s B n) floats, steps run again
+counted in :attr:`Rollout.schedule_stats`, the same gradient. A checkpoint
+schedule needs a step differentiated implicitly (the step layers' default).
+Without a schedule (``None``) a call runs as ``"all"``, the same states kept and
+the same gradient with no layer call, operator dispatch or check per step, where
+it can: an eager call of an implicit step with no hook on it; under torch.func
+transforms or torch.compile (which need the step's operators), for an unrolled
+step and for a hooked one, it runs as ``"autograd"``.
 
 ``series=`` (a :class:`fempdl.io.TimeSeries`) writes the states to an XDMF time series as the
 first sweep computes them (a schedule's recomputed steps write nothing), at the times
@@ -41,12 +47,16 @@ from contextlib import contextmanager
 import numpy as np
 import torch
 
+from fempdl.layer.implicit_diff import SECOND_DERIVATIVE_MESSAGE, FirstOrderOnly
 from fempdl.layer.rollout_checkpoint import CheckpointedRollout, ScheduleStats, make_schedule
 from fempdl.layer.rollout_inputs import checked_call
 from fempdl.layer.system_layer import SystemLayer
 from fempdl.solve.linear_system import INITIAL_GUESS
 
-__all__ = ["Rollout"]
+__all__ = ["Rollout", "AUTOGRAD"]
+
+#: The schedule that makes every step a call of the step layer, its gradient by autograd through each.
+AUTOGRAD = "autograd"
 
 
 class Rollout(torch.nn.Module):
@@ -57,7 +67,8 @@ class Rollout(torch.nn.Module):
         state: the name of the step's control that takes the previous state; its space is the
             solution's (``problem.control_size(state) == problem.output_size``).
         warm_start: start each step's solve from the state it advances (``False``: from zero).
-        schedule: ``None`` (autograd through every step), or a checkpoint schedule for the adjoint:
+        schedule: ``None`` (every state kept: one node where it can, else autograd through every step),
+            ``"autograd"`` (every step a call of the step layer), or a checkpoint schedule for the adjoint:
             ``"all"``, ``("revolve", s)``, ``("multistage", s_in_memory, s_on_disk)`` (module docstring).
         disk_dir: where a multistage schedule writes its states on disk (default: the temporary directory).
 
@@ -81,7 +92,7 @@ class Rollout(torch.nn.Module):
                              f"{problem.output_size}: the previous state must live in the solution's space")
         if not isinstance(warm_start, bool):
             raise TypeError(f"warm_start must be True or False, got {warm_start!r}")
-        if schedule is not None:
+        if schedule is not None and schedule != AUTOGRAD:
             make_schedule(schedule, 1)                       # validates the spec
             if getattr(step, "diff", "implicit") != "implicit":
                 raise ValueError("a checkpoint schedule runs the step's implicit adjoint; this step is "
@@ -120,12 +131,14 @@ class Rollout(torch.nn.Module):
             controls: controls constant in time, (B, n_m) or (n_m,).
         """
         per_step = dict(per_step or {})
-        values, indices = checked_call(self, initial, steps, constants or {}, controls, per_step, outputs)
+        schedule = (self._one_node(initial, controls, per_step) if self.schedule is None
+                    else None if self.schedule == AUTOGRAD else self.schedule)
+        values, indices = checked_call(self, schedule, initial, steps, constants or {}, controls, per_step, outputs)
         write = self._writer(series, values, steps)
         write(0, initial)
-        if self.schedule is not None:
-            return _Scheduled.apply(self, steps, values, tuple(controls), tuple(per_step), indices, write, initial,
-                                    *controls.values(), *per_step.values())
+        if schedule is not None:
+            return _Scheduled.apply(self, schedule, steps, values, tuple(controls), tuple(per_step), indices, write,
+                                    initial, *controls.values(), *per_step.values())
         problem = self.step.problem
         saved = {name: problem.constants[name].value.copy() for name in values}
         u, states = initial, [initial]
@@ -145,6 +158,21 @@ class Rollout(torch.nn.Module):
         if initial.dim() == 1 and states[-1].dim() == 2:
             states[0] = initial.expand_as(states[-1])        # one initial state shared by a batch
         return torch.stack([states[i] for i in indices], dim=-2)
+
+    def _one_node(self, initial, controls: dict, per_step: dict):
+        """``"all"`` where a call without a schedule runs as one node keeping every state, as autograd's graph
+        would, without a layer call per step: an eager call of an implicit step, no hook on it. ``None``
+        (autograd through every step) under torch.func transforms and torch.compile, which need the
+        step's operators, for an unrolled step, and for a step with hooks, which expect its calls."""
+        step = self.step
+        if (getattr(step.acting(), "diff", "implicit") != "implicit" or torch.compiler.is_compiling()
+                or step._forward_hooks or step._forward_pre_hooks
+                or torch.nn.modules.module._global_forward_hooks or torch.nn.modules.module._global_forward_pre_hooks):
+            return None
+        tensors = (initial, *controls.values(), *per_step.values())
+        if any(type(t) is not torch.Tensor or torch._C._functorch.is_functorch_wrapped_tensor(t) for t in tensors):
+            return None
+        return "all"
 
     def _writer(self, series, values: dict, steps: int):
         """write(k, u_k): to ``series`` at t_k, or nothing."""
@@ -170,9 +198,9 @@ class _Scheduled(torch.autograd.Function):
     """The rollout as one node: forward sweep without autograd, backward under the schedule."""
 
     @staticmethod
-    def forward(ctx, rollout, steps, values, constant_names, step_names, indices, write, initial, *tensors):
+    def forward(ctx, rollout, schedule, steps, values, constant_names, step_names, indices, write, initial, *tensors):
         plan = _Plan(rollout, steps, values, constant_names, step_names, initial, tensors)
-        training = any(ctx.needs_input_grad[7:])
+        training = any(ctx.needs_input_grad[8:])
         plan.layer.note_call(training)
 
         def run(k, u, first):
@@ -180,13 +208,14 @@ class _Scheduled(torch.autograd.Function):
             if first:
                 write(k + 1, u_next[0] if plan.unbatched else u_next)
             return u_next
-        runner = CheckpointedRollout(rollout.schedule, steps, run, plan.adjoint, indices,
+        runner = CheckpointedRollout(schedule, steps, run, plan.adjoint, indices,
                                      rollout.disk_dir, rollout.step.problem.V.mesh.comm.rank)
         with plan.constants_kept():
             outs = runner.forward(plan.initial)
         rollout.schedule_stats = runner.stats
         ctx.plan, ctx.runner, ctx.indices = plan, runner, indices
         ctx.unbatched = plan.unbatched
+        ctx.save_for_backward(initial, *tensors)      # what a gradient of the gradient would depend on
         out = torch.from_numpy(np.stack(outs, axis=1))
         return (out[0] if plan.unbatched else out).to(dtype=plan.dtype)
 
@@ -202,13 +231,20 @@ class _Scheduled(torch.autograd.Function):
         output_grads: dict = {}
         for t, i in enumerate(ctx.indices):
             output_grads[i] = output_grads[i] + G[:, t] if i in output_grads else G[:, t].copy()
-        plan.wanted = [name for name, need in zip(plan.names, ctx.needs_input_grad[8:]) if need]
+        plan.wanted = [name for name, need in zip(plan.names, ctx.needs_input_grad[9:]) if need]
         plan.sums = {}
         with plan.constants_kept(), plan.call_state():
             lam0, per_step = runner.backward(output_grads)
-        grads = [plan.reduce(lam0, plan.initial_shared) if ctx.needs_input_grad[7] else None,
+        grads = [plan.reduce(lam0, plan.initial_shared) if ctx.needs_input_grad[8] else None,
                  *plan.control_grads(per_step)]
-        return (None,) * 7 + tuple(None if g is None else g.to(dtype) for g, dtype in zip(grads, plan.dtypes))
+        grads = [None if g is None else g.to(dtype) for g, dtype in zip(grads, plan.dtypes)]
+        anchors = [t for t in (*ctx.saved_tensors, grad_out) if t.requires_grad]
+        if torch.is_grad_enabled() and anchors:
+            # create_graph=True: the step adjoints are first order; differentiating them again raises
+            # instead of silently dropping the second-order terms.
+            message = getattr(plan.layer, "second_derivative_message", SECOND_DERIVATIVE_MESSAGE)
+            grads = [None if g is None else FirstOrderOnly.apply(g, message, *anchors) for g in grads]
+        return (None,) * 8 + tuple(grads)
 
 
 class _Plan:

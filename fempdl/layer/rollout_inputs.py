@@ -17,20 +17,21 @@ from fempdl.core.ranks import torch_group_initialised
 __all__ = ["checked_call"]
 
 
-def checked_call(rollout, initial, steps: int, constants: Mapping, controls: dict, per_step: dict,
+def checked_call(rollout, schedule, initial, steps: int, constants: Mapping, controls: dict, per_step: dict,
                  outputs) -> tuple[dict, list]:
     """(values, indices): the Constants' per-step values, name -> (N, ...) float64 arrays, and the output
     state indices in 0 ... N, of a checked call (module docstring); a ValueError or TypeError naming the
-    argument otherwise."""
+    argument otherwise. ``schedule``: the call's, ``None`` when every step is a call of the step layer."""
     check_int("steps", steps, minimum=1)
     values = _constant_values(rollout, constants, steps)
     _check_controls(rollout, controls, per_step, steps)
     indices = _outputs(outputs, steps)
-    _check_call(rollout, initial, steps, values, controls, per_step, indices)
+    _check_call(rollout, schedule, initial, steps, values, controls, per_step, indices)
     return values, indices
 
 
-def _check_call(rollout, initial, steps: int, values: dict, controls: dict, per_step: dict, indices: list) -> None:
+def _check_call(rollout, schedule, initial, steps: int, values: dict, controls: dict, per_step: dict,
+                indices: list) -> None:
     """The step layer's checks of a step's call, made once for all steps: types, shapes and dtypes, and
     (where no step layer call makes them: under a schedule) finite values, positive controls and the
     caps over a torch.distributed group; the Constants' bounds at every step; and on a distributed mesh
@@ -49,11 +50,11 @@ def _check_call(rollout, initial, steps: int, values: dict, controls: dict, per_
     one_step = {**controls, **{name: t[..., 0, :] for name, t in per_step.items()}, rollout.state: initial}
     names, tensors, batch, _ = layer._validate(one_step)
     if layer._distributed:
-        extra = {"steps": steps, "outputs": tuple(indices), "schedule": repr(rollout.schedule),
+        extra = {"steps": steps, "outputs": tuple(indices), "schedule": repr(schedule),
                  "warm_start": rollout.warm_start, "per-step Constants": {k: v.tolist() for k, v in values.items()}}
         layer._check_ranks_agree(names, tensors, batch, extra, caller="this distributed-mesh Rollout")
     problem = layer.problem
-    if rollout.schedule is not None:
+    if schedule is not None:
         whole = {**controls, **per_step, rollout.state: initial}
         layer._check_finite(list(whole), list(whole.values()))
         if torch_group_initialised() and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
