@@ -156,15 +156,24 @@ class CappedSolver:
             if warm:
                 self._ksp.setInitialGuessNonzero(False)
 
-    def solve_many(self, R: np.ndarray) -> np.ndarray:
+    def can_solve_many_transpose(self, symmetric: bool) -> bool:
+        """Whether :meth:`solve_many` can solve A^T X = R: the adjoint solves with the forward's factors
+        (its own direct KSP, no assembled A^T) and A = A^T (``symmetric``) or PETSc has KSPMatSolveTranspose."""
+        return (self._ksp_adjoint is None and not self._options.assembled_adjoint and self._options.direct
+                and (symmetric or hasattr(self._ksp, "matSolveTranspose")))
+
+    def solve_many(self, R: np.ndarray, *, transpose: bool = False, symmetric: bool = False) -> np.ndarray:
         """A X = R for the rows of R (B, n) with one factorisation and one MatMatSolve
-        (a direct solve on one process: ``options.direct``); returns X (B, n).
+        (a direct solve on one process: ``options.direct``); returns X (B, n). With ``transpose``
+        A^T X = R by the same factors (:meth:`can_solve_many_transpose`): one MatMatSolve where A is
+        ``symmetric``, else one KSPMatSolveTranspose.
 
         Each sample is counted as one solve of one iteration, with its share of the time.
         """
         if not self._options.direct or self._A.getComm().getSize() > 1:
             raise ValueError("solve_many needs a direct solve (ksp_type='preonly' with a factorising pc_type) "
                              "on one process")
+        direction = "backward" if transpose else "forward"
         self._renew_failed()
         batch, n = R.shape
         t0 = time.perf_counter()
@@ -176,20 +185,23 @@ class CappedSolver:
         sol = PETSc.Mat().createDense((n, batch), comm=PETSc.COMM_SELF)
         sol.setUp()
         try:
-            self._ksp.getPC().getFactorMatrix().matSolve(rhs, sol)
+            if transpose and not symmetric:
+                self._ksp.matSolveTranspose(rhs, sol)
+            else:
+                self._ksp.getPC().getFactorMatrix().matSolve(rhs, sol)
             X = np.array(sol.getDenseArray().T)
         except PETSc.Error:
-            self._failed.add("forward")
+            self._failed.add(direction)
             raise
         finally:
             rhs.destroy()
             sol.destroy()
         if not np.isfinite(X).all():          # petsc4py 3.18 cannot ask the PC whether its set-up failed
-            self._failed.add("forward")
+            self._failed.add(direction)
         elapsed = time.perf_counter() - t1
         reason = PETSc.KSP.ConvergedReason.CONVERGED_ITS
         for ok in np.isfinite(X).all(axis=1):
-            self.record("forward", SolveStats(iterations=1, reason=reason, reason_name=REASON_NAMES[reason],
+            self.record(direction, SolveStats(iterations=1, reason=reason, reason_name=REASON_NAMES[reason],
                                               residual_norm=None, time=elapsed / batch, capped=False,
                                               ok=bool(ok), setup_time=(t1 - t0) / batch),
                         finite=bool(ok))

@@ -220,7 +220,12 @@ class LinearSystem:
             Lam = self._batched_solve(G, "backward") if use_batched else None
             if use_batched and residual:
                 grads[INITIAL_GUESS] = G - self._batched.matmul(Lam, transpose=True)
-            if use_batched and not per_sample_matrix and not by_form:
+            if (Lam is None and self._direct_many(batch, per_sample_matrix)
+                    and self._solver.can_solve_many_transpose(p.symmetric)):
+                # Every sample's transposed solve by the forward's factors at once (a time step's LU).
+                Lam = self._solver.solve_many(G, transpose=True, symmetric=p.symmetric)
+            solved = Lam is not None
+            if solved and not per_sample_matrix and not by_form:
                 with self._assembling():    # C_m^T lam_i, the gradient forms' values, in one product
                     for name in rhs_mats:
                         grads[name] = np.asarray((self._forms.rhs_matrix_scipy(name, transpose=True) @ Lam.T).T)
@@ -228,7 +233,7 @@ class LinearSystem:
             for i in range(batch):
                 if per_sample_matrix or by_form:
                     ctl.set_sample(i)
-                if use_batched:
+                if solved:
                     self._x.setArray(Lam[i])
                 else:
                     if per_sample_matrix and self._matrix_is_current():
