@@ -147,7 +147,9 @@ def test_bad_arguments_are_named():
 
 @pytest.fixture(scope="module")
 def heat():
-    step = SolveLayer(forms.heat.problem(mesh.load("lshape", MPI.COMM_SELF, h=0.25), controls=("u0", "f")), "lu")
+    # kappa: its gradient reads the states (a heat step's u0 and f gradients alone would keep none)
+    step = SolveLayer(forms.heat.problem(mesh.load("lshape", MPI.COMM_SELF, h=0.25), controls=("u0", "f", "kappa")),
+                      "lu")
     yield step
     step.close()
 
@@ -169,11 +171,12 @@ def test_rollout_gradient_equals_autograd_and_recomputes_as_predicted(heat):
     def gradients(schedule):
         rollout = Rollout(heat, "u0", schedule=schedule)
         x, y = u0.clone().requires_grad_(), f.clone().requires_grad_()
-        u = rollout(x, steps, constants={"dt": dts}, per_step={"f": y}, outputs=[4, -1])
+        kappa = torch.ones(heat.problem.control_size("kappa"), dtype=torch.float64, requires_grad=True)
+        u = rollout(x, steps, constants={"dt": dts}, per_step={"f": y}, kappa=kappa, outputs=[4, -1])
         (weights * u ** 2).sum().backward()
-        return (x.grad, y.grad), rollout.schedule_stats
+        return (x.grad, y.grad, kappa.grad), rollout.schedule_stats
 
-    reference, _ = gradients(None)
+    reference, _ = gradients("autograd")
     for s in (1, 2, 3, 5, 8, 9, 20):
         got, stats = gradients(("revolve", s))
         for a, b in zip(got, reference):

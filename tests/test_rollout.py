@@ -161,7 +161,9 @@ def test_every_schedule_gives_the_autograd_gradient(lshape, make_step, tmp_path)
             torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-14)
         stats = rollout.schedule_stats
         assert stats.steps == steps and stats.adjoint_steps == steps
-        if schedule in (None, "all"):
+        if isinstance(step, SolveLayer):     # a linear step's adjoint reads no state: none kept, none run again
+            assert (stats.recomputed, stats.most_in_memory, stats.most_on_disk) == (0, 2, 0)
+        elif schedule in (None, "all"):
             assert stats.recomputed == 0 and stats.most_in_memory == steps + 1
         elif schedule[0] == "revolve":
             assert stats.recomputed > 0 and stats.most_in_memory <= 2 + 2
@@ -195,28 +197,34 @@ def test_a_shared_initial_state_with_batched_controls(lshape, schedule):
 
 def test_memory_under_a_schedule_grows_with_its_snapshots_not_its_steps():
     """NumPy's allocations (the scheduled path's states live in NumPy; tracemalloc sees them) during
-    forward + backward of a 120-step heat rollout: storing every state holds at least N n floats,
-    revolve with 3 snapshots a small multiple of n, and both give the same gradient."""
+    forward + backward of a 120-step heat rollout: with a kappa gradient (its adjoint reads u_k+1)
+    storing every state holds at least N n floats, revolve with 3 snapshots a small multiple of n, and
+    both give the same gradient; with the source's gradient alone (an adjoint that reads no state) even
+    "all" keeps no state."""
     import tracemalloc
 
     import dolfinx.mesh
 
     steps, peaks, grads = 120, {}, {}
-    step = heat_step(dolfinx.mesh.create_unit_square(MPI.COMM_SELF, 40, 40))      # 1,681 DOFs
+    msh = dolfinx.mesh.create_unit_square(MPI.COMM_SELF, 40, 40)                  # 1,681 DOFs
+    step = SolveLayer(forms.heat.problem(msh, controls=("u0", "f", "kappa")), "lu")
     n = step.problem.output_size
     u0, f = inputs(step.problem, 1)
-    for schedule in ("all", ("revolve", 3)):
+    kappa = torch.ones(step.problem.control_size("kappa"), dtype=torch.float64)
+    for name, schedule, wanted in (("all", "all", "kappa"), ("revolve", ("revolve", 3), "kappa"),
+                                   ("stateless", "all", "f")):
         rollout = Rollout(step, "u0", schedule=schedule)
-        source = f[:, 0].clone().requires_grad_()
+        given = {"f": f[:, 0].clone(), "kappa": kappa.clone()}
+        given[wanted].requires_grad_()
         tracemalloc.start()
-        rollout(u0, steps, f=source, outputs=[steps]).square().sum().backward()
-        name = schedule if isinstance(schedule, str) else schedule[0]
+        rollout(u0, steps, **given, outputs=[steps]).square().sum().backward()
         peaks[name] = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
-        grads[name] = source.grad
+        grads[name] = given[wanted].grad
     state = 2 * n * 8                                        # one state of the batch of 2, in bytes
     assert peaks["all"] >= steps * state, (peaks, state)
     assert peaks["revolve"] <= 40 * state, (peaks, state)      # 3 snapshots, a step's arrays, fixed overhead
+    assert peaks["stateless"] <= 40 * state, (peaks, state)
     assert torch.allclose(grads["all"], grads["revolve"], rtol=1e-12, atol=0)
 
 

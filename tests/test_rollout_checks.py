@@ -153,13 +153,14 @@ import resource, sys
 from mpi4py import MPI
 import torch
 from fempdl import Rollout, SolveLayer, forms, mesh
-step = SolveLayer(forms.heat.problem(mesh.load("lshape", MPI.COMM_SELF, h=0.1), controls=("u0",)), "lu")
+step = SolveLayer(forms.heat.problem(mesh.load("lshape", MPI.COMM_SELF, h=0.1), controls=("u0", "kappa")), "lu")
 rollout = Rollout(step, "u0", schedule=("multistage", 0, 2), disk_dir=sys.argv[1])
 u0 = torch.ones(4, step.problem.output_size, dtype=torch.float64, requires_grad=True)
-rollout(u0, 3)[:, -1].sum().backward()          # forms compiled, nothing limited yet
+kappa = torch.ones(step.problem.control_size("kappa"), dtype=torch.float64, requires_grad=True)  # reads the states
+rollout(u0, 3, kappa=kappa)[:, -1].sum().backward()          # forms compiled, nothing limited yet
 resource.setrlimit(resource.RLIMIT_FSIZE, (1000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
 try:
-    rollout(u0, 3)[:, -1].sum().backward()
+    rollout(u0, 3, kappa=kappa)[:, -1].sum().backward()
 except OSError as err:
     print(err)
 """
@@ -175,10 +176,16 @@ def test_a_multistage_state_that_cannot_be_written_is_named_at_the_write(tmp_pat
     assert "(File too large: a full disk or a file-size limit); free space there" in done.stdout, done.stdout
 
 
-def test_states_in_memory_are_the_snapshots_and_the_working_pair(heat):
-    """What docs/api/rollout.md says ``most_in_memory`` counts: s + 2 for ("revolve", s), N + 1 for "all"."""
-    u0 = torch.ones(heat.problem.output_size, dtype=torch.float64, requires_grad=True)
-    for schedule, expected in (("all", 13), (("revolve", 1), 3), (("revolve", 3), 5)):
-        rollout = Rollout(heat, "u0", schedule=schedule)
-        rollout(u0, 12)[-1].sum().backward()
+def test_states_in_memory_are_the_snapshots_and_the_working_pair(lshape):
+    """What docs/api/rollout.md says ``most_in_memory`` counts: s + 2 for ("revolve", s), N + 1 for "all",
+    where the adjoint reads the states (a kappa gradient); 2 where it reads none (u0's alone)."""
+    step = SolveLayer(forms.heat.problem(lshape, controls=("u0", "kappa")), "lu")
+    u0 = torch.ones(step.problem.output_size, dtype=torch.float64, requires_grad=True)
+    kappa = torch.ones(step.problem.control_size("kappa"), dtype=torch.float64)
+    for schedule, expected, wanted in (("all", 13, True), (("revolve", 1), 3, True), (("revolve", 3), 5, True),
+                                       (("revolve", 3), 2, False)):
+        rollout = Rollout(step, "u0", schedule=schedule)
+        rollout(u0, 12, kappa=kappa.clone().requires_grad_(wanted))[-1].sum().backward()
         assert rollout.schedule_stats.most_in_memory == expected, (schedule, rollout.schedule_stats)
+        assert rollout.schedule_stats.recomputed == 0 or wanted
+    step.close()

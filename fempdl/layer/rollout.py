@@ -48,7 +48,7 @@ import numpy as np
 import torch
 
 from fempdl.layer.implicit_diff import SECOND_DERIVATIVE_MESSAGE, FirstOrderOnly
-from fempdl.layer.rollout_checkpoint import CheckpointedRollout, ScheduleStats, make_schedule
+from fempdl.layer.rollout_checkpoint import CheckpointedRollout, ScheduleStats, StatelessRollout, make_schedule
 from fempdl.layer.rollout_inputs import checked_call
 from fempdl.layer.system_layer import SystemLayer
 from fempdl.solve.linear_system import INITIAL_GUESS
@@ -208,8 +208,11 @@ class _Scheduled(torch.autograd.Function):
             if first:
                 write(k + 1, u_next[0] if plan.unbatched else u_next)
             return u_next
-        runner = CheckpointedRollout(schedule, steps, run, plan.adjoint, indices,
-                                     rollout.disk_dir, rollout.step.problem.V.mesh.comm.rank)
+        if plan.adjoint_reads_no_state([n for n, need in zip(plan.names, ctx.needs_input_grad[9:]) if need]):
+            runner = StatelessRollout(steps, run, plan.adjoint, indices)
+        else:
+            runner = CheckpointedRollout(schedule, steps, run, plan.adjoint, indices,
+                                         rollout.disk_dir, rollout.step.problem.V.mesh.comm.rank)
         with plan.constants_kept():
             outs = runner.forward(plan.initial)
         rollout.schedule_stats = runner.stats
@@ -274,6 +277,12 @@ class _Plan:
         self.wanted: list = []
         self.sums: dict = {}          # dJ/dm of the controls constant in time, summed over the steps
         self.packed = self.layer.call_state.pack(self.system)
+
+    def adjoint_reads_no_state(self, wanted) -> bool:
+        """Whether every step's adjoint for the gradients ``wanted`` (and the state's) is free of the states:
+        a linear step whose state and wanted controls enter only its right-hand side, linearly."""
+        affine = getattr(self.problem, "affine_rhs_controls", None)        # a linear Problem's
+        return affine is not None and self.rollout.state in affine and set(wanted) <= affine
 
     def step_controls(self, k: int, u: np.ndarray) -> dict:
         arrays = {n: (a[:, k] if n in self.per_step else a) for n, a in self.arrays.items()}

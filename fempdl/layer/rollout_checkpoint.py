@@ -20,6 +20,10 @@ memory and s_disk on disk (``disk_dir``). The gradient is the same under
 every schedule: a step run again from the same state with the same Constants
 and caps gives the same bits. :class:`ScheduleStats` counts what ran.
 
+A step whose adjoint reads no state (a linear step, the gradients asked for all of right-hand-side
+terms: (dS_k/du_k)^T lam = C^T A^-T lam with A and C free of u) needs no schedule:
+:class:`StatelessRollout` keeps only the output states and runs every adjoint once, nothing again.
+
 This module runs a schedule's actions on NumPy arrays; the torch side is
 :mod:`fempdl.layer.rollout`.
 """
@@ -34,7 +38,7 @@ import numpy as np
 
 from fempdl.layer.revolve import BinomialRevolve
 
-__all__ = ["ScheduleStats", "make_schedule", "CheckpointedRollout"]
+__all__ = ["ScheduleStats", "make_schedule", "CheckpointedRollout", "StatelessRollout"]
 
 
 @dataclasses.dataclass
@@ -254,3 +258,44 @@ def _added(a, b):
         return a
     return b.copy() if a is None else a + b
 
+
+class StatelessRollout:
+    """The rollout of a step whose adjoint reads no state (module docstring), with
+    :class:`CheckpointedRollout`'s interface: the forward sweep keeps only the output states, the
+    backward runs the N adjoints in reverse and runs no step again, whatever the schedule asked; a
+    second backward needs no sweep. ``adjoint(k, u_k, u_k+1, lam)`` gets zeros for the states."""
+
+    def __init__(self, steps: int, run, adjoint, outputs: list):
+        self._steps, self._run, self._adjoint, self._outputs = steps, run, adjoint, outputs
+        self.stats = ScheduleStats()
+        self.spent = False
+
+    def again(self, run) -> StatelessRollout:
+        other = StatelessRollout(self._steps, run, self._adjoint, self._outputs)
+        other.stats, other._zeros = self.stats, self._zeros
+        return other
+
+    def forward(self, initial: np.ndarray, first: bool = True) -> list:
+        self._zeros = np.broadcast_to(np.zeros((), dtype=initial.dtype), initial.shape)
+        if not first:
+            return []                 # a second backward: the adjoints read no state
+        kept = {0: initial} if 0 in self._outputs else {}
+        u = initial
+        for k in range(self._steps):
+            u = self._run(k, u, first)
+            self.stats.steps += 1
+            if k + 1 in self._outputs:
+                kept[k + 1] = u
+        self.stats.most_in_memory = max(self.stats.most_in_memory, 2)      # (u_k, u_k+1) at a time
+        return [kept[i] for i in self._outputs]
+
+    def backward(self, output_grads: dict) -> tuple:
+        lam, controls = None, {}
+        self.spent = True
+        for k in range(self._steps - 1, -1, -1):
+            lam = _added(lam, output_grads.get(k + 1))
+            if lam is None:
+                lam = np.zeros(self._zeros.shape)
+            lam, controls[k] = self._adjoint(k, self._zeros, self._zeros, lam)
+            self.stats.adjoint_steps += 1
+        return _added(lam, output_grads.get(0)), controls
