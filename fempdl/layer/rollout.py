@@ -99,7 +99,8 @@ class Rollout(torch.nn.Module):
                                  f"diff={step.diff!r} (use schedule=None: autograd keeps its graph)")
         self.step, self.state, self.warm_start = step, state, warm_start
         self.schedule, self.disk_dir = schedule, disk_dir
-        #: What the last call under a schedule ran (:class:`~fempdl.layer.rollout_checkpoint.ScheduleStats`).
+        #: What the last one-node call ran (:class:`~fempdl.layer.rollout_checkpoint.ScheduleStats`): under a schedule,
+        #: or without one where it runs as "all"; a call whose steps are layer calls leaves it as it was.
         self.schedule_stats: ScheduleStats | None = None
 
     @property
