@@ -1,6 +1,6 @@
 """Run under mpirun (1 or 2 ranks): a Rollout of 4 nonlinear heat steps with a varying dt on a unit square
-distributed over COMM_WORLD, by autograd, under two checkpoint schedules and with the lagged LU
-("lu-lagged") inner solve. Rank 0 writes the loss and its directional derivatives along a coordinate
+distributed over COMM_WORLD, as one node (no schedule), by autograd, under two checkpoint schedules and
+with the lagged LU ("lu-lagged") inner solve. Rank 0 writes the loss and its directional derivatives along a coordinate
 field (for the initial state and the per-step source), summed over the ranks, to argv[1] (JSON)."""
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ f = torch.tensor(np.stack([1.0 + k * y[:, 0] for k in range(4)]), requires_grad=
 weights = torch.tensor(1.0 + x[:, 0] * x[:, 1])
 lagged = NonlinearSolveLayer(problem, NewtonOptions(rtol=1e-13, atol=1e-15, ksp="lu-lagged"))
 total = {}
-for schedule in (None, ("revolve", 2), ("multistage", 1, 1), "lagged"):
+for schedule in (None, "autograd", ("revolve", 2), ("multistage", 1, 1), "lagged"):
     u0.grad = f.grad = None
     rollout = Rollout(lagged, "u0") if schedule == "lagged" else Rollout(step, "u0", schedule=schedule)
     u = rollout(u0, 4, constants={"dt": [0.01, 0.04, 0.02, 0.03]}, per_step={"f": f}, outputs=[2, 4])
