@@ -284,3 +284,18 @@ def test_a_second_derivative_through_a_one_node_rollout_is_refused(lshape, sched
     with pytest.raises(RuntimeError, match="second derivatives"):
         g.sum().backward()
     step.close()
+
+
+def test_an_input_changed_in_place_after_a_one_node_forward_is_refused_at_backward(lshape):
+    """The one-node forward reads its float64 inputs without copying them; a change in place before the
+    backward would silently give the gradient of other inputs. Autograd's version check refuses it."""
+    step = nonlinear_step(lshape)
+    u0, f = inputs(step.problem, 3)
+    m = f[:, 0].clone().requires_grad_()
+    source = m * 1.0
+    u = Rollout(step, "u0")(u0, 3, f=source, outputs=[-1])
+    with torch.no_grad():
+        source += 1.0
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        u.sum().backward()
+    step.close()
