@@ -299,3 +299,17 @@ def test_an_input_changed_in_place_after_a_one_node_forward_is_refused_at_backwa
     with pytest.raises(RuntimeError, match="modified by an inplace operation"):
         u.sum().backward()
     step.close()
+
+
+@pytest.mark.parametrize("schedule", [None, "autograd", ("revolve", 2)])
+def test_states_that_overflow_float32_are_named_as_a_step_layer_names_them(lshape, schedule):
+    """float32 inputs whose states are finite in float64 but not in float32 (u ~ f / kappa ~ 1e40 at a huge
+    dt): an OverflowError, not inf states, whether the steps are layer calls or one node."""
+    problem = forms.heat.problem(lshape, controls=("u0", "f", "kappa"), dt=1e30)
+    step = SolveLayer(problem, "lu")
+    u0 = torch.zeros(problem.output_size, dtype=torch.float32)
+    f = torch.full((problem.control_size("f"),), 1e10, dtype=torch.float32)
+    kappa = torch.full((problem.control_size("kappa"),), 1e-30, dtype=torch.float32)
+    with pytest.raises(OverflowError, match="overflows torch.float32; pass float64 controls"):
+        Rollout(step, "u0", schedule=schedule)(u0, 2, f=f, kappa=kappa)
+    step.close()

@@ -47,7 +47,7 @@ from contextlib import contextmanager
 import numpy as np
 import torch
 
-from fempdl.layer.implicit_diff import SECOND_DERIVATIVE_MESSAGE, FirstOrderOnly
+from fempdl.layer.implicit_diff import SECOND_DERIVATIVE_MESSAGE, FirstOrderOnly, count_on_all_ranks
 from fempdl.layer.rollout_checkpoint import CheckpointedRollout, ScheduleStats, StatelessRollout, make_schedule
 from fempdl.layer.rollout_inputs import checked_call
 from fempdl.layer.system_layer import SystemLayer
@@ -221,6 +221,8 @@ class _Scheduled(torch.autograd.Function):
         ctx.unbatched = plan.unbatched
         ctx.save_for_backward(initial, *tensors)      # what a gradient of the gradient would depend on
         out = torch.from_numpy(np.stack(outs, axis=1))
+        if plan.dtype != torch.float64 and count_on_all_ranks(~torch.isfinite(out.to(plan.dtype)), plan.problem):
+            plan.layer._report_overflow(plan.dtype)      # the states are finite in float64, as a step layer says
         return (out[0] if plan.unbatched else out).to(dtype=plan.dtype)
 
     @staticmethod
