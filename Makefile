@@ -5,10 +5,10 @@
 STACK ?= debian
 ifeq ($(STACK),debian)
 VENV ?= .venv
-SETUP := scripts/setup_env.sh
+SETUP := tools/setup_env.sh
 else ifeq ($(STACK),pypi)
 VENV ?= .venv-pypi
-SETUP := scripts/setup_env_pypi.sh
+SETUP := tools/setup_env_pypi.sh
 else
 $(error STACK must be debian or pypi, got '$(STACK)')
 endif
@@ -31,7 +31,7 @@ lint: setup
 	$(VENV)/bin/ruff check .
 
 bench: setup
-	$(PYTHON) scripts/bench_layer.py
+	$(PYTHON) benchmarks/bench_layer.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

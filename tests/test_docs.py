@@ -3,7 +3,7 @@
 Plain text checks (no fempdl import): README.md has at most 210 lines; every relative Markdown link
 in README.md and docs/**/*.md points to an existing file (and, for a ``#fragment`` into a Markdown
 page, to one of its headings, as GitHub slugs them); every ``bench-results/<name>.json`` the pages
-name is committed; every source path they name (``fempdl/...py``, ``scripts/...``, ``examples/...``,
+name is committed; every source path they name (``fempdl/...py``, ``benchmarks/...``, ``tools/...``, ``examples/...``,
 ``tests/...py``) exists.
 """
 from __future__ import annotations
@@ -23,7 +23,7 @@ FENCE = re.compile(r"^\s*(```|~~~)")
 INLINE_CODE = re.compile(r"`+[^`]*`+")
 HEADING = re.compile(r"^\s{0,3}(#{1,6})\s+(.*?)\s*#*\s*$")
 BENCH_JSON = re.compile(r"bench-results/([\w.-]+\.json)")
-SOURCE_PATH = re.compile(r"(?<![\w/.-])((?:fempdl|scripts|examples|tests)/[\w./-]*\.(?:py|sh|toml))")
+SOURCE_PATH = re.compile(r"(?<![\w/.-])((?:fempdl|benchmarks|tools|examples|tests)/[\w./-]*\.(?:py|sh|toml))")
 
 
 def pages() -> list[Path]:

@@ -312,7 +312,7 @@ def _graph_nodes(tensor: torch.Tensor) -> int:
 def test_max_unrolled_values_bounds_what_the_forward_pass_keeps(coarse_problems, control):
     """With max_unrolled_values at the least checkpointed size, the floats saved for the backward
     pass (saved-tensor hooks) stay within it, where the unbounded solve keeps K steps' worth
-    (measured RSS: scripts/bench_bounds.py); the gradient is unchanged."""
+    (measured RSS: benchmarks/bench_bounds.py); the gradient is unchanged."""
     from fempdl.bridge_torch import SolveLayer
     from fempdl.iterative import unrolled
     prob = coarse_problems["poisson"]

@@ -291,9 +291,9 @@ def test_compare_runs_sip_flow_against_adam(tiny_flow_scene, tmp_path):
 
 
 def test_the_benchmark_references_draw_the_training_samples_and_fit_the_truth(tiny_flow_scene):
-    """scripts/bench_sip_flow.py: the least-squares reference fits the samples the iterations draw, and
+    """benchmarks/bench_sip_flow.py: the least-squares reference fits the samples the iterations draw, and
     the oracle is the proxy loss against the true velocity, which its steps lower."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     try:
         import bench_sip_flow
     finally:

@@ -112,6 +112,6 @@ def test_the_schur_preset_uses_hypre_only_where_petsc_has_it():
 
 @pytest.mark.parametrize("pc_type", ["fieldsplit", "hypre", "sor"])
 def test_preconditioners_without_a_true_transpose_get_the_assembled_adjoint(pc_type):
-    # Measured by scripts/bench_pc_transpose.py on both stacks.
+    # Measured by benchmarks/bench_pc_transpose.py on both stacks.
     assert KSPOptions(ksp_type="gmres", pc_type=pc_type, max_it=5).assembled_adjoint
     assert not KSPOptions(ksp_type="gmres", pc_type="ilu", max_it=5).assembled_adjoint

@@ -9,7 +9,7 @@ the final states' DOF values), gradient dJ/df:
   ``SolveLayer(problem, "lu")`` (MUMPS);
 * ``nonlinear``: nonlinear heat (u - u_k) / dt - div((1 + u^2) grad u) = f,
   ``forms.nonlinear_diffusion`` in a ``NonlinearSolveLayer`` (SNES newtonls, basic line search, rtol 1e-10,
-  atol 1e-12, MUMPS LU at every Newton step), as in ``scripts/bench_rollout.py``.
+  atol 1e-12, MUMPS LU at every Newton step), as in ``benchmarks/bench_rollout.py``.
 
 Each a ``Rollout(layer, "u0")`` (no schedule: one node). The sides, for each B in ``--batch``:
 
@@ -18,7 +18,8 @@ Each a ``Rollout(layer, "u0")`` (no schedule: one node). The sides, for each B i
   (f's gradient accumulates to the batched one).
 
 Both are timed for the forward alone (under ``torch.no_grad()``) and for forward + gradient
-(``loss.backward()``): the minimum of ``--repeats`` runs, alternated between the sides, after a warm-up
+(``loss.backward()``): the minimum of ``--repeats`` runs, alternated between the sides
+(``bench_common.interleaved``), after a warm-up
 of ``--warmup-steps`` steps. ``ratio`` is batched / separate (below 1: the batch pays). The final states
 and dJ/df of the two must agree to 1e-10 relative, else the script exits non-zero. ``petsc_counts`` are
 PETSc's event counts of one forward + gradient run of each side, taken after the timings with PETSc's
@@ -26,15 +27,14 @@ logging on (it stays off while timing): ``factorisations`` (MatLUFactorNum), ``s
 right-hand side), ``transposed_solves`` (MatSolveTranspose) and ``multi_rhs_solves`` (MatMatSolve: all
 columns of a batch at once); so whether a batch factors once or per sample, forward and adjoint.
 Each problem runs in a fresh process with OMP_NUM_THREADS=1. Writes
-``bench-results/bench_rollout_batch.json`` (``--out``) with the machine, and the load average at the
-start and at the end.
+``bench-results/bench_rollout_batch.json`` (``--out``) through ``bench_common.report``.
 
 Run (from the repository root, on an idle machine; either stack)::
 
-    .venv-pypi/bin/python scripts/bench_rollout_batch.py
-    .venv/bin/python scripts/bench_rollout_batch.py --out bench-results/bench_rollout_batch_debian.json
+    .venv-pypi/bin/python benchmarks/bench_rollout_batch.py
+    .venv/bin/python benchmarks/bench_rollout_batch.py --out bench-results/bench_rollout_batch_debian.json
 
-A smoke run: ``... --n 8 --batch 1 3 --steps 5 --repeats 1 --out /tmp/bench_rollout_batch.json``.
+A smoke run: ``... --quick --out /tmp/bench_rollout_batch.json``.
 """
 from __future__ import annotations
 
@@ -45,13 +45,10 @@ import os
 os.environ["OMP_NUM_THREADS"] = "1"
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import argparse
-import datetime
 import json
 import resource
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 from mpi4py import MPI  # noqa: F401  (the PyPI stack needs MPI loaded before dolfinx)
@@ -129,25 +126,28 @@ def run_problem(args) -> dict:
     import numpy as np
     import torch
 
+    from bench_common import interleaved
+
     rollout, layer, u0, f = build(args.problem, args.n)
     rows = []
     for B in args.batch:
         U0 = torch.tensor(np.stack([(1 + 0.1 * i) * u0 for i in range(B)]))
-        times = {(side, mode): [] for side in SIDES for mode in MODES}
         for side in SIDES:             # the warm-up: every code path once, short
             for gradient in MODES.values():
                 SIDES[side](rollout, U0, f, args.warmup_steps, gradient)
         results = {}
-        for _ in range(args.repeats):
-            # Alternated: a change in the machine's load hits both sides alike.
-            for mode, gradient in MODES.items():
-                for side, run in SIDES.items():
-                    t0 = time.perf_counter()
-                    results[side, mode] = run(rollout, U0, f, args.steps, gradient)
-                    times[side, mode].append(time.perf_counter() - t0)
+
+        def measurement(side: str, mode: str, results: dict = results, U0=U0):
+            def run() -> None:
+                results[side, mode] = SIDES[side](rollout, U0, f, args.steps, MODES[mode])
+            return run
+
+        # Alternated: a change in the machine's load hits both sides alike.
+        times = interleaved({(side, mode): measurement(side, mode) for mode in MODES for side in SIDES},
+                            repeats=args.repeats, warmup=0)
         row = {"batch": B}
         for mode in MODES:
-            batched_s, separate_s = min(times["batched", mode]), min(times["separate", mode])
+            batched_s, separate_s = times["batched", mode].seconds, times["separate", mode].seconds
             row[mode] = {"batched_s": batched_s, "separate_s": separate_s, "ratio": batched_s / separate_s}
         row["final_rel_diff"] = max(rel_diff(results["batched", mode][0], results["separate", mode][0])
                                     for mode in MODES)
@@ -208,31 +208,28 @@ def run_worker(problem: str, args) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    import bench_common
+
+    parser = bench_common.parser(__file__, __doc__.splitlines()[0], repeats=3, quick_repeats=1,
+                                 quick="n = 8, B = 1 and 3, 5 steps")
     parser.add_argument("--problem", choices=PROBLEMS, help="run one problem here (the driver's worker)")
     parser.add_argument("--problems", nargs="*", choices=PROBLEMS, default=list(PROBLEMS))
-    parser.add_argument("--n", type=int, default=96, help="cells per side (P1 DOFs: (n+1)^2: 9,409)")
-    parser.add_argument("--batch", type=int, nargs="*", default=[1, 4, 16], help="batch sizes B")
-    parser.add_argument("--steps", type=int, default=20)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--n", type=int, default=None, help="cells per side (default 96; P1 DOFs: (n+1)^2: 9,409)")
+    parser.add_argument("--batch", type=int, nargs="*", default=None, help="batch sizes B (default 1 4 16)")
+    parser.add_argument("--steps", type=int, default=None, help="time steps (default 20)")
     parser.add_argument("--warmup-steps", type=int, default=2, help="steps of the warm-up runs")
-    parser.add_argument("--out", type=Path, default=ROOT / "bench-results" / "bench_rollout_batch.json")
     args = parser.parse_args()
+    args.n = args.n or (8 if args.quick else 96)
+    args.batch = args.batch or ([1, 3] if args.quick else [1, 4, 16])
+    args.steps = args.steps or (5 if args.quick else 20)
     if args.problem:
         print(json.dumps(run_problem(args)))
         return
-    from bench_common import machine_info, write_json_atomically
-
-    machine = machine_info()           # at the start: its load average is the one the runs began under
-    problems = {}
-    for problem in args.problems:
-        problems[problem] = run_worker(problem, args)
-        print(json.dumps({problem: problems[problem]}, indent=1), flush=True)
-    data = {"date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "machine": machine, "load_average_1_5_15_min_at_end": list(os.getloadavg()),
-            "n": args.n, "steps": args.steps, "repeats": args.repeats, "warmup_steps": args.warmup_steps,
-            "batch": args.batch, "problems": problems}
-    write_json_atomically(data, args.out)
+    with bench_common.report(__file__, args.out, repeats=args.repeats, n=args.n, steps=args.steps,
+                             warmup_steps=args.warmup_steps, batch=args.batch, problems={}) as data:
+        for problem in args.problems:
+            data["problems"][problem] = run_worker(problem, args)
+            print(json.dumps({problem: data["problems"][problem]}, indent=1), flush=True)
 
 
 if __name__ == "__main__":

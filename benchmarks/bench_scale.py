@@ -7,13 +7,13 @@ timing), Poisson with the source as the control, the ``--preset`` solver
 per size and rank count, each in its own ``mpirun -n R`` job of this script:
 the layer's construction (assembly, solver set-up), and forward + backward
 (the solve, the adjoint solve, the source gradient) for one sample, warmed up
-once, then the minimum of ``--repeats``. Recorded: DOFs, iterations, the peak
+once, then the minimum of ``--repeats`` (``bench_common.timed``). Recorded: DOFs, iterations, the peak
 resident memory of each rank (``ru_maxrss``; rank 0 reads the whole .msh),
 the memory each rank holds after the solves above its state after the
 imports, and, per size, the speed-up and
 parallel efficiency of 2 ranks and their memory per rank against 1 rank.
 
-Writes ``bench-results/bench_scale.json`` (``--out``) with the machine's load;
+Writes ``bench-results/bench_scale.json`` (``--out``) through ``bench_common.report``;
 run on an idle machine. ``--quick``: h = 0.08 and 0.05, for a smoke test.
 """
 from __future__ import annotations
@@ -27,7 +27,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_common import comma_list, machine_info, run_mpi_worker, write_json_atomically
+import bench_common
+from bench_common import comma_list, run_mpi_worker, slowest_rank, timed
 
 RANKS = (1, 2)
 
@@ -52,17 +53,16 @@ def worker(args) -> int:
     f = torch.ones(problem.control_size("f"), dtype=torch.float64, requires_grad=True)
     layer(f=f).square().sum().backward()                  # warm-up: compilation, assembly, set-up
     setup = comm.allreduce(time.perf_counter() - t0, op=MPI.MAX)
-    samples = []
-    for _ in range(args.repeats):
+
+    def forward_backward() -> None:
         f.grad = None
-        comm.barrier()
-        t0 = time.perf_counter()
         layer(f=f).square().sum().backward()
-        samples.append(comm.allreduce(time.perf_counter() - t0, op=MPI.MAX))
+
+    timing = timed(slowest_rank(forward_backward, comm), repeats=args.repeats, warmup=0)
     peak_mib = comm.gather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
     held_mib = comm.gather(current_rss_mib() - baseline)  # what the mesh, system and solver hold now
     result = {"dofs": comm.allreduce(problem.output_size), "ranks": comm.size, "setup_seconds": setup,
-              "forward_backward_seconds": min(samples), "all_seconds": samples,
+              "forward_backward_seconds": timing.seconds, "all_seconds": list(timing.samples),
               "forward_iterations": layer.stats.max_forward_iterations,
               "backward_iterations": layer.stats.last.iterations, "peak_rss_mib_per_rank": peak_mib,
               "held_mib_per_rank": held_mib, "baseline_mib": baseline}
@@ -84,13 +84,11 @@ def launch(ranks: int, msh: Path, args, out: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=3, quick="h = 0.08 and 0.05",
+                                 quick_repeats=1)
     parser.add_argument("--h", type=comma_list(float), default=[0.022, 0.009], help="box mesh sizes")
     parser.add_argument("--preset", default="amg")
     parser.add_argument("--rtol", type=float, default=1e-8)
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_scale.json"))
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--msh", help=argparse.SUPPRESS)
     parser.add_argument("--worker-out", help=argparse.SUPPRESS)
@@ -98,11 +96,17 @@ def main(argv=None) -> int:
     if args.worker:
         return worker(args)
     if args.quick:
-        args.h, args.repeats = [0.08, 0.05], 1
+        args.h = [0.08, 0.05]
+
+    with bench_common.report(__file__, args.out, repeats=args.repeats, preset=args.preset, rtol=args.rtol,
+                             sizes=[]) as report:
+        measure(args, report["sizes"])
+    return 0
+
+
+def measure(args, sizes: list) -> None:
     from fempdl.core import meshgen
 
-    load_before = os.getloadavg()
-    sizes = []
     with tempfile.TemporaryDirectory() as tmp:
         for h in args.h:
             msh = Path(tmp) / f"box-{h}.msh"
@@ -124,12 +128,6 @@ def main(argv=None) -> int:
                   f"{max(two['held_mib_per_rank']):.0f} MiB ({row['held_memory_per_rank_2_over_1']:.2f}x), peak "
                   f"{one['peak_rss_mib_per_rank'][0]:.0f} -> {max(two['peak_rss_mib_per_rank']):.0f} MiB",
                   flush=True)
-    write_json_atomically({"benchmark": "bench_scale", "preset": args.preset, "rtol": args.rtol,
-                           "repeats": args.repeats, "load_average_before": load_before,
-                           "load_average_after": os.getloadavg(), "machine": machine_info(), "sizes": sizes},
-                          args.out)
-    print(f"wrote {args.out}")
-    return 0
 
 
 if __name__ == "__main__":

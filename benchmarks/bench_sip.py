@@ -15,18 +15,18 @@ step took 20-26 ms on one thread and 40-42 ms on two, and two threads slowed
 further, to 100-170 ms, in periods when this shared machine was busy. Each
 scene's report (JSON, CSV, the plot against iterations and
 time) goes to ``bench-results/sip/<scene>/``; the summary to
-``bench-results/bench_sip.json`` (``--out``).
-Run: ``python scripts/bench_sip.py`` (a few minutes on 2 cores). With
+``bench-results/bench_sip.json`` (``--out``, through ``bench_common.report``); ``--quick``:
+sip-poisson, 5 epochs.
+Run: ``python benchmarks/bench_sip.py`` (a few minutes on 2 cores). With
 ``--seeds 0,1,2`` every scene is compared once per seed (``[data] seed``: the
 truths and the network's initialisation), the reports going to
 ``bench-results/sip/<scene>/seed<k>/``, and the JSON holds each seed's summary
 and the seeds' mean ratios; the nonlinear scenes are recorded that way:
-``python scripts/bench_sip.py --scenes sip-nonlinear,hig-nonlinear --seeds 0,1,2
+``python benchmarks/bench_sip.py --scenes sip-nonlinear,hig-nonlinear --seeds 0,1,2
 --out bench-results/bench_sip_nonlinear.json``.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import statistics
@@ -41,23 +41,33 @@ from fempdl.app import scene  # noqa: E402
 from fempdl.app.cli import positive_int  # noqa: E402
 from fempdl.app.reports import compare
 
-from bench_common import comma_list, machine_info, write_json_atomically  # noqa: E402
+import bench_common  # noqa: E402
+from bench_common import comma_list  # noqa: E402
 
 SCENES = ["sip-poisson", "sip-heat", "hig-poisson"]
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--scenes", type=comma_list(str), default=SCENES)
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=None,
+                                 quick="sip-poisson only, 5 epochs (explicit flags still win)")
+    parser.add_argument("--scenes", type=comma_list(str), default=None, help=f"default {','.join(SCENES)}")
     parser.add_argument("--epochs", type=positive_int, help="override every scene's epochs")
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_sip.json"))
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads for both methods (default 1: faster at these sizes, see above)")
     parser.add_argument("--seeds", type=comma_list(int),
                         help="compare once per [data] seed (truths and network initialisation); default: the scene's")
     args = parser.parse_args(argv)
+    args.scenes = args.scenes or (["sip-poisson"] if args.quick else SCENES)
+    args.epochs = args.epochs or (5 if args.quick else None)
     torch.set_num_threads(args.threads)
-    results = {"machine": machine_info(), "settings": {k: str(v) for k, v in vars(args).items()}}
+    # single runs (means over the seeds with --seeds)
+    with bench_common.report(__file__, args.out, statistic="mean", repeats=1,
+                             settings={k: str(v) for k, v in vars(args).items()}) as results:
+        run_scenes(args, results)
+    return 0
+
+
+def run_scenes(args, results: bench_common.Report) -> None:
     for name in args.scenes:
         sc = scene.load(name)
         if args.epochs:
@@ -66,10 +76,7 @@ def main(argv=None) -> int:
             results[name] = {"scene": sc.as_dict(), **compare_one(sc, args.out.parent / "sip" / name)}
         else:
             results[name] = seeded(sc, args.seeds, args.out.parent / "sip" / name)
-        results["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
-        write_json_atomically(results, args.out)
-    print(f"wrote {args.out}")
-    return 0
+        results.save()
 
 
 def compare_one(sc, report_dir: Path) -> dict:

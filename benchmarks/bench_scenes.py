@@ -14,20 +14,19 @@ parts. The summary averages the savings over the scenes. On a Newton scene
 (a nonlinear PDE) each run also records its Newton steps (forward and
 unrolled backward; its iterations are the inner Krylov ones) and their ratio.
 
-Writes ``bench-results/bench_scenes.json`` (``--out``) after every scene.
-Run on an idle machine: ``python scripts/bench_scenes.py --threads 1``. The
+Writes ``bench-results/bench_scenes.json`` (``--out``, through ``bench_common.report``:
+single runs, statistic "mean" over the seeds) after every scene; ``--quick``:
+heat-emulator-2d, seed 0.
+Run on an idle machine: ``python benchmarks/bench_scenes.py --threads 1``. The
 nonlinear emulator is kept apart from the six PRDP scenes the README averages:
-``python scripts/bench_scenes.py --threads 1 --scenes nonlinear-heat-emulator
+``python benchmarks/bench_scenes.py --threads 1 --scenes nonlinear-heat-emulator
 --sweep nonlinear-heat-emulator --out bench-results/bench_nonlinear_scenes.json``.
 """
 from __future__ import annotations
 
-import argparse
 import json
-import os
 import statistics
 import sys
-from pathlib import Path
 
 import torch
 
@@ -35,7 +34,8 @@ from fempdl.app import scene
 from fempdl.app.reports import tradeoff
 from fempdl.app.runs import runner
 
-from bench_common import comma_list, machine_info, write_json_atomically
+import bench_common
+from bench_common import comma_list
 
 PRDP_SCENES = ["heat-emulator-2d", "heat-emulator-3d", "poisson-inverse", "poisson-inverse-3",
                "burgers-emulator", "ns-hybrid"]
@@ -94,27 +94,44 @@ def markdown_table(results: dict) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--scenes", type=comma_list(str), default=PRDP_SCENES)
-    parser.add_argument("--seeds", type=comma_list(int), default=[0, 1, 2])
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=None,
+                                 quick="heat-emulator-2d, seed 0 (explicit flags still win)")
+    parser.add_argument("--scenes", type=comma_list(str), default=None, help="default: the PRDP scenes")
+    parser.add_argument("--seeds", type=comma_list(int), default=None, help="default 0,1,2")
     parser.add_argument("--sweep", type=comma_list(str), default=[],
                         help="scenes to also sweep fixed K for (the IC / PR split)")
     parser.add_argument("--threads", type=int, help="torch threads (default: torch's)")
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_scenes.json"))
     parser.add_argument("--merge", action="store_true",
                         help="keep the other scenes already in --out (rerun some scenes only) and its other "
                              "records (such as a sweep run by another command)")
     args = parser.parse_args(argv)
+    args.scenes = args.scenes or (["heat-emulator-2d"] if args.quick else PRDP_SCENES)
+    args.seeds = args.seeds or ([0] if args.quick else [0, 1, 2])
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    results = {"machine": machine_info(), "scenes": {}}
-    if args.merge and args.out.exists():
-        previous = json.loads(args.out.read_text())
-        results["scenes"] = {n: r for n, r in previous["scenes"].items() if n not in args.scenes}
-        if results["scenes"]:
-            results["machine_of_kept_scenes"] = previous.get("machine_of_kept_scenes", previous["machine"])
-        results.update({k: v for k, v in previous.items()
-                        if k not in ("machine", "scenes", "summary", "machine_of_kept_scenes")})
+    # single runs, averaged over the seeds
+    with bench_common.report(__file__, args.out, statistic="mean", repeats=1, scenes={}) as results:
+        if args.merge and args.out.exists():
+            keep_previous(results, json.loads(args.out.read_text()), args.scenes)
+        run_scenes(args, results)
+    print(markdown_table(results))
+    s = results["summary"]
+    print(f"mean over {len(s['scenes'])} scenes: {100 * s['mean_iteration_savings']:.0f}% fewer inner iterations, "
+          f"{100 * s['mean_wall_time_savings']:.0f}% less wall time; wrote {args.out}")
+    return 0
+
+
+def keep_previous(results: bench_common.Report, previous: dict, rerun: list) -> None:
+    """--merge: the scenes not rerun, with the machine and load of their runs, and the other records."""
+    results["scenes"] = {n: r for n, r in previous["scenes"].items() if n not in rerun}
+    if results["scenes"]:
+        results["machine_of_kept_scenes"] = previous.get("machine_of_kept_scenes", previous["machine"])
+        results["load"]["kept_scenes"] = previous["load"].get("kept_scenes", previous["load"])
+    results.update({k: v for k, v in previous.items()
+                    if k not in (*bench_common.REPORT_KEYS, "scenes", "summary", "machine_of_kept_scenes")})
+
+
+def run_scenes(args, results: bench_common.Report) -> None:
     for name in args.scenes:
         results["scenes"][name] = r = bench_scene(name, args.seeds, name in args.sweep)
         ratio = r["ratios"]
@@ -131,13 +148,7 @@ def main(argv=None) -> int:
             "wall_over_iteration_savings": {n: s["wall_time_savings"] / s["iteration_savings"]
                                             for n, s in results["scenes"].items() if s["iteration_savings"] > 0},
         }
-        results["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
-        write_json_atomically(results, args.out)
-    print(markdown_table(results))
-    s = results["summary"]
-    print(f"mean over {len(s['scenes'])} scenes: {100 * s['mean_iteration_savings']:.0f}% fewer inner iterations, "
-          f"{100 * s['mean_wall_time_savings']:.0f}% less wall time; wrote {args.out}")
-    return 0
+        results.save()
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Regenerate the bundled .msh files in meshes/ (or another folder) with this machine's gmsh.
 
-    python scripts/regenerate_meshes.py [--out DIR] [--name NAME ...] [--h H]
+    python tools/regenerate_meshes.py [--out DIR] [--name NAME ...] [--h H]
 
 Meshing runs on one thread with the user's gmsh configuration ignored, so the
 files are reproducible for a given gmsh version (fempdl.core.meshgen).

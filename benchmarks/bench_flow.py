@@ -24,16 +24,18 @@ the LU (MUMPS) gradient. Solvers:
   transpose): shows what the assembled adjoint avoids.
 * ``lu``: MUMPS, for the reference gradient.
 
-Writes ``bench-results/bench_flow.json`` (``--out``) and prints a table.
-Run: ``python scripts/bench_flow.py`` (about a minute).
+Each call (forward + backward, a fresh layer) runs ``--repeats`` times (default 1;
+``bench_common.repeat_runs``, the fastest counts). Writes
+``bench-results/bench_flow.json`` (``--out``) through ``bench_common.report`` and
+prints a table. Run: ``python benchmarks/bench_flow.py`` (about a minute);
+``--quick``: h = 0.1.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
+import functools
 import sys
 import time
-from pathlib import Path
 
 from mpi4py import MPI
 import numpy as np
@@ -43,7 +45,7 @@ from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions, SolverFailedError
 
-from bench_common import machine_info, write_json_atomically
+import bench_common
 
 HEIGHT = 0.41
 
@@ -100,17 +102,26 @@ def call(prob, control: str, advecting, options: KSPOptions, g: torch.Tensor) ->
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--h", type=float, default=0.05, help="mesh size of both meshes (default 0.05)")
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_flow.json"))
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=1, quick="h = 0.1")
+    parser.add_argument("--h", type=float, default=None, help="mesh size of both meshes (default 0.05)")
     args = parser.parse_args()
+    args.h = args.h or (0.1 if args.quick else 0.05)
+    with bench_common.report(__file__, args.out, repeats=args.repeats, h=args.h, rtol=1e-8) as report:
+        report["rows"] = measure(args)
+    return 0
+
+
+def measure(args) -> list:
     rows = []
     for name, (prob, control, advecting) in problems(args.h).items():
         g = torch.from_numpy(np.random.default_rng(0).standard_normal(prob.output_size))
-        results = {label: call(prob, control, advecting, opts, g) for label, opts in solvers().items()}
+        results = {label: bench_common.repeat_runs(functools.partial(call, prob, control, advecting, opts, g),
+                                                   "seconds", repeats=args.repeats)
+                   for label, opts in solvers().items()}
         reference = results["lu"].get("grad")
         for label, r in results.items():
             grad = r.pop("grad", None)
+            r.pop("seconds_samples", None)
             if grad is not None and reference is not None:
                 r["grad_error_vs_lu"] = float(np.linalg.norm(grad - reference) / np.linalg.norm(reference))
             rows.append({"problem": name, "dofs": prob.output_size, "enclosed": prob.enclosed, "solver": label, **r})
@@ -118,11 +129,7 @@ def main() -> int:
                   f"adj {r['backward_iterations']:6d} "
                   + (f"grad err {r['grad_error_vs_lu']:.1e} " if "grad_error_vs_lu" in r else "")
                   + (f"{r['seconds']:.2f} s" if "seconds" in r else f"FAILED: {r['failed']}"), flush=True)
-    report = {"benchmark": "bench_flow", "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S"),
-              "machine": machine_info(), "h": args.h, "rtol": 1e-8, "rows": rows}
-    write_json_atomically(report, args.out)
-    print(f"wrote {args.out}")
-    return 0
+    return rows
 
 
 if __name__ == "__main__":

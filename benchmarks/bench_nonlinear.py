@@ -20,26 +20,23 @@ Per sample, both sides run the same mathematics:
 
 Both sides' solutions and gradients are compared (max relative difference) and
 their Newton steps recorded. Timing: each is warmed up once, then the two are
-interleaved ``--repeats`` times; the figure is the ratio of the minima (other
+interleaved ``--repeats`` times (``bench_common.interleaved``); the figure is the ratio of the minima (other
 processes only add time). Target: fempdl / baseline <= 1.15. Each row also holds
 the medians of the parts (``median_parts_s``): both sides' Newton solves and
 adjoints, and fempdl's layer around them (torch operator, checks, conversions);
 ``layer_alone_min_s`` is that layer with the solves replaced by stored results. Writes
-``bench-results/bench_nonlinear_<stack>.json``.
+``bench-results/bench_nonlinear_<stack>.json`` (``--out``) through ``bench_common.report``; ``--quick``
+runs the small sizes, 3 repeats.
 
 Run (from the repository root)::
 
-    OMP_WAIT_POLICY=PASSIVE .venv/bin/python scripts/bench_nonlinear.py
-    OMP_WAIT_POLICY=PASSIVE .venv-pypi/bin/python scripts/bench_nonlinear.py
+    OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/bench_nonlinear.py
+    OMP_WAIT_POLICY=PASSIVE .venv-pypi/bin/python benchmarks/bench_nonlinear.py
 """
 from __future__ import annotations
 
-import argparse
-import datetime
-import os
 import sys
 import time
-from pathlib import Path
 
 from mpi4py import MPI
 import dolfinx.fem
@@ -53,7 +50,8 @@ from petsc4py import PETSc
 from fempdl import NewtonOptions, NonlinearProblem, NonlinearSolveLayer
 from fempdl.core import _dolfinx
 
-from bench_common import machine_info, write_json_atomically
+import bench_common
+from bench_common import interleaved, reduce, timed
 
 TARGET = 1.15
 RTOL, ATOL = 1e-10, 1e-12
@@ -186,12 +184,7 @@ def layer_alone(layer, name: str, control: np.ndarray, W: np.ndarray, repeats: i
     grads = system.adjoint(controls, U, W[None, :], [name])
     system.solve = lambda *args, **kwargs: U.copy()
     system.adjoint = lambda *args, **kwargs: {k: v.copy() for k, v in grads.items()}
-    times = []
-    for _ in range(10 * repeats):
-        t0 = time.perf_counter()
-        fempdl_forward_backward(layer, name, control, W)
-        times.append(time.perf_counter() - t0)
-    return min(times)
+    return timed(lambda: fempdl_forward_backward(layer, name, control, W), repeats=10 * repeats, warmup=0).seconds
 
 
 def fempdl_forward_backward(layer, name: str, control: np.ndarray, W: np.ndarray):
@@ -215,22 +208,29 @@ def bench_case(case: str, size: str, snes_type: str, repeats: int, rng) -> dict:
     parts = PartTimer(layer.system)
     ours = fempdl_forward_backward(layer, name, control, W)       # warm-up: JIT, symbolic factorisation
     theirs = baseline.forward_backward(control, W)
-    times = {"fempdl": [], "dolfinx": []}
     split = {"fempdl_newton": [], "fempdl_adjoint": [], "fempdl_layer": [], "dolfinx_newton": [],
              "dolfinx_adjoint": []}
-    for _ in range(repeats):
+    results = {}
+
+    def run_fempdl() -> float:
         t0 = time.perf_counter()
-        ours = fempdl_forward_backward(layer, name, control, W)
-        t1 = time.perf_counter()
-        theirs = baseline.forward_backward(control, W)
-        t2 = time.perf_counter()
-        times["fempdl"].append(t1 - t0)
-        times["dolfinx"].append(t2 - t1)
+        results["fempdl"] = fempdl_forward_backward(layer, name, control, W)
+        seconds = time.perf_counter() - t0
         split["fempdl_newton"].append(parts.last["solve"])
         split["fempdl_adjoint"].append(parts.last["adjoint"])
-        split["fempdl_layer"].append(t1 - t0 - parts.last["solve"] - parts.last["adjoint"])
+        split["fempdl_layer"].append(seconds - parts.last["solve"] - parts.last["adjoint"])
+        return seconds
+
+    def run_dolfinx() -> float:
+        t0 = time.perf_counter()
+        results["dolfinx"] = baseline.forward_backward(control, W)
+        seconds = time.perf_counter() - t0
         split["dolfinx_newton"].append(baseline.newton_time)
-        split["dolfinx_adjoint"].append(t2 - t1 - baseline.newton_time)
+        split["dolfinx_adjoint"].append(seconds - baseline.newton_time)
+        return seconds
+
+    timings = interleaved({"fempdl": run_fempdl, "dolfinx": run_dolfinx}, repeats=repeats, warmup=0)
+    ours, theirs = results["fempdl"], results["dolfinx"]
 
     def rel(a, b):
         return float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-300))
@@ -239,10 +239,11 @@ def bench_case(case: str, size: str, snes_type: str, repeats: int, rng) -> dict:
         "control_dofs": problem.control_size(name),
         "newton_steps": {"fempdl": layer.stats.last_newton.steps, "dolfinx": int(baseline.steps)},
         "max_rel_diff": {"solution": rel(ours[0], theirs[0]), "gradient": rel(ours[1], theirs[1])},
-        "times_s": times, "min_s": {k: min(v) for k, v in times.items()},
+        "times_s": {k: list(t.samples) for k, t in timings.items()},
+        "min_s": {k: t.seconds for k, t in timings.items()},
         # Where the difference lies: medians of each part over the repeats (the Newton solves, the
         # adjoint with its gradient assembly, and for fempdl the torch layer around them).
-        "median_parts_s": {k: float(np.median(v)) for k, v in split.items()},
+        "median_parts_s": {k: reduce(v, "median") for k, v in split.items()},
     }
     row["ratio"] = row["min_s"]["fempdl"] / row["min_s"]["dolfinx"]
     row["layer_alone_min_s"] = layer_alone(layer, name, control, W, repeats)
@@ -251,22 +252,29 @@ def bench_case(case: str, size: str, snes_type: str, repeats: int, rng) -> dict:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--sizes", default="small,large")
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=7, out_suffix=f"_{_dolfinx.STACK}",
+                                 quick="the small sizes", quick_repeats=3)
+    parser.add_argument("--sizes", default=None, help="small,large (default both)")
     parser.add_argument("--cases", default="poisson,hyperelastic")
     parser.add_argument("--snes", default="newton", help="fempdl's SNES types, comma-separated (the baseline runs "
                         "plain Newton; 'newtonls' adds backtracking, which takes more steps on the bent box)")
-    parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
-    out = args.out or Path(f"bench-results/bench_nonlinear_{_dolfinx.STACK}.json")
+    args.sizes = args.sizes or ("small" if args.quick else "small,large")
+    out = args.out
     rng = np.random.default_rng(args.seed)
-    started = datetime.datetime.now(datetime.UTC)
-    report = {"machine": machine_info(), "load_average_start": os.getloadavg(),
-              "settings": {"rtol": RTOL, "atol": ATOL, "repeats": args.repeats, "statistic": "min",
-                           "inner": "MUMPS LU both sides", "loss": "sum(u * W), W standard normal"},
-              "target_ratio_max": TARGET, "results": []}
+    started = time.perf_counter()
+    with bench_common.report(__file__, out, repeats=args.repeats, target_ratio_max=TARGET, results=[],
+                             settings={"rtol": RTOL, "atol": ATOL, "inner": "MUMPS LU both sides",
+                                       "loss": "sum(u * W), W standard normal"}) as report:
+        run_all(args, rng, report)
+        report["duration_s"] = time.perf_counter() - started
+    print(f"ratio = fempdl / DOLFINx Newton + hand adjoint, minima over {args.repeats} interleaved repeats "
+          f"(target <= {TARGET}); wrote {out}")
+    return 0
+
+
+def run_all(args, rng, report: dict) -> None:
     print(f"{'case':13s} {'size':6s} {'snes':9s} {'dofs':>7s} {'steps':>9s} {'fempdl s':>9s} {'dolfinx s':>9s} "
           f"{'ratio':>6s} {'du':>8s} {'dm':>8s}")
     for case in args.cases.split(","):
@@ -279,12 +287,6 @@ def main() -> int:
                       f"{steps['fempdl']:4d}/{steps['dolfinx']:<4d} "
                       f"{row['min_s']['fempdl']:9.4f} {row['min_s']['dolfinx']:9.4f} {row['ratio']:6.3f} "
                       f"{row['max_rel_diff']['solution']:8.1e} {row['max_rel_diff']['gradient']:8.1e}", flush=True)
-    report["load_average_end"] = os.getloadavg()
-    report["duration_s"] = (datetime.datetime.now(datetime.UTC) - started).total_seconds()
-    write_json_atomically(report, out)
-    print(f"ratio = fempdl / DOLFINx Newton + hand adjoint, minima over {args.repeats} interleaved repeats "
-          f"(target <= {TARGET}); wrote {out}")
-    return 0
 
 
 if __name__ == "__main__":

@@ -9,22 +9,25 @@ given ``--timeout`` seconds per N and recorded as unfinished beyond that. The st
 agree between the two where both finish, and equal ``recomputed_steps(N, s)``. A last row times the
 first sweep of an N = 10^9 stream (its actions up to EndForward and the first Reverse).
 
-Writes ``bench-results/bench_revolve.json`` (``--out``) with the machine's load average at the start
-and the end. Run (from the repository root, on an idle machine)::
+Each fempdl N runs ``--repeats`` times; the fastest counts (``bench_common.repeat_runs``). Writes
+``bench-results/bench_revolve.json`` (``--out``) through ``bench_common.report``.
+Run (from the repository root, on an idle machine)::
 
-    OMP_WAIT_POLICY=PASSIVE .venv/bin/python scripts/bench_revolve.py
-    OMP_WAIT_POLICY=PASSIVE .venv/bin/python scripts/bench_revolve.py --quick     # a smoke test, seconds
+    OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/bench_revolve.py
+    OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/bench_revolve.py --quick     # a smoke test, seconds
 """
 from __future__ import annotations
 
 import argparse
-import datetime
+import functools
 import json
 import os
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import bench_common
 
 REVOLVE = Path(__file__).resolve().parent.parent / "fempdl" / "layer" / "revolve.py"
 
@@ -98,16 +101,14 @@ def run_worker(kind: str, steps: int, snapshots: int, timeout: float, first_swee
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=3, quick_repeats=1,
+                                 quick="small N and s = 20, a 60 s timeout")
     parser.add_argument("--snapshots", type=int, default=100)
     parser.add_argument("--steps", type=lambda t: [int(x) for x in t.split(",") if x], default=None,
                         help="N for fempdl's schedule (default 1000,10000,100000)")
     parser.add_argument("--cs-steps", type=lambda t: [int(x) for x in t.split(",") if x], default=None,
                         help="N for checkpoint_schedules' Revolve (default 1000,2000)")
     parser.add_argument("--timeout", type=float, default=90.0, help="seconds per checkpoint_schedules run")
-    parser.add_argument("--repeats", type=int, default=3, help="runs per fempdl N (the minimum time is kept)")
-    parser.add_argument("--quick", action="store_true", help="smoke test: small N, one repeat")
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_revolve.json"))
     parser.add_argument("--worker", nargs=3, metavar=("KIND", "N", "S"), help=argparse.SUPPRESS)
     parser.add_argument("--first-sweep-only", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -116,23 +117,26 @@ def main(argv=None) -> int:
         print(json.dumps(measure(kind, int(steps), int(snapshots), args.first_sweep_only)))
         return 0
 
-    # The machine record imports the FE stack: only the driver pays for it, not the workers it measures.
-    from bench_common import machine_info, write_json_atomically
-
     if args.quick:
         args.steps = args.steps or [1000, 2000]
         args.cs_steps = args.cs_steps or [200]
         args.snapshots = min(args.snapshots, 20)
-        args.repeats, args.timeout = 1, min(args.timeout, 60.0)
+        args.timeout = min(args.timeout, 60.0)
     args.steps = args.steps or [1000, 10_000, 100_000]
     args.cs_steps = args.cs_steps or [1000, 2000]
-    data = {"benchmark": "bench_revolve",
-            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "machine": machine_info(), "snapshots": args.snapshots, "repeats": args.repeats,
-            "timeout_s": args.timeout, "quick": args.quick, "rows": []}
+    # The machine record imports the FE stack: only the driver pays for it, not the workers it measures.
+    with bench_common.report(__file__, args.out, repeats=args.repeats, snapshots=args.snapshots,
+                             timeout_s=args.timeout, quick=args.quick, rows=[]) as data:
+        measure_all(args, data)
+    print(f"wrote {args.out}; steps run again agree: {data['recomputed_agree']}")
+    return 0 if data["recomputed_agree"] else 1
+
+
+def measure_all(args, data: dict) -> None:
     for steps in args.steps:
-        runs = [run_worker("fempdl", steps, args.snapshots, timeout=3600) for _ in range(args.repeats)]
-        data["rows"].append(min(runs, key=lambda row: row["total_s"]))
+        data["rows"].append(bench_common.repeat_runs(
+            functools.partial(run_worker, "fempdl", steps, args.snapshots, timeout=3600), "total_s",
+            repeats=args.repeats))
         print(json.dumps(data["rows"][-1]), flush=True)
     for steps in args.cs_steps:
         data["rows"].append(run_worker("checkpoint_schedules", steps, args.snapshots, timeout=args.timeout))
@@ -144,10 +148,6 @@ def main(argv=None) -> int:
         if row["finished"] and "recomputed" in row:
             agree.setdefault(row["steps"], set()).update({row["recomputed"], row["recomputed_closed_form"]})
     data["recomputed_agree"] = all(len(values) == 1 for values in agree.values())
-    data["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
-    write_json_atomically(data, args.out)
-    print(f"wrote {args.out}; steps run again agree: {data['recomputed_agree']}")
-    return 0 if data["recomputed_agree"] else 1
 
 
 if __name__ == "__main__":

@@ -39,7 +39,7 @@ machine and its load average.
 Timing: every configuration is warmed up once (form JIT compilation, KSP
 setup) before it is timed; the four timed variants (batched calls with both engines, raw
 loop, B single calls) are interleaved within each repeat so that load from
-other processes affects them alike. Each runs ``--repeats`` times, and cheap
+other processes affects them alike (``bench_common.interleaved``). Each runs ``--repeats`` times, and cheap
 configurations more often (up to 100 times, until the batched calls add up
 to ``--min-time`` seconds). The reported time of each variant is the
 **minimum** over its repeats: other processes only ever add time, so the
@@ -50,9 +50,9 @@ Runs serially (one MPI rank).
 
 Run (from the repository root)::
 
-    .venv/bin/python scripts/bench_layer.py                 # full: both sizes, K=10,50,200, B=32, 3 repeats
-    .venv/bin/python scripts/bench_layer.py --quick         # smoke test: small mesh, K=10,50, B=8, 1 repeat
-    .venv/bin/python scripts/bench_layer.py --sizes small --ks 10 --solvers jacobi --out /tmp/b.json
+    .venv/bin/python benchmarks/bench_layer.py                 # full: both sizes, K=10,50,200, B=32, 3 repeats
+    .venv/bin/python benchmarks/bench_layer.py --quick         # smoke test: small mesh, K=10,50, B=8, 1 repeat
+    .venv/bin/python benchmarks/bench_layer.py --sizes small --ks 10 --solvers jacobi --out /tmp/b.json
 
 Figures go to ``bench-results/bench_layer.json`` (``--out`` to change); a
 short table is printed.
@@ -60,12 +60,9 @@ short table is printed.
 from __future__ import annotations
 
 import argparse
-import datetime
-import os
 import sys
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 from mpi4py import MPI  # before DOLFINx: PyPI's DOLFINx needs the MPI library mpi4py loads
 import dolfinx.fem
@@ -76,11 +73,13 @@ import torch
 import ufl
 from petsc4py import PETSc
 
-import fempdl
+import fempdl.core.mesh
+import fempdl.forms
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
 
-from bench_common import apply_defaults, comma_list, machine_info, write_json_atomically
+import bench_common
+from bench_common import apply_defaults, comma_list, interleaved, pick
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.core.meshgen)
 TARGET_OVERHEAD = 1.15
@@ -239,6 +238,14 @@ def time_per_sample_calls(layer, rows: list, W_rows: list) -> float:
     return time.perf_counter() - t0
 
 
+def recorded(runs: list, fn, *args):
+    """A measurement for ``interleaved``: ``fn(*args)``'s record appended to ``runs``, its wall time returned."""
+    def run() -> float:
+        runs.append(fn(*args))
+        return runs[-1]["wall"]
+    return run
+
+
 # --------------------------------------------------------------- correctness
 def max_relative_difference(X: np.ndarray, Y: np.ndarray) -> float:
     """max over samples of ||x_i - y_i|| / ||y_i||."""
@@ -284,18 +291,17 @@ def bench_config(layers: dict, raw: RawLoop, F, W, max_it: int, repeats: int, mi
     rows = [F[i:i + 1].detach().clone().requires_grad_() for i in range(F.shape[0])]
     W_rows = [W[i:i + 1] for i in range(W.shape[0])]
     F_np, W_np = F.detach().numpy(), W.numpy()
-    petsc, auto, reference, per_sample = [], [], [], []
-    while len(petsc) < repeats or (sum(t["wall"] for t in auto) < min_time
-                                   and len(petsc) < MAX_REPEATS):
-        petsc.append(time_layer_call(layers["petsc"], F, W))
-        auto.append(time_layer_call(layers["auto"], F, W))
-        reference.append(time_raw_loop(raw, F_np, W_np))
-        per_sample.append(time_per_sample_calls(layers["auto"], rows, W_rows))
-    fastest = min(petsc, key=lambda t: t["wall"])
-    fastest_auto = min(auto, key=lambda t: t["wall"])
-    fastest_raw = min(reference, key=lambda t: t["wall"])
+    petsc, auto, reference = [], [], []
+    timings = interleaved({"auto": recorded(auto, time_layer_call, layers["auto"], F, W),
+                           "petsc": recorded(petsc, time_layer_call, layers["petsc"], F, W),
+                           "raw": recorded(reference, time_raw_loop, raw, F_np, W_np),
+                           "per_sample": lambda: time_per_sample_calls(layers["auto"], rows, W_rows)},
+                          repeats=repeats, warmup=0, statistic=STATISTIC, min_time=min_time,
+                          min_time_of="auto", max_repeats=MAX_REPEATS)
+    per_sample = list(timings["per_sample"].samples)
+    fastest, fastest_auto, fastest_raw = (pick(runs, "wall", STATISTIC) for runs in (petsc, auto, reference))
     layer_s, auto_s = fastest["wall"], fastest_auto["wall"]
-    raw_s, per_sample_s = fastest_raw["wall"], min(per_sample)
+    raw_s, per_sample_s = fastest_raw["wall"], timings["per_sample"].seconds
     return {
         "K": max_it,
         "B": F.shape[0],
@@ -381,35 +387,28 @@ def print_row(row: dict, flush: bool = False) -> None:
 
 # ---------------------------------------------------------------------- CLI
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = bench_common.parser(__file__, __doc__.split("\n\n")[0], repeats=3, quick_repeats=1,
+                                 quick="small mesh, K=10,50, B=8 (explicit flags still win)")
     parser.add_argument("--sizes", type=comma_list(str), help="mesh sizes: small,large (default both)")
     parser.add_argument("--ks", type=comma_list(int), help="iteration caps K (default 10,50,200)")
     parser.add_argument("--batch", type=int, help="batch size B (default 32)")
-    parser.add_argument("--repeats", type=int,
-                        help="timed repeats, at least; the minimum is reported (default 3)")
     parser.add_argument("--min-time", type=float,
                         help="repeat cheap configurations until the batched calls add up to this "
                              "many seconds (default 1.0; 0 with --quick)")
     parser.add_argument("--solvers", type=comma_list(str),
                         help="jacobi (Richardson+Jacobi) and/or gmres (GMRES(30)+Jacobi); default both")
-    parser.add_argument("--quick", action="store_true",
-                        help="smoke test: small mesh, K=10,50, B=8, 1 repeat (explicit flags still win)")
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_layer.json"),
-                        help="JSON output file (default bench-results/bench_layer.json)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random sources and weights")
     parser.add_argument("--threads", type=int,
                         help="torch threads (default: torch's own choice; the batched engine uses them, "
                              "PETSc runs on one)")
     args = parser.parse_args(argv)
-    defaults = ({"sizes": ["small"], "ks": [10, 50], "batch": 8, "repeats": 1, "min_time": 0.0,
+    defaults = ({"sizes": ["small"], "ks": [10, 50], "batch": 8, "min_time": 0.0,
                  "solvers": ["jacobi", "gmres"]} if args.quick
-                else {"sizes": ["small", "large"], "ks": [10, 50, 200], "batch": 32, "repeats": 3,
+                else {"sizes": ["small", "large"], "ks": [10, 50, 200], "batch": 32,
                       "min_time": 1.0, "solvers": ["jacobi", "gmres"]})
     apply_defaults(parser, args, defaults, MESH_SIZES, SOLVERS)
-    if args.batch < 2 or args.repeats < 1 or args.min_time < 0:
-        parser.error("--batch must be >= 2 (batching is compared with B single calls), --repeats >= 1 "
-                     "and --min-time >= 0")
+    if args.batch < 2 or args.min_time < 0:
+        parser.error("--batch must be >= 2 (batching is compared with B single calls) and --min-time >= 0")
     return args
 
 
@@ -421,31 +420,21 @@ def main(argv=None) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     rng = np.random.default_rng(args.seed)
-    started = datetime.datetime.now(datetime.UTC)
-    report = {
-        "benchmark": "bench_layer",
-        "timestamp": started.isoformat(timespec="seconds"),
-        "machine": machine_info(),
-        "load_average_start": os.getloadavg(),
-        "settings": {
-            "sizes": args.sizes, "ks": args.ks, "batch": args.batch, "repeats": args.repeats,
-            "min_time_s": args.min_time, "max_repeats": MAX_REPEATS, "solvers": args.solvers,
-            "seed": args.seed, "statistic": STATISTIC,
-            "problem": "poisson on lshape, control f, g = 1 + x*y on the whole boundary",
-            "loss": "sum(u * W), W standard normal",
-        },
-        "targets": {"layer_overhead_max": TARGET_OVERHEAD, "batching_speedup_min": TARGET_BATCH_SPEEDUP},
-        "meshes": {},
-        "results": [],
-    }
-    print(HEADER)
-    for size in args.sizes:
-        mesh_info, rows = bench_size(size, args, rng)
-        report["meshes"][size] = mesh_info
-        report["results"].extend(rows)
-    report["load_average_end"] = os.getloadavg()
-    report["duration_s"] = (datetime.datetime.now(datetime.UTC) - started).total_seconds()
-    write_json_atomically(report, args.out)
+    started = time.perf_counter()
+    settings = {"sizes": args.sizes, "ks": args.ks, "batch": args.batch, "min_time_s": args.min_time,
+                "max_repeats": MAX_REPEATS, "solvers": args.solvers, "seed": args.seed,
+                "problem": "poisson on lshape, control f, g = 1 + x*y on the whole boundary",
+                "loss": "sum(u * W), W standard normal"}
+    with bench_common.report(__file__, args.out, statistic=STATISTIC, repeats=args.repeats, settings=settings,
+                             targets={"layer_overhead_max": TARGET_OVERHEAD,
+                                      "batching_speedup_min": TARGET_BATCH_SPEEDUP},
+                             meshes={}, results=[]) as report:
+        print(HEADER)
+        for size in args.sizes:
+            mesh_info, rows = bench_size(size, args, rng)
+            report["meshes"][size] = mesh_info
+            report["results"].extend(rows)
+        report["duration_s"] = time.perf_counter() - started
     print(f"overhead = layer (engine='petsc') / raw loop (target <= {TARGET_OVERHEAD}); engine, auto s = "
           f"the default engine's choice and its batched call; speedup = B single calls / that batched call "
           f"(target >= {TARGET_BATCH_SPEEDUP}); times are the {STATISTIC} over repeats (column 'reps'); "

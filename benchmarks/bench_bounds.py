@@ -11,16 +11,17 @@
 (2) On the L-shape at h = 0.0073 (65,558 DOFs), B = 32, torch's default
     threads: Richardson + Jacobi K = 100, CG + Jacobi K = 20 and K = 100
     unbounded, and CG K = 100 bounded as in (1). Forward and backward seconds
-    (the better of two calls), the backward / forward ratio (target <= 2) and
+    (the better of two calls, ``bench_common.timed``), the backward / forward ratio (target <= 2) and
     the peak RSS increase against the bound (CG K = 100 bounded: target 4 GB).
 (3) Richardson + Jacobi capped at ``--monitor-k`` iterations on the L-shape at
     h = 0.1 and 0.03 (408 and 4071 DOFs), one sample on the PETSc engine, with
     and without the KSP monitor that lets Ctrl-C stop a long solve (fempdl
     installs it where the cap times the unknowns reaches
     ``fempdl.core.tuning.INTERRUPT_CHECK_MIN_WORK``): seconds per iteration,
-    the minimum over ``--repeats`` alternating runs.
+    the minimum over ``--repeats`` alternating runs (``bench_common.interleaved``).
 
-Writes ``bench-results/bench_bounds.json`` with the machine's load.
+Writes ``bench-results/bench_bounds.json`` (``--out``) through ``bench_common.report``; ``--quick``
+runs section (1) at K = 1000 and section (3) at K = 500.
 """
 from __future__ import annotations
 
@@ -31,7 +32,6 @@ import resource
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 from mpi4py import MPI
 import torch
@@ -42,7 +42,8 @@ from fempdl.core import tuning
 from fempdl.iterative import unrolled
 from fempdl.ksp_adjoint import KSPOptions
 
-from bench_common import comma_list, machine_info, write_json_atomically
+import bench_common
+from bench_common import comma_list, interleaved, reduce, timed
 
 MIB = 2.0 ** 20
 BATCH = 8
@@ -75,7 +76,8 @@ def child(spec: dict) -> dict:
         layer(f=f)                          # warm-up: the torch operators are built, no graph is kept
     start = rss_mib()
     forward, backward, kept = [], [], []
-    for _ in range(2):
+
+    def forward_and_backward() -> None:
         t0 = time.perf_counter()
         u = layer(f=f)
         kept.append(rss_mib() - start)
@@ -84,7 +86,8 @@ def child(spec: dict) -> dict:
         backward.append(time.perf_counter() - t1)
         forward.append(t1 - t0)
         f.grad = None
-        del u
+
+    timed(forward_and_backward, repeats=2, warmup=0)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return {"K": K, "solver": solver, "bounded": bounded, "n": n, "batch": batch,
             "torch_threads": torch.get_num_threads(),
@@ -93,8 +96,8 @@ def child(spec: dict) -> dict:
             "peak_rss_mib": peak, "peak_rss_increase_mib": peak - start,
             "bound_mib": bound * 8 / MIB,
             "unbounded_stored_mib": unrolled.stored_values(METHOD[solver], K, n, batch) * 8 / MIB,
-            "forward_s": min(forward), "backward_s": min(backward),
-            "backward_over_forward": min(backward) / min(forward),
+            "forward_s": reduce(forward), "backward_s": reduce(backward),
+            "backward_over_forward": reduce(backward) / reduce(forward),
             "forward_s_all": forward, "backward_s_all": backward}
 
 
@@ -122,16 +125,21 @@ def monitor_cost(K: int, repeats: int, h: float) -> dict:
     prob = forms.poisson.problem(mesh.load("lshape", MPI.COMM_SELF, h=h), controls=("f",))
     f = torch.ones(prob.control_size("f"), dtype=torch.float64)
     threshold = tuning.INTERRUPT_CHECK_MIN_WORK
-    times = {"with_monitor": [], "without_monitor": []}
-    layers = {name: SolveLayer(prob, KSPOptions(max_it=K, engine="petsc")) for name in times}
-    for _ in range(repeats):
-        for name, layer in layers.items():
+    layers = {name: SolveLayer(prob, KSPOptions(max_it=K, engine="petsc")) for name in ("with_monitor",
+                                                                                          "without_monitor")}
+
+    def per_iteration(name: str):
+        def run() -> float:
             tuning.INTERRUPT_CHECK_MIN_WORK = 0 if name == "with_monitor" else 10 ** 30
-            before = layer.stats.forward_time
-            layer(f=f)
-            times[name].append((layer.stats.forward_time - before) / K)
+            before = layers[name].stats.forward_time
+            layers[name](f=f)
+            return (layers[name].stats.forward_time - before) / K
+        return run
+
+    timings = interleaved({name: per_iteration(name) for name in layers}, repeats=repeats, warmup=0)
     tuning.INTERRUPT_CHECK_MIN_WORK = threshold
-    best = {name: min(values) for name, values in times.items()}
+    best = {name: t.seconds for name, t in timings.items()}
+    times = {name: list(t.samples) for name, t in timings.items()}
     return {"K": K, "h": h, "n": prob.output_size, "repeats": repeats, "seconds_per_iteration_min": best,
             "seconds_per_iteration_all": times,
             "monitor_overhead_per_iteration_s": best["with_monitor"] - best["without_monitor"],
@@ -140,22 +148,26 @@ def monitor_cost(K: int, repeats: int, h: float) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = bench_common.parser(__file__, __doc__.splitlines()[0], repeats=7,
+                                 quick="K = 1000 only, no unbounded run, no 66k-DOF runs, monitor K = 500")
     parser.add_argument("--ks", type=comma_list(int), default=[1000, 4000, 20000])
     parser.add_argument("--unbounded-k", type=int, default=1000)
     parser.add_argument("--large", action=argparse.BooleanOptionalAction, default=True,
                         help="section (2), the 66k-DOF runs (needs about 8 GB free)")
     parser.add_argument("--monitor-k", type=int, default=2000)
-    parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--timeout", type=float, default=1800.0)
-    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent.parent / "bench-results"
-                        / "bench_bounds.json")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child is not None:
         print(CHILD_MARK + json.dumps(child(json.loads(args.child))))
         return
-    machine = machine_info()
+    if args.quick:
+        args.ks, args.unbounded_k, args.large, args.monitor_k = [1000], 0, False, 500
+    with bench_common.report(__file__, args.out, repeats=args.repeats) as data:
+        data.update(measure(args))
+
+
+def measure(args) -> dict:
     small = {"h": None, "batch": BATCH, "threads": 1, "solver": "cg"}
     memory = [run_child({**small, "K": K, "bounded": True}, args.timeout) for K in args.ks]
     if args.unbounded_k:
@@ -172,10 +184,7 @@ def main() -> None:
         print(f"interrupt monitor: {cost['seconds_per_iteration_min']['with_monitor'] * 1e6:.2f} vs "
               f"{cost['seconds_per_iteration_min']['without_monitor'] * 1e6:.2f} us per iteration "
               f"({100 * cost['monitor_overhead_fraction']:+.1f}%) at n={cost['n']}")
-    machine["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
-    write_json_atomically({"machine": machine, "unrolled_memory": memory, "unrolled_large": large,
-                           "interrupt_monitor": costs}, args.out)
-    print(f"wrote {args.out}")
+    return {"unrolled_memory": memory, "unrolled_large": large, "interrupt_monitor": costs}
 
 
 if __name__ == "__main__":

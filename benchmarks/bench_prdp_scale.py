@@ -32,18 +32,17 @@ nothing else changed) and the metric ratio (PRDP / baseline, mean over the
 seeds, and each seed's). Wall times are the training epochs' (validation
 included), not the set-up (meshing, reference data, K_eps).
 
-Writes ``bench-results/bench_prdp_scale.json`` (``--out``) after every run,
+Writes ``bench-results/bench_prdp_scale.json`` (``--out``, through
+``bench_common.report``: single runs, statistic "mean" over the seeds) after every run,
 and resumes from it (a size and seed already recorded is not rerun), and a
 plot of the curve beside it (``.png``). Run on an idle machine with one
-thread: ``python scripts/bench_prdp_scale.py --threads 1``; ``--quick`` runs
+thread: ``python benchmarks/bench_prdp_scale.py --threads 1``; ``--quick`` runs
 two small sizes per dimension for a smoke test.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import os
 import statistics
 import sys
 from pathlib import Path
@@ -54,7 +53,8 @@ from bench_scenes import summary
 from fempdl.app import scene
 from fempdl.app.runs import runner
 
-from bench_common import comma_list, machine_info, write_json_atomically
+import bench_common
+from bench_common import comma_list
 
 # Per dimension: the bundled scene, what changes in it, and the mesh sizes (about 1.5k to 150k DOFs).
 DIMENSIONS = {
@@ -107,7 +107,7 @@ def size_summary(entry: dict) -> dict:
             "wall_seconds_converged": mean(base, "wall_time"), "wall_seconds_prdp": mean(prdp, "wall_time")}
 
 
-def bench_size(dim: str, h: float, args, results: dict, out: Path) -> None:
+def bench_size(dim: str, h: float, args, results: bench_common.Report) -> None:
     spec = DIMENSIONS[dim]
     key = f"{dim}/h={h:g}"
     entry = results["sizes"].setdefault(key, {"dim": dim, "h": h, "converged": [], "prdp": [], "seeds": []})
@@ -126,8 +126,7 @@ def bench_size(dim: str, h: float, args, results: dict, out: Path) -> None:
         entry["prdp"].append(summary(p))
         entry["seeds"].append(seed)
         entry["summary"] = point = size_summary(entry)
-        results["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
-        write_json_atomically(results, out)
+        results.save()
         print(f"{key} ({entry['dofs']} DOFs, K_eps {b.k_eps}) seed {seed}: solver share "
               f"{point['solver_share']:.2f}, iterations -{100 * point['iteration_savings']:.0f}%, wall "
               f"-{100 * point['wall_time_savings']:.0f}%, metric {point['metric_ratio']:.2f}x", flush=True)
@@ -178,7 +177,8 @@ def plot(results: dict, path: Path) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=None,
+                                 quick="two small sizes per dimension")
     parser.add_argument("--dims", type=comma_list(str), default=list(DIMENSIONS), help=f"of {list(DIMENSIONS)}")
     parser.add_argument("--h", type=comma_list(float), help="mesh sizes (default: each dimension's own)")
     parser.add_argument("--seeds", type=comma_list(int), default=[0, 1, 2])
@@ -191,20 +191,21 @@ def main(argv=None) -> int:
     parser.add_argument("--k0-fraction", type=float, default=8.0)
     parser.add_argument("--growth", type=float, default=1.5)
     parser.add_argument("--threads", type=int, help="torch threads (default: torch's)")
-    parser.add_argument("--quick", action="store_true", help="two small sizes per dimension, for a smoke test")
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_prdp_scale.json"))
     args = parser.parse_args(argv)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    settings = {k: v for k, v in vars(args).items() if k not in ("out", "h", "dims", "seeds", "quick")}
-    results = json.loads(args.out.read_text()) if args.out.exists() else {}
-    if results.get("settings", settings) != settings:
-        raise SystemExit(f"{args.out} holds runs with other settings {results['settings']}; pass another --out")
-    results.update(settings=settings, machine=results.get("machine") or machine_info())
-    results.setdefault("sizes", {})
-    for dim in args.dims:
-        for h in args.h or (QUICK_H if args.quick else {d: s["h"] for d, s in DIMENSIONS.items()})[dim]:
-            bench_size(dim, h, args, results, args.out)
+    settings = {k: v for k, v in vars(args).items() if k not in ("out", "h", "dims", "seeds", "quick", "repeats")}
+    before = json.loads(args.out.read_text()) if args.out.exists() else {}
+    if before.get("settings", settings) != settings:
+        raise SystemExit(f"{args.out} holds runs with other settings {before['settings']}; pass another --out")
+    # single runs, averaged over the seeds
+    with bench_common.report(__file__, args.out, statistic="mean", repeats=1, settings=settings,
+                             sizes=before.get("sizes", {})) as results:
+        if "machine" in before:                         # resumed: the record of the first runs
+            results["machine"], results["load"]["start"] = before["machine"], before["load"]["start"]
+        for dim in args.dims:
+            for h in args.h or (QUICK_H if args.quick else {d: s["h"] for d, s in DIMENSIONS.items()})[dim]:
+                bench_size(dim, h, args, results)
     plot(results, args.out.with_suffix(".png"))
     print(markdown_table(results))
     print(f"wrote {args.out} and {args.out.with_suffix('.png')}")

@@ -66,7 +66,7 @@ approaches it as K grows), and so is the difference to PETSc's KSPCG.
 
 Timing: every variant is warmed up once (form JIT, assembly, KSP setup,
 operator copies) before it is timed; within each repeat the variants run
-interleaved, so that load from other processes affects them alike. Each runs
+interleaved (``bench_common.interleaved``), so that load from other processes affects them alike. Each runs
 ``--repeats`` times, and cheap configurations more often (up to 20 times,
 until the repeats of all variants together have taken ``--min-time`` s).
 Configurations whose unrolled call stores more than ``--heavy-gib`` GiB of
@@ -95,9 +95,9 @@ few microseconds per parallel region at most. The policy in force is recorded.
 
 Run (from the repository root)::
 
-    .venv/bin/python scripts/bench_unrolled.py            # full: both sizes, K=5,20,100, B=32 (9.5 min idle)
-    .venv/bin/python scripts/bench_unrolled.py --quick    # smoke test: small mesh, K=5,20, B=8, no memory
-    .venv/bin/python scripts/bench_unrolled.py --sizes small --ks 20 --solvers cg --out /tmp/u.json
+    .venv/bin/python benchmarks/bench_unrolled.py            # full: both sizes, K=5,20,100, B=32 (9.5 min idle)
+    .venv/bin/python benchmarks/bench_unrolled.py --quick    # smoke test: small mesh, K=5,20, B=8, no memory
+    .venv/bin/python benchmarks/bench_unrolled.py --sizes small --ks 20 --solvers cg --out /tmp/u.json
 
 Figures go to ``bench-results/bench_unrolled.json`` (``--out`` to change); a
 table is printed.
@@ -105,7 +105,6 @@ table is printed.
 from __future__ import annotations
 
 import argparse
-import datetime
 import gc
 import json
 import os
@@ -139,14 +138,16 @@ from mpi4py import MPI  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-import fempdl  # noqa: E402
+import fempdl.core.mesh  # noqa: E402
 import fempdl.core.meshgen  # noqa: E402
+import fempdl.forms  # noqa: E402
 from fempdl.bridge_torch import SolveLayer  # noqa: E402
 from fempdl.core.resources import available_memory  # noqa: E402
 from fempdl.iterative import unrolled  # noqa: E402
 from fempdl.ksp_adjoint import KSPOptions  # noqa: E402
 
-from bench_common import apply_defaults, comma_list, machine_info, write_json_atomically  # noqa: E402
+import bench_common  # noqa: E402
+from bench_common import apply_defaults, comma_list, interleaved, pick, timed  # noqa: E402
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.core.meshgen)
 SOLVERS = ("jacobi", "cg")                      # Richardson+Jacobi, CG+Jacobi
@@ -329,12 +330,13 @@ def measure_memory_repeated(size: str, solver: str, K: int, variant: str, args, 
     The same call's peak RSS varies between processes (up to 2.4x for unrolled CG on the 4k mesh,
     with two modes and nothing else changed): where the allocator places and returns freed
     blocks differs from run to run. The minimum is what the call needs at least."""
-    runs = [measure_memory(size, solver, K, variant, args) for _ in range(repeats)]
+    runs = []
+    timed(lambda: runs.append(measure_memory(size, solver, K, variant, args)), repeats=repeats, warmup=0)
     good = [r for r in runs if "error" not in r]
     if not good:
         return runs[0]
-    samples = [r["peak_rss_increase_mib"] for r in good]
-    best = dict(min(good, key=lambda r: r["peak_rss_increase_mib"]))
+    best = pick(good, "peak_rss_increase_mib", "min")
+    samples = best.pop("peak_rss_increase_mib_samples")
     best.update(samples_mib=samples, max_mib=max(samples), failed_runs=len(runs) - len(good))
     return best
 
@@ -362,14 +364,17 @@ def bench_config(layers: dict, size: str, solver: str, K: int, F, W, args, heavy
 
     repeats = args.heavy_repeats if heavy else args.repeats
     runs = {v: [] for v in names}
-    started = time.perf_counter()
-    while min(len(r) for r in runs.values()) < repeats or (
-            time.perf_counter() - started < args.min_time and len(runs[names[0]]) < MAX_REPEATS):
-        for v in names:
+
+    def variant(v: str):
+        def run() -> float:
             call = layer_call(layers[v], F, W)
             runs[v].append({k: call[k] for k in ("forward", "backward", "wall")})
-            del call
-    fastest = {v: min(r, key=lambda t: t["wall"]) for v, r in runs.items()}
+            return runs[v][-1]["wall"]
+        return run
+
+    interleaved({v: variant(v) for v in names}, repeats=repeats, warmup=0, statistic=STATISTIC,
+                min_time=args.min_time, max_repeats=MAX_REPEATS)
+    fastest = {v: pick(r, "wall", STATISTIC) for v, r in runs.items()}
     t = {v: f["wall"] for v, f in fastest.items()}
 
     memory = None
@@ -399,7 +404,6 @@ def bench_config(layers: dict, size: str, solver: str, K: int, F, W, args, heavy
         "B": batch,
         "repeats": len(runs[names[0]]),
         "heavy": heavy,
-        "load_average": os.getloadavg(),
         "engines": engines,
         "times_s": {v: fastest[v]["wall"] for v in names},
         "times_split_s": {v: {"forward": fastest[v]["forward"], "backward": fastest[v]["backward"]}
@@ -491,6 +495,7 @@ def bench_size(size: str, args: argparse.Namespace, skipped: list) -> tuple[dict
                 continue
             heavy = stored > args.heavy_gib * 2 ** 30
             row = bench_config(layers, size, solver, K, F, W, args, heavy, K == k_max)
+            args.report.sample_load(f"after {size} {solver} K={K}")
             results.append(row)
             print_row(row, flush=True)
         for layer in layers.values():
@@ -532,16 +537,14 @@ def print_row(row: dict, flush: bool = False) -> None:
 
 # ---------------------------------------------------------------------- CLI
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = bench_common.parser(__file__, __doc__.split("\n\n")[0], repeats=3, quick_repeats=1,
+                                 quick="small mesh, K=5,20, B=8, no memory subprocesses (explicit flags still win)")
     parser.add_argument("--sizes", type=comma_list(str), help="mesh sizes: small,large (default both)")
     parser.add_argument("--ks", type=comma_list(int),
                         help="iteration caps K (default 5,20,100); the checkpointed variant runs at the largest")
     parser.add_argument("--batch", type=int, help="batch size B (default 32)")
     parser.add_argument("--solvers", type=comma_list(str),
                         help="jacobi (Richardson+Jacobi) and/or cg (CG+Jacobi); default both")
-    parser.add_argument("--repeats", type=int,
-                        help="timed repeats, at least; the minimum is reported (default 3)")
     parser.add_argument("--heavy-repeats", type=int,
                         help="timed repeats (and at most as many memory measurements) of configurations "
                              "whose unrolled call stores more than --heavy-gib of iterates (default 1)")
@@ -556,11 +559,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--memory-repeats", type=int,
                         help="fresh-process memory measurements per variant, the minimum reported (default 2; "
                              "heavy configurations at most --heavy-repeats)")
-    parser.add_argument("--quick", action="store_true",
-                        help="smoke test: small mesh, K=5,20, B=8, 1 repeat, no memory subprocesses "
-                             "(explicit flags still win)")
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_unrolled.json"),
-                        help="JSON output file (default bench-results/bench_unrolled.json)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random sources and weights")
     parser.add_argument("--threads", type=int,
                         help="torch threads (default: torch's own choice; the batched engine and unrolled "
@@ -573,9 +571,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.child is not None:
         return args
-    defaults = ({"sizes": ["small"], "ks": [5, 20], "batch": 8, "repeats": 1, "heavy_repeats": 1,
+    defaults = ({"sizes": ["small"], "ks": [5, 20], "batch": 8, "heavy_repeats": 1,
                  "memory_repeats": 1, "min_time": 0.0, "memory": False, "solvers": list(SOLVERS)} if args.quick
-                else {"sizes": ["small", "large"], "ks": [5, 20, 100], "batch": 32, "repeats": 3,
+                else {"sizes": ["small", "large"], "ks": [5, 20, 100], "batch": 32,
                       "heavy_repeats": 1, "memory_repeats": 2, "min_time": 1.0, "memory": True,
                       "solvers": list(SOLVERS)})
     apply_defaults(parser, args, defaults, MESH_SIZES, SOLVERS)
@@ -596,15 +594,10 @@ def main(argv=None) -> int:
         return 2
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    started = datetime.datetime.now(datetime.UTC)
-    report = {
-        "benchmark": "bench_unrolled",
-        "timestamp": started.isoformat(timespec="seconds"),
-        "machine": machine_info(),
-        "load_average_start": os.getloadavg(),
-        "settings": {
+    started = time.perf_counter()
+    settings = {
             "sizes": args.sizes, "ks": args.ks, "batch": args.batch, "solvers": args.solvers,
-            "repeats": args.repeats, "heavy_repeats": args.heavy_repeats, "heavy_gib": args.heavy_gib,
+            "heavy_repeats": args.heavy_repeats, "heavy_gib": args.heavy_gib,
             "memory_repeats": args.memory_repeats,
             "heavy_note": (f"configurations whose unrolled call stores more than {args.heavy_gib} GiB of "
                            f"iterates ran {args.heavy_repeats} timed repeat(s) instead of {args.repeats}, and "
@@ -612,7 +605,7 @@ def main(argv=None) -> int:
                            f"instead of {args.memory_repeats} (rows with heavy = true), to keep the full run "
                            "near 10 minutes"),
             "min_time_s": args.min_time, "max_repeats": MAX_REPEATS, "seed": args.seed,
-            "statistic": STATISTIC, "memory_measured": args.memory,
+            "memory_measured": args.memory,
             "checkpoint_limit": "unrolled.checkpointed_values", "agreement_tolerance": AGREEMENT_TOL,
             "problem": "poisson on lshape, control f, u = 0 on the whole boundary",
             "loss": "sum(u * W), W standard normal; F standard normal",
@@ -621,21 +614,17 @@ def main(argv=None) -> int:
                               "measurement after a two-sample warm-up: the peak mark (VmHWM) after the call "
                               "minus VmRSS before it, the mark reset through /proc/self/clear_refs"),
             "unrolled_memory_bound": UNROLLED_MEMORY_BOUND,
-        },
-        "meshes": {},
-        "results": [],
-        "skipped": [],
     }
     print(HEADER)
-    with tempfile.TemporaryDirectory(prefix="bench_unrolled_") as msh_dir:
-        args.msh_dir, args.msh_files = msh_dir, {}
+    with bench_common.report(__file__, args.out, statistic=STATISTIC, repeats=args.repeats, settings=settings,
+                             meshes={}, results=[], skipped=[]) as report, \
+            tempfile.TemporaryDirectory(prefix="bench_unrolled_") as msh_dir:
+        args.msh_dir, args.msh_files, args.report = msh_dir, {}, report
         for size in args.sizes:
             mesh_info, rows = bench_size(size, args, report["skipped"])
             report["meshes"][size] = mesh_info
             report["results"].extend(rows)
-    report["load_average_end"] = os.getloadavg()
-    report["duration_s"] = (datetime.datetime.now(datetime.UTC) - started).total_seconds()
-    write_json_atomically(report, args.out)
+        report["duration_s"] = time.perf_counter() - started
     print(f"t u/i = unrolled / implicit time (default engine); m u/i = their peak-RSS increases (MiB columns), "
           f"stored = theoretical stored iterates (MiB); p/b = implicit engine='petsc' / engine='batched' time; "
           f"ckpt = checkpointed unrolled (max_unrolled_values = checkpointed_values) over plain "

@@ -12,19 +12,23 @@ factorise it again (the same matrix: one factorisation, MatSolveTranspose on it)
 The script times ``--steps`` Adam steps (after ``--warmup``) in a worker process for
 variant: ``--baseline`` (a git revision, checked out into a temporary worktree)
 with the ``"lu"`` preset, and this checkout with ``"lu"`` and with ``"cholesky"``
-(the problem declared symmetric), alternating ``--rounds`` times so that machine
-load hits them alike; the figure is the ratio of the medians of the per-round
-median step times. Writes ``bench-results/bench_direct.json`` with the machine record.
+(the problem declared symmetric), alternating ``--repeats`` times
+(``bench_common.interleaved``) so that machine load hits them alike; the figure
+is the ratio of the medians of the per-round median step times. Writes
+``bench-results/bench_direct.json`` (``--out``) through ``bench_common.report``;
+``--quick``: 30 steps, one round.
 
 Run (from the repository root, on an idle machine)::
 
-    OMP_WAIT_POLICY=PASSIVE .venv/bin/python scripts/bench_direct.py --baseline af7188c
+    OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/bench_direct.py --baseline af7188c
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -108,23 +112,30 @@ def run_worker(tree: Path, args, batched: bool, preset: str) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def median_step(runs: list, tree: Path, args, batched: bool, preset: str):
+    """One round of a variant: a worker run, appended to ``runs``; its median step time."""
+    def run() -> float:
+        runs.append(run_worker(tree, args, batched, preset))
+        return statistics.median(runs[-1]["step_s"])
+    return run
+
+
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_common
+
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=3, quick="30 steps", quick_repeats=1)
     parser.add_argument("--baseline", default=None, help="git revision to compare with (omit: this tree only)")
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=10)
-    parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--batched", action="store_true", help="worker: pass the control as a (1, n) batch")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--out", type=Path, default=ROOT / "bench-results/bench_direct.json")
     args = parser.parse_args()
     if args.worker:
         print(json.dumps(workload(args.steps, args.warmup, args.batched)))
         return 0
-    sys.path.insert(0, str(ROOT / "scripts"))
-    import numpy as np
-
-    from bench_common import machine_info, write_json_atomically
+    if args.quick:
+        args.steps = 30
 
     variants = {"current lu": (ROOT, "lu"), "current cholesky": (ROOT, "cholesky")}
     scratch = None
@@ -133,21 +144,23 @@ def main() -> int:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-q", str(scratch), args.baseline],
                        check=True)
         variants = {"baseline lu": (scratch, "lu"), **variants}
-    report = {"machine": machine_info(), "load_average_start": os.getloadavg(),
-              "settings": {"steps": args.steps, "warmup": args.warmup, "rounds": args.rounds,
-                           "baseline": args.baseline, "statistic": "median of per-round medians",
-                           "workload": __doc__.split("\n\n")[1]},
-              "target_speedup_min": TARGET_SPEEDUP, "results": {}}
-    try:
+    with contextlib.ExitStack() as cleanup:
+        report = cleanup.enter_context(bench_common.report(
+            __file__, args.out, statistic="median", repeats=args.repeats,
+            settings={"steps": args.steps, "warmup": args.warmup, "baseline": args.baseline,
+                      "workload": __doc__.split("\n\n")[1]},
+            target_speedup_min=TARGET_SPEEDUP, results={}))
+        if scratch is not None:
+            cleanup.callback(subprocess.run, ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(scratch)],
+                             check=False)
         for layout in ("shared", "batched"):
             rounds = {name: [] for name in variants}
-            for _ in range(args.rounds):
-                for name, (tree, preset) in variants.items():
-                    rounds[name].append(run_worker(tree, args, layout == "batched", preset))
+            steps = {name: median_step(rounds[name], tree, args, layout == "batched", preset)
+                     for name, (tree, preset) in variants.items()}
+            timings = bench_common.interleaved(steps, repeats=args.repeats, warmup=0, statistic="median")
             row = {}
             for name, runs in rounds.items():
-                medians = [float(np.median(r["step_s"])) for r in runs]
-                row[name] = {"median_step_s": float(np.median(medians)), "round_medians_s": medians,
+                row[name] = {"median_step_s": timings[name].seconds, "round_medians_s": list(timings[name].samples),
                              "compliance": runs[-1]["compliance"], "dofs": runs[-1]["dofs"],
                              "setup_s_last_round": runs[-1]["setup_s"], "solve_s_last_round": runs[-1]["solve_s"],
                              "assembly_s_last_round": runs[-1]["assembly_s"]}
@@ -157,12 +170,6 @@ def main() -> int:
             report["results"][layout] = row
             print(layout, json.dumps({k: round(v["median_step_s"] * 1e3, 2) if isinstance(v, dict) else round(v, 2)
                                       for k, v in row.items()}), flush=True)
-    finally:
-        if scratch is not None:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(scratch)], check=False)
-    report["load_average_end"] = os.getloadavg()
-    write_json_atomically(report, args.out)
-    print(f"wrote {args.out}")
     return 0
 
 

@@ -5,7 +5,7 @@
     at K = 200 on the PETSc engine, one sample. Timed: the forward solve alone,
     and forward + backward (the adjoint solve and the source gradient), on a
     mesh loaded on COMM_WORLD, with 1 rank and with 2. Each is warmed up
-    once and then timed ``--repeats`` times; the minimum counts (other
+    once and then timed ``--repeats`` times (``bench_common.timed``); the minimum counts (other
     processes only ever add time). Also recorded: DOFs, the owned DOFs of each
     rank, the iterations (the same on any number of ranks).
 (b) Data-parallel training (``fempdl run SCENE --parallel data``): each scene
@@ -23,8 +23,8 @@ Every measurement runs in its own ``mpirun -n R`` job of this script
 invocation, so both sides see the same machine. The serial side keeps torch's
 default thread count; each of the 2 ranks uses one thread (2 cores).
 
-Writes ``bench-results/bench_mpi.json`` (``--out``) and prints the speed-ups.
-Run: ``python scripts/bench_mpi.py`` (about 3 minutes on 2 cores), or
+Writes ``bench-results/bench_mpi.json`` (``--out``, through ``bench_common.report``) and prints the speed-ups.
+Run: ``python benchmarks/bench_mpi.py`` (about 3 minutes on 2 cores), or
 ``--quick`` for a smoke test (h = 0.02, 2 epochs).
 """
 from __future__ import annotations
@@ -33,14 +33,14 @@ import argparse
 import json
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
 from fempdl.core import _dolfinx
 
-from bench_common import comma_list, machine_info, run_mpi_worker, write_json_atomically
+import bench_common
+from bench_common import comma_list, run_mpi_worker, slowest_rank, timed
 
 RANKS = (1, 2)
 
@@ -66,16 +66,9 @@ def layer_worker(args) -> dict:
     def forward_backward():
         layer(f=f).square().sum().backward()
 
-    times = {}
-    for name, fn in (("forward", forward), ("forward_backward", forward_backward)):
-        fn()   # warm-up: form compilation, KSP setup
-        samples = []
-        for _ in range(args.repeats):
-            comm.barrier()
-            t0 = time.perf_counter()
-            fn()
-            samples.append(comm.allreduce(time.perf_counter() - t0, op=MPI.MAX))
-        times[name] = {"min": min(samples), "all": samples}
+    # each warmed up once (form compilation, KSP setup)
+    times = {name: timed(slowest_rank(fn), repeats=args.repeats).as_dict()
+             for name, fn in (("forward", forward), ("forward_backward", forward_backward))}
     owned = comm.gather(problem.output_size)
     iterations = layer.stats.last.iterations   # of the last (adjoint) solve
     layer.close()
@@ -124,61 +117,63 @@ def launch(ranks: int, worker: str, args, out: Path, scene: str = "") -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=5,
+                                 quick="h = 0.02, 2 epochs", quick_repeats=2)
     parser.add_argument("--h", type=float, default=0.00365, help="mesh size of the layer benchmark")
     parser.add_argument("--layer-k", type=int, default=200, help="Jacobi iterations of the layer benchmark")
-    parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--scenes", type=comma_list(str), default=["burgers-emulator", "heat-emulator-2d"],
                         help="scenes of the training benchmark")
     parser.add_argument("--k", type=int, default=16, help="fixed cap of the training benchmark")
     parser.add_argument("--epochs", type=int, default=5)
-    parser.add_argument("--quick", action="store_true", help="smoke test: h = 0.02, 2 epochs, 2 repeats")
     parser.add_argument("--scene", help=argparse.SUPPRESS)
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_mpi.json"))
     parser.add_argument("--worker", choices=sorted(WORKERS), help=argparse.SUPPRESS)
     parser.add_argument("--worker-out", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
         return run_worker(args)
     if args.quick:
-        args.h, args.epochs, args.repeats = 0.02, 2, 2
+        args.h, args.epochs = 0.02, 2
     try:
         _dolfinx.mpi_launcher()
     except FileNotFoundError as exc:
         parser.error(str(exc))
 
-    results = {"machine": machine_info(), "settings": {k: v for k, v in vars(args).items()
-                                                       if k not in ("out", "worker", "worker_out")}}
+    settings = {k: v for k, v in vars(args).items() if k not in ("out", "worker", "worker_out")}
+    with bench_common.report(__file__, args.out, repeats=args.repeats, settings=settings) as results:
+        summarize(args, results)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def summarize(args, results: dict) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         layer = {ranks: launch(ranks, "layer", args, Path(tmp) / f"layer{ranks}.json") for ranks in RANKS}
         training = {name: {ranks: launch(ranks, "training", args, Path(tmp) / f"{name}{ranks}.json", name)
                            for ranks in RANKS} for name in args.scenes}
     results["layer"], results["training"] = layer, training
     results["speedup"] = {
-        "layer_forward": layer[1]["times"]["forward"]["min"] / layer[2]["times"]["forward"]["min"],
-        "layer_forward_backward": (layer[1]["times"]["forward_backward"]["min"]
-                                   / layer[2]["times"]["forward_backward"]["min"]),
+        "layer_forward": layer[1]["times"]["forward"]["seconds"] / layer[2]["times"]["forward"]["seconds"],
+        "layer_forward_backward": (layer[1]["times"]["forward_backward"]["seconds"]
+                                   / layer[2]["times"]["forward_backward"]["seconds"]),
         **{f"training_throughput/{name}": runs[2]["samples_per_second"] / runs[1]["samples_per_second"]
            for name, runs in training.items()},
     }
     for runs in training.values():
         loss1, loss2 = np.array(runs[1]["train_loss"]), np.array(runs[2]["train_loss"])
         runs["loss_max_relative_difference"] = float(np.abs(loss1 - loss2).max() / np.abs(loss1).max())
-    write_json_atomically(results, args.out)
 
     print(f"layer: {layer[1]['dofs']} DOFs, Jacobi K={args.layer_k}: forward "
-          f"{1e3 * layer[1]['times']['forward']['min']:.0f} ms -> {1e3 * layer[2]['times']['forward']['min']:.0f} ms "
+          f"{1e3 * layer[1]['times']['forward']['seconds']:.0f} ms -> "
+          f"{1e3 * layer[2]['times']['forward']['seconds']:.0f} ms "
           f"({results['speedup']['layer_forward']:.2f}x), forward + backward "
-          f"{1e3 * layer[1]['times']['forward_backward']['min']:.0f} ms -> "
-          f"{1e3 * layer[2]['times']['forward_backward']['min']:.0f} ms "
+          f"{1e3 * layer[1]['times']['forward_backward']['seconds']:.0f} ms -> "
+          f"{1e3 * layer[2]['times']['forward_backward']['seconds']:.0f} ms "
           f"({results['speedup']['layer_forward_backward']:.2f}x)")
     for name, runs in training.items():
         print(f"training {name}, K={args.k}: {runs[1]['samples_per_second']:.1f} -> "
               f"{runs[2]['samples_per_second']:.1f} samples/s "
               f"({results['speedup'][f'training_throughput/{name}']:.2f}x); "
               f"loss curves agree to {runs['loss_max_relative_difference']:.1e}")
-    print(f"wrote {args.out}")
-    return 0
 
 
 if __name__ == "__main__":

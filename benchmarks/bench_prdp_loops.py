@@ -46,16 +46,18 @@ converged loop runs the same validation. The wall time includes it.
 Recorded per run: the metric at the end evaluated with converged solves, Newton
 steps and inner iterations (forward + backward, training and validation, all
 ranks), the training wall time and the K schedule; per setting the means over
-the seeds and the ratios PRDP / converged. The loops of a few seconds run 5
-times (the same numbers but the wall time, whose median is kept: their ratio
-moved by 0.92-1.02x from one run to the next). Writes
-``bench-results/bench_prdp_loops.json`` (``--out``) after every run and resumes
-from it. Run on an idle machine: ``python scripts/bench_prdp_loops.py``;
+the seeds and the ratios PRDP / converged. The loops of a few seconds run ``--repeats``
+(5) times (the same numbers but the wall time, whose median is kept,
+``bench_common.repeat_runs``: their ratio moved by 0.92-1.02x from one run to
+the next). Writes ``bench-results/bench_prdp_loops.json`` (``--out``, through
+``bench_common.report``, with the load after every run) after every run and resumes
+from it. Run on an idle machine: ``python benchmarks/bench_prdp_loops.py``;
 ``--quick`` runs one seed of shortened loops.
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import statistics
@@ -86,12 +88,13 @@ from fempdl.core import _dolfinx
 from fempdl.methods.newton_caps import NewtonCaps
 from fempdl.prdp import k_eps, k_start, newton_k_eps, reference_physics
 
-from bench_common import comma_list, machine_info, write_json_atomically
+import bench_common
+from bench_common import comma_list
 
 SETTINGS = ("readme-as-written", "readme", "warm-linear", "hole-emulator", "newton-cold", "newton-warm",
             "nonlinear-heat", "newton-rollout", "ddp")
 STRICT = ()
-REPEATS = {"warm-linear": 5, "ddp": 5}
+REPEATED = ("warm-linear", "ddp")         # loops of a few seconds: run --repeats times
 K0_TOLERANCE = {"prdp": None, "prdp-strict": 0.01}    # None: k_start's default (by what the capped gradient is)
 EPOCHS = {"readme-as-written": 200, "hole-emulator": 60, "newton-rollout": 80, "readme": 60, "warm-linear": 60,
           "newton-cold": 300, "newton-warm": 300, "nonlinear-heat": 40, "ddp": 60}
@@ -375,7 +378,7 @@ def train(setting: str, mode: str, seed: int, epochs: int, rank: int = 0, size: 
             "reference_time": sum(stats.layer_time for stats in reference),
             "health_refinements": [] if ctrl is None else ctrl.health_refinements,
             "newton_steps": int(counts[0] + counts[1]), "inner_iterations": int(counts[2] + counts[3]),
-            **loop.final(), "load_average_1_min": os.getloadavg()[0]}
+            **loop.final()}
 
 
 def train_ddp(mode: str, seed: int, epochs: int) -> dict:
@@ -420,22 +423,25 @@ def summarise(runs: dict) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = bench_common.parser(__file__, __doc__.split("\n\n")[0], repeats=5, quick_repeats=1,
+                                 quick="one seed, a fifth of the epochs")
     parser.add_argument("--settings", type=comma_list(str), default=list(SETTINGS))
     parser.add_argument("--seeds", type=int, default=3)
-    parser.add_argument("--quick", action="store_true", help="one seed, a fifth of the epochs")
     parser.add_argument("--strict", type=comma_list(str), default=list(STRICT),
                         help="settings also run with k0 within 1%% of converged solves")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent.parent / "bench-results" /
-                        "bench_prdp_loops.json")
     parser.add_argument("--worker", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
         mode, seed, epochs, result = args.worker
         return worker(mode, int(seed), int(epochs), result)
     torch.set_num_threads(1)
-    record = json.loads(args.out.read_text()) if args.out.exists() else {"settings": {}}
-    record["machine"] = machine_info()
+    before = json.loads(args.out.read_text()) if args.out.exists() else {}
+    with bench_common.report(__file__, args.out, statistic="median", repeats=args.repeats,
+                             settings=before.get("settings", {})) as record:
+        run_all(args, record)
+
+
+def run_all(args, record: bench_common.Report) -> None:
     seeds = 1 if args.quick else args.seeds
     for setting in args.settings:
         entry = record["settings"].setdefault(setting, {"runs": {}})
@@ -447,13 +453,15 @@ def main() -> None:
                 if key in entry["runs"] and entry["runs"][key].get("epochs") == epochs \
                         and entry["runs"][key].get("validation") == VALIDATION:
                     continue
-                runs = [train_ddp(mode, seed, epochs) if setting == "ddp" else train(setting, mode, seed, epochs)
-                        for _ in range(REPEATS.get(setting, 1))]
-                run = {**runs[0], "wall_time": statistics.median(r["wall_time"] for r in runs),
-                       "wall_times": [r["wall_time"] for r in runs]}
+                one_run = functools.partial(train_ddp, mode, seed, epochs) if setting == "ddp" \
+                    else functools.partial(train, setting, mode, seed, epochs)
+                run = bench_common.repeat_runs(one_run, "wall_time", statistic="median",
+                                               repeats=args.repeats if setting in REPEATED else 1)
+                run["wall_times"] = run.pop("wall_time_samples")
                 entry["runs"][key] = {**run, "epochs": epochs, "validation": VALIDATION}
                 entry["summary"] = summarise(entry["runs"])
-                write_json_atomically(record, args.out)
+                record.sample_load(f"{setting} {key}")
+                record.save()
                 print(f"{setting:15s} {key:12s} metric {run['final_metric']:.3e} wall {run['wall_time']:7.1f} s "
                       f"newton {run['newton_steps']:7d} inner {run['inner_iterations']:9d} K {run['k0']}.."
                       f"{run['k_schedule'][-1]} (K_eps {run['k_eps']})", flush=True)

@@ -6,8 +6,8 @@
 #   3. fempdl itself in editable mode with its test extra (numpy 2, scipy, matplotlib).
 # torch==2.13.0 on Python 3.12 is PyPI's CUDA build (5.3 GiB with its CUDA
 # libraries); it runs on the CPU.
-# Usage: scripts/setup_env_pypi.sh [VENV_DIR]   (default: .venv-pypi)
-#        PYTHON312=/path/to/python3.12 scripts/setup_env_pypi.sh   to choose the interpreter
+# Usage: tools/setup_env_pypi.sh [VENV_DIR]   (default: .venv-pypi)
+#        PYTHON312=/path/to/python3.12 tools/setup_env_pypi.sh   to choose the interpreter
 set -euo pipefail
 cd "$(dirname "$0")/.."
 venv="${1:-.venv-pypi}"

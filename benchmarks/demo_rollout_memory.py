@@ -10,7 +10,8 @@ Each schedule runs in its own process, which reports the peak resident memory ab
 process held once the imports and the problem were set up (``ru_maxrss`` before and after the
 forward + gradient), the forward and backward times, the schedule's statistics and dJ/df. The
 driver compares the gradients: under ``("revolve", s)`` it must equal the store-every-state gradient
-(``"all"``) to 1e-12 relative. Writes ``bench-results/demo_rollout_memory.json``.
+(``"all"``) to 1e-12 relative. Writes ``bench-results/demo_rollout_memory.json`` (``--out``) through
+``bench_common.report``; ``--quick``: n = 10, 50 steps.
 
 The heat step is linear and f enters its right-hand side only: the adjoint of a step reads no state,
 so the rollout keeps none and runs no step again under either schedule
@@ -18,14 +19,11 @@ so the rollout keeps none and runs no step again under either schedule
 
 Run (from the repository root; about 20 minutes a schedule on 2 cores)::
 
-    OMP_WAIT_POLICY=PASSIVE .venv/bin/python scripts/demo_rollout_memory.py [--schedules revolve]
+    OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/demo_rollout_memory.py [--schedules revolve]
 """
 from __future__ import annotations
 
-import argparse
-import datetime
 import json
-import os
 import resource
 import subprocess
 import sys
@@ -77,22 +75,30 @@ def run_schedule(args) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=46, help="cells per edge of the cube")
-    parser.add_argument("--steps", type=int, default=5000)
+    import bench_common
+
+    parser = bench_common.parser(__file__, __doc__.splitlines()[0], repeats=None, quick="n = 10, 50 steps")
+    parser.add_argument("--n", type=int, default=None, help="cells per edge of the cube (default 46)")
+    parser.add_argument("--steps", type=int, default=None, help="default 5000")
     parser.add_argument("--snapshots", type=int, default=100, help="revolve's snapshots in memory")
     parser.add_argument("--schedule", choices=["all", "revolve"], default=None, help="(one process's part)")
     parser.add_argument("--schedules", nargs="+", choices=["revolve", "all"], default=["revolve", "all"],
                         help="the schedules to run (the gradients are compared when both run)")
     parser.add_argument("--grad-out", default=None)
     args = parser.parse_args()
+    args.n = args.n or (10 if args.quick else 46)
+    args.steps = args.steps or (50 if args.quick else 5000)
     if args.schedule:
         print(json.dumps(run_schedule(args)))
         return
-    from bench_common import machine_info, write_json_atomically
+    # one run per schedule: memory and its times, nothing timed repeatedly
+    with bench_common.report(__file__, args.out, statistic=None, repeats=None) as data:
+        data.update(run_schedules(args))
+    print(json.dumps({k: data[k] for k in ("grad_rel_diff_revolve_vs_all", "met")}))
 
+
+def run_schedules(args) -> dict:
     runs, grads = {}, {}
-    load_at_start = list(os.getloadavg())
     for schedule in args.schedules:
         out = ROOT / "runs" / f"demo_rollout_memory_{schedule}.npy"
         out.parent.mkdir(exist_ok=True)
@@ -105,13 +111,9 @@ def main() -> None:
         print(json.dumps(runs[schedule], indent=1), flush=True)
     diff = (float(np.abs(grads["revolve"] - grads["all"]).max() / np.abs(grads["all"]).max())
             if len(grads) == 2 else None)
-    data = {"date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "machine": machine_info(), "load_average_at_start_and_end": [load_at_start, list(os.getloadavg())],
-            "runs": runs, "grad_rel_diff_revolve_vs_all": diff,
+    return {"runs": runs, "grad_rel_diff_revolve_vs_all": diff,
             "target": "revolve: at most 1024 MiB above set-up; gradient equal to 'all' to 1e-12",
             "met": runs["revolve"]["peak_above_setup_mib"] <= 1024 and (diff is None or diff <= 1e-12)}
-    print(json.dumps({k: data[k] for k in ("grad_rel_diff_revolve_vs_all", "met")}))
-    write_json_atomically(data, ROOT / "bench-results" / "demo_rollout_memory.json")
 
 
 if __name__ == "__main__":

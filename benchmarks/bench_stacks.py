@@ -11,7 +11,7 @@ Measured in each venv:
 * ``import``: seconds to import fempdl (DOLFINx, PETSc, torch) in a fresh process.
 * ``layer``: the Poisson layer of docs/stacks.md on the L-shape at h = 0.02 (8.9k DOFs),
   batch 16, forward + backward (sum of squares), median of ``--repeats`` calls
-  after one warm-up call, in ms per sample, for the ``jacobi`` preset capped at
+  after one warm-up call (``bench_common.timed``), in ms per sample, for the ``jacobi`` preset capped at
   K = 100 (the batched torch engine), ``cg`` to rtol 1e-8 (PETSc, one KSP solve
   per sample) and ``lu`` (MUMPS); also the final values' digest, to show the
   stacks compute the same numbers.
@@ -23,8 +23,9 @@ Measured in each venv:
   training (from metrics.json), of the whole command, and the final
   validation metric.
 
-Writes ``bench-results/bench_stacks.json`` (``--out``).
-Run: ``python scripts/bench_stacks.py`` from either venv (a few minutes;
+Writes ``bench-results/bench_stacks.json`` (``--out``) through ``bench_common.report``;
+``--quick``: 1 epoch per scene, 2 repeats.
+Run: ``python benchmarks/bench_stacks.py`` from either venv (a few minutes;
 ``make setup`` and ``make setup STACK=pypi`` first).
 """
 from __future__ import annotations
@@ -32,7 +33,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -49,11 +49,13 @@ from fempdl.bridge_torch import SolveLayer
 from fempdl.core import _dolfinx, matrices
 from fempdl.ksp_adjoint import KSPOptions
 
-from bench_common import machine_info, write_json_atomically
+import bench_common
+from bench_common import machine_info, timed
 
 ROOT = Path(__file__).resolve().parent.parent
 VENVS = {"debian": ROOT / ".venv", "current": ROOT / ".venv-pypi"}
 SCENES = ("heat-emulator-2d", "burgers-emulator")
+STATISTIC = "median"
 
 
 # ---------------------------------------------------------------- worker (inside one venv)
@@ -67,14 +69,18 @@ def layer_timings(repeats: int) -> dict:
                           "cg_rtol1e-8": KSPOptions.preset("cg", rtol=1e-8),
                           "lu": KSPOptions.preset("lu")}.items():
         layer = SolveLayer(prob, options)
-        seconds = []
-        for _ in range(repeats + 1):
-            fr = f.clone().requires_grad_()
+        last = {}
+
+        def call(layer=layer, last=last) -> float:
+            last["f"] = fr = f.clone().requires_grad_()
             t0 = time.perf_counter()
-            u = layer(f=fr, kappa=kappa)
+            last["u"] = u = layer(f=fr, kappa=kappa)
             u.square().sum().backward()
-            seconds.append(time.perf_counter() - t0)
-        out[name] = {"ms_per_sample": 1e3 * statistics.median(seconds[1:]) / batch,
+            return time.perf_counter() - t0
+
+        seconds = timed(call, repeats=repeats, statistic=STATISTIC).seconds
+        u, fr = last["u"], last["f"]
+        out[name] = {"ms_per_sample": 1e3 * seconds / batch,
                      "u_norm": float(u.detach().norm()), "grad_norm": float(fr.grad.norm()),
                      "iterations": layer.stats.forward_iterations + layer.stats.backward_iterations,
                      "engines": dict(layer.stats.solves_by_engine)}
@@ -102,16 +108,10 @@ def solve_columns_timings() -> dict:
             X[:, j] = x.getArray()
         return X
 
-    def timed(fn):
-        fn()
-        seconds = []
-        for _ in range(5):
-            t0 = time.perf_counter()
-            fn()
-            seconds.append(time.perf_counter() - t0)
-        return 1e3 * statistics.median(seconds)
+    def ms(fn) -> float:
+        return 1e3 * timed(fn, repeats=5, statistic=STATISTIC).seconds
 
-    together, one_by_one = timed(lambda: _dolfinx.solve_columns(ksp, B)), timed(loop)
+    together, one_by_one = ms(lambda: _dolfinx.solve_columns(ksp, B)), ms(loop)
     difference = float(np.abs(_dolfinx.solve_columns(ksp, B) - loop()).max())
     for obj in (b, x, ksp, A):
         obj.destroy()
@@ -138,9 +138,9 @@ def scene_timings(epochs: int) -> dict:
 
 def import_seconds() -> float:
     code = "import time; t0 = time.perf_counter(); import fempdl; print(time.perf_counter() - t0)"
-    runs = [float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
-            for _ in range(3)]
-    return statistics.median(runs)
+    return timed(lambda: float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                              check=True).stdout),
+                 repeats=3, warmup=0, statistic=STATISTIC).seconds
 
 
 def worker(args) -> dict:
@@ -162,18 +162,28 @@ def ratios(debian: dict, current: dict) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--epochs", type=int, default=5)
-    parser.add_argument("--out", type=Path, default=ROOT / "bench-results" / "bench_stacks.json")
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=5, quick_repeats=2,
+                                 quick="1 epoch per scene")
+    parser.add_argument("--epochs", type=int, default=None, help="epochs per scene (default 5)")
     parser.add_argument("--worker", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    args.epochs = args.epochs or (1 if args.quick else 5)
     if args.worker:
         args.worker.write_text(json.dumps(worker(args)))
         return 0
     missing = [str(v) for v in VENVS.values() if not (v / "bin" / "python").exists()]
     if missing:
         parser.error(f"missing venv(s) {missing}; run `make setup` and `make setup STACK=pypi` first")
+    with bench_common.report(__file__, args.out, statistic=STATISTIC, repeats=args.repeats,
+                             settings={"epochs": args.epochs}) as report:
+        report["stacks"] = results = run_stacks(args)
+        report["ratio_current_over_debian"] = ratios(results["debian"], results["current"])
+    for key, value in report["ratio_current_over_debian"].items():
+        print(f"{key:32s} {value:6.2f}")
+    return 0
+
+
+def run_stacks(args) -> dict:
     results = {}
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1"}
     with tempfile.TemporaryDirectory() as tmp:
@@ -184,14 +194,7 @@ def main(argv=None) -> int:
             print(f"[bench_stacks] {stack}: {' '.join(command)}", flush=True)
             subprocess.run(command, env=env, check=True)
             results[stack] = json.loads(path.read_text())
-    report = {"benchmark": "bench_stacks", "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S"),
-              "settings": {"repeats": args.repeats, "epochs": args.epochs}, "stacks": results,
-              "ratio_current_over_debian": ratios(results["debian"], results["current"])}
-    write_json_atomically(report, args.out)
-    for key, value in report["ratio_current_over_debian"].items():
-        print(f"{key:32s} {value:6.2f}")
-    print(f"wrote {args.out}")
-    return 0
+    return results
 
 
 if __name__ == "__main__":

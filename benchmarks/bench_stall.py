@@ -7,11 +7,12 @@ for contrast, with ``OMP_WAIT_POLICY=ACTIVE`` (spinning threads, the OpenMP
 runtime's default). The inner-iteration counts of the runs must be equal;
 the target is a slowdown of at most 2x with the default policy.
 
-Writes ``bench-results/bench_stall.json`` (``--out``). Run on an idle machine.
+Each case runs ``--repeats`` times; the fastest counts (``bench_common.timed``). Writes
+``bench-results/bench_stall.json`` (``--out``) through ``bench_common.report``. Run on an
+idle machine; ``--quick``: 2 epochs, one run per case.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -20,7 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_common import machine_info, write_json_atomically
+import bench_common
+from bench_common import timed
 
 FEMPDL = Path(sys.executable).with_name("fempdl")
 BUSY = "import time\nend = time.time() + {seconds}\nwhile time.time() < end:\n    pass\n"
@@ -47,29 +49,37 @@ def timed_run(scene: str, epochs: int, policy: str | None, competitor: bool) -> 
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=2, quick_repeats=1,
+                                 quick="2 epochs")
     parser.add_argument("--scene", default="heat-emulator-2d")
-    parser.add_argument("--epochs", type=int, default=10)
-    parser.add_argument("--repeats", type=int, default=2, help="runs per case (the minimum time is kept)")
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_stall.json"))
+    parser.add_argument("--epochs", type=int, default=None, help="default 10")
     args = parser.parse_args(argv)
-    results = {"machine": machine_info(), "scene": args.scene, "epochs": args.epochs, "cases": {}}
+    args.epochs = args.epochs or (2 if args.quick else 10)
+    with bench_common.report(__file__, args.out, repeats=args.repeats, scene=args.scene, epochs=args.epochs,
+                             cases={}) as results:
+        run_cases(args, results)
+    print(f"inner iterations equal in every case: {results['iterations_equal']}; wrote {args.out}")
+    return 0
+
+
+def run_cases(args, results: dict) -> None:
     for policy in (None, "ACTIVE"):
         label = "default (PASSIVE)" if policy is None else policy
         for competitor in (False, True):
-            runs = [timed_run(args.scene, args.epochs, policy, competitor) for _ in range(args.repeats)]
+            runs = []
+
+            def one(policy=policy, competitor=competitor, runs=runs) -> float:
+                runs.append(timed_run(args.scene, args.epochs, policy, competitor))
+                return runs[-1]["seconds"]
+
             results["cases"][f"{label}, {'with' if competitor else 'without'} a busy process"] = {
-                "seconds": min(r["seconds"] for r in runs), "runs": runs}
+                "seconds": timed(one, repeats=args.repeats, warmup=0).seconds, "runs": runs}
         alone, shared = (results["cases"][f"{label}, {w} a busy process"] for w in ("without", "with"))
         results[f"slowdown {label}"] = shared["seconds"] / alone["seconds"]
         print(f"{label}: alone {alone['seconds']:.1f} s, with a busy process {shared['seconds']:.1f} s: "
               f"{results[f'slowdown {label}']:.2f}x", flush=True)
     its = {r["total_iterations"] for case in results["cases"].values() for r in case["runs"]}
     results["iterations_equal"] = len(its) == 1
-    results["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
-    write_json_atomically(results, args.out)
-    print(f"inner iterations equal in every case: {results['iterations_equal']}; wrote {args.out}")
-    return 0
 
 
 if __name__ == "__main__":

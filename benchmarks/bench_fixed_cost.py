@@ -3,23 +3,24 @@
 ``make run`` trains ``heat-emulator-2d`` with PRDP and with the converged cap
 K_eps. This script runs both, at ``--base`` (a git revision, exported with
 ``git archive`` into a temporary directory) and at this checkout, alternating
-the two ``--rounds`` times, each run in a fresh process, so that both see the
-same machine load. Recorded per run: the time split of its last metrics row
+the two ``--repeats`` times (``bench_common.interleaved``), each run in a fresh
+process, so that both see the same machine load. Recorded per run: the time split of its last metrics row
 (:mod:`fempdl.app.runs.timesplit`), its wall time, and ``trainer_seconds``, the
 clock around the whole ``Trainer.run`` (which also holds what a revision's
 split leaves out, e.g. the files written after the last epoch); per revision
 and mode, the medians of the shares of the wall time ("other" and
 "validation" above all).
 
-Writes ``bench-results/bench_fixed_cost.json`` (``--out``). Run it as
-``python scripts/bench_fixed_cost.py --base <revision>``; it records the load.
+Writes ``bench-results/bench_fixed_cost.json`` (``--out``) through
+``bench_common.report``, with the load after every run. Run it as
+``python benchmarks/bench_fixed_cost.py --base <revision>``; ``--quick``: one round.
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tarfile
@@ -81,7 +82,6 @@ def measure(checkout: Path, scratch: Path) -> dict:
     subprocess.run([sys.executable, str(HERE / "bench_fixed_cost.py"), "--child", str(out)], env=env, check=True,
                    cwd=scratch)
     record = json.loads(out.read_text())
-    record["load_average_1_min_after"] = os.getloadavg()[0]
     if not record["fempdl_file"].startswith(str(checkout)):
         raise RuntimeError(f"the run imported {record['fempdl_file']}, not the checkout {checkout}")
     return record
@@ -89,47 +89,51 @@ def measure(checkout: Path, scratch: Path) -> dict:
 
 def shares(records: list[dict]) -> dict:
     """Per mode: median wall time, trainer seconds and share of the wall time of each part."""
+    from bench_common import reduce
+    median = functools.partial(reduce, statistic="median")
     out = {}
     for mode in MODES:
         runs = [r["runs"][mode] for r in records]
         parts = runs[0]["time_split"]
-        out[mode] = {"wall_time": statistics.median(r["wall_time"] for r in runs),
-                     "trainer_seconds": statistics.median(r["trainer_seconds"] for r in runs),
-                     "outside_the_split_seconds": statistics.median(r["trainer_seconds"] - r["wall_time"]
+        out[mode] = {"wall_time": median(r["wall_time"] for r in runs),
+                     "trainer_seconds": median(r["trainer_seconds"] for r in runs),
+                     "outside_the_split_seconds": median(r["trainer_seconds"] - r["wall_time"]
                                                                     for r in runs),
-                     "share": {part: statistics.median(r["time_split"][part] / r["wall_time"] for r in runs)
+                     "share": {part: median(r["time_split"][part] / r["wall_time"] for r in runs)
                                for part in parts},
-                     "seconds": {part: statistics.median(r["time_split"][part] for r in runs) for part in parts}}
+                     "seconds": {part: median(r["time_split"][part] for r in runs) for part in parts}}
     return out
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    import bench_common
+    parser = bench_common.parser(__file__, __doc__.splitlines()[0], repeats=3, quick="one round", quick_repeats=1)
     parser.add_argument("--child", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--base", default="HEAD", help="the git revision to compare against (default HEAD)")
-    parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--out", type=Path, default=ROOT / "bench-results" / "bench_fixed_cost.json")
     args = parser.parse_args()
     if args.child is not None:
         child(args.child)
         return
-    from bench_common import machine_info, write_json_atomically
     base_rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", args.base], check=True, capture_output=True,
                               text=True).stdout.strip()
-    record = {"benchmark": "bench_fixed_cost", "scene": SCENE, "k_eps": K_EPS, "machine": machine_info(),
-              "base": base_rev, "rounds": args.rounds, "records": {"base": [], "this": []}}
-    with tempfile.TemporaryDirectory() as tmp:
+    with bench_common.report(__file__, args.out, statistic="median", repeats=args.repeats, scene=SCENE,
+                             k_eps=K_EPS, base=base_rev, records={"base": [], "this": []}) as record, \
+            tempfile.TemporaryDirectory() as tmp:
         base = export(base_rev, Path(tmp) / "base")
-        for i in range(args.rounds):
-            for label, checkout in (("base", base), ("this", ROOT)):
+
+        def one_run(label: str, checkout: Path):
+            def run() -> None:
                 record["records"][label].append(measure(checkout, Path(tmp)))
-                print(f"round {i + 1} {label}: " + ", ".join(
+                record.sample_load(f"after a {label} run")
+                print(f"{label}: " + ", ".join(
                     f"{mode} wall {r['wall_time']:.2f} s other {r['time_split']['other'] / r['wall_time']:.1%} "
                     f"validation {r['time_split']['validation'] / r['wall_time']:.1%}"
                     for mode, r in record["records"][label][-1]["runs"].items()), flush=True)
-    record["median"] = {label: shares(records) for label, records in record["records"].items()}
-    record["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
-    write_json_atomically(record, args.out)
+            return run
+
+        bench_common.interleaved({"base": one_run("base", base), "this": one_run("this", ROOT)},
+                                 repeats=args.repeats, warmup=0, statistic="median")
+        record["median"] = {label: shares(records) for label, records in record["records"].items()}
     print(json.dumps(record["median"], indent=1))
 
 

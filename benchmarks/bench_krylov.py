@@ -1,21 +1,21 @@
 """Benchmark: batched capped CG and GMRES(30) + Jacobi against PETSc's per-sample loop.
 
 Poisson on the bundled L-shape (about 4k and 66k P1 DOFs, as in
-``scripts/bench_layer.py``), the source f as control, B random sources, a
+``benchmarks/bench_layer.py``), the source f as control, B random sources, a
 pure cap of K iterations, or (``cg-rtol``) CG + Jacobi to rtol 1e-8 without a cap, each column
 stopping at its own tolerance. One timed call is ``u = layer(f=F); (u * W).sum().backward()``:
 B forward solves and B transposed solves. The two engines (``engine="petsc"``:
 one KSP solve per sample; ``engine="batched"``: all samples at once, see
-:mod:`fempdl.iterative.batched`) are interleaved within every repeat; each
+:mod:`fempdl.iterative.batched`) are interleaved within every repeat (``bench_common.interleaved``); each
 time reported is the minimum over the repeats, and the speed-up is
 petsc / batched. The results of both engines are compared (max relative
 difference of u and of dJ/df). Also recorded: the choice ``engine="auto"`` makes.
 
 Run::
 
-    .venv/bin/python scripts/bench_krylov.py            # both sizes, CG and GMRES(30), K=200, B=32 (CG also B=2,4,8),
-                                                        # and CG to rtol 1e-8 at B=32
-    .venv/bin/python scripts/bench_krylov.py --sizes small --repeats 1 --out /tmp/k.json
+    .venv/bin/python benchmarks/bench_krylov.py     # both sizes, CG and GMRES(30), K=200, B=32 (CG also B=2,4,8),
+                                                    # and CG to rtol 1e-8 at B=32
+    .venv/bin/python benchmarks/bench_krylov.py --quick --out /tmp/k.json
 """
 from __future__ import annotations
 
@@ -23,19 +23,19 @@ import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # before torch loads OpenMP
 
-import argparse
-import datetime
+import functools
 import time
-from pathlib import Path
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-import fempdl  # noqa: E402
+import fempdl.core.mesh  # noqa: E402
+import fempdl.forms  # noqa: E402
 from fempdl.bridge_torch import SolveLayer  # noqa: E402
 from fempdl.ksp_adjoint import KSPOptions  # noqa: E402
 
-from bench_common import comma_list, machine_info, write_json_atomically  # noqa: E402  (loads MPI first)
+import bench_common  # noqa: E402
+from bench_common import comma_list  # noqa: E402
 
 MESH_SIZES = {"small": 0.03, "large": 0.0073}
 TARGET = 2.0
@@ -58,11 +58,15 @@ def call(layer, F, W):
     return time.perf_counter() - t0, u.detach().numpy(), F.grad.numpy().copy()
 
 
+def engine_seconds(layer, F, W) -> float:
+    return call(layer, F, W)[0]
+
+
 def rel(X, Y) -> float:
     return float(np.max(np.linalg.norm(X - Y, axis=1) / np.linalg.norm(Y, axis=1)))
 
 
-def bench(size: str, args, rng) -> list:
+def bench(size: str, args, rng, data: bench_common.Report) -> list:
     msh = fempdl.core.mesh.load("lshape", h=MESH_SIZES[size])
     prob = fempdl.forms.poisson.problem(msh, controls=("f",), g=lambda x: 1.0 + x[0] * x[1])
     F_all = rng.standard_normal((max(args.batches), prob.control_size("f")))
@@ -76,14 +80,11 @@ def bench(size: str, args, rng) -> list:
         _, u_p, g_p = call(layers["petsc"], F, W)          # warm-up and check
         _, u_b, g_b = call(layers["batched"], F, W)
         call(layers["auto"], F, W)
-        times = {"petsc": [], "batched": []}
-        loads = []
-        for rep in range(args.repeats):
-            order = ("petsc", "batched") if rep % 2 == 0 else ("batched", "petsc")
-            for e in order:
-                times[e].append(call(layers[e], F, W)[0])
-            loads.append(list(os.getloadavg()))
-        best = {e: min(t) for e, t in times.items()}
+        timings = bench_common.interleaved({e: functools.partial(engine_seconds, layers[e], F, W)
+                                            for e in ("petsc", "batched")},
+                                           repeats=args.repeats, warmup=0, alternate=True, report=data)
+        times = {e: list(t.samples) for e, t in timings.items()}
+        best = {e: t.seconds for e, t in timings.items()}
         converged = solver == "cg-rtol"
         its = {e: layers[e].stats.total_iterations for e in ("petsc", "batched")}
         row = {"size": size, "dofs": prob.output_size,
@@ -94,7 +95,7 @@ def bench(size: str, args, rng) -> list:
                "speedup_batched_over_petsc": best["petsc"] / best["batched"],
                "per_repeat_ratios": [p / b for p, b in zip(times["petsc"], times["batched"])],
                "max_rel_diff_u": rel(u_b, u_p), "max_rel_diff_grad_f": rel(g_b, g_p),
-               "auto_engine": layers["auto"].stats.last.engine, "load_average_per_repeat": loads}
+               "auto_engine": layers["auto"].stats.last.engine}
         rows.append(row)
         print(f"{size:>6} {prob.output_size:>7} {row['solver']:>16} B={batch:<3} petsc {best['petsc']:8.3f}s batched "
               f"{best['batched']:8.3f}s speedup {row['speedup_batched_over_petsc']:5.2f} "
@@ -106,7 +107,8 @@ def bench(size: str, args, rng) -> list:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=3,
+                                 quick="the small mesh, CG and GMRES at B = 32 only", quick_repeats=1)
     parser.add_argument("--sizes", type=comma_list(str), default=["small", "large"])
     parser.add_argument("--solvers", type=comma_list(str), default=["cg", "gmres", "cg-rtol"],
                         help="cg, gmres (capped at --k) and cg-rtol (CG + Jacobi to rtol 1e-8, no cap)")
@@ -114,21 +116,19 @@ def main(argv=None) -> int:
     parser.add_argument("--batches", type=comma_list(int), default=[2, 4, 8, 32],
                         help="batch sizes; all but the largest only for --small-batch-solvers")
     parser.add_argument("--small-batch-solvers", type=comma_list(str), default=["cg"])
-    parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_krylov.json"))
     args = parser.parse_args(argv)
+    if args.quick:
+        args.sizes, args.solvers, args.batches = ["small"], ["cg", "gmres"], [32]
     if args.threads:
         torch.set_num_threads(args.threads)
     rng = np.random.default_rng(0)
-    data = {"benchmark": "bench_krylov", "date": datetime.datetime.now(datetime.UTC).isoformat(),
-            "machine": machine_info(), "target_speedup": TARGET, "statistic": "min over interleaved repeats",
-            "problem": "poisson on lshape, control f, g = 1 + x*y; one call = B forward + B transposed solves",
-            "results": []}
-    for size in args.sizes:
-        data["results"] += bench(size, args, rng)
-        data["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
-        write_json_atomically(data, args.out)
+    with bench_common.report(__file__, args.out, repeats=args.repeats, target_speedup=TARGET,
+                             problem="poisson on lshape, control f, g = 1 + x*y; one call = B forward + B "
+                                     "transposed solves", results=[]) as data:
+        for size in args.sizes:
+            data["results"] += bench(size, args, rng, data)
+            data.save()
     return 0
 
 

@@ -30,19 +30,17 @@ one); ``--sip-lr`` does the same for SIP. ``--set section.key=value`` changes
 the scene as the command line's ``--set`` does (e.g. ``marker.inputs=raw``).
 
 Torch runs on one thread; OpenMP threads wait passively. Output:
-``bench-results/bench_sip_flow.json`` (``--out``), with the machine record
-(load averages at start and end).
-Run: ``python scripts/bench_sip_flow.py`` (about 20 minutes on an idle machine).
+``bench-results/bench_sip_flow.json`` (``--out``), through ``bench_common.report``;
+``--quick``: one single problem, 30 gradient-descent steps, no training.
+Run: ``python benchmarks/bench_sip_flow.py`` (about 20 minutes on an idle machine).
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import os
 import sys
 import time
-from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")    # before torch starts its threads
 
@@ -52,7 +50,8 @@ from fempdl.app import scene  # noqa: E402
 from fempdl.app.tasks.marker import MarkerInversionTask  # noqa: E402
 from fempdl.methods.sip import LinearisedGaussNewton, proxy_loss  # noqa: E402
 
-from bench_common import comma_list, machine_info, write_json_atomically  # noqa: E402
+import bench_common  # noqa: E402
+from bench_common import comma_list  # noqa: E402
 
 
 def single_problems(task: MarkerInversionTask, args) -> dict:
@@ -206,7 +205,8 @@ def summary(sip: dict, adam: dict, iterations: int) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = bench_common.parser(__file__, __doc__.splitlines()[0], repeats=None,
+                                 quick="one single problem, 30 gradient-descent steps, no training")
     parser.add_argument("--scene", default="sip-flow")
     parser.add_argument("--iterations", type=int, default=None, help="default: the scene's epochs x steps")
     parser.add_argument("--every", type=int, default=10)
@@ -226,13 +226,21 @@ def main(argv=None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override a scene value (repeatable)")
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_sip_flow.json"))
     args = parser.parse_args(argv)
+    if args.quick:
+        args.problems, args.gd_steps, args.skip_training = 1, 30, True
     torch.set_num_threads(args.threads)
     sc = scene.load(args.scene, args.set)
+    # nothing is timed repeatedly: training curves and single solves
+    with bench_common.report(__file__, args.out, statistic=None, repeats=None, scene=sc.as_dict(),
+                             command=" ".join(sys.argv)) as result:
+        run(args, sc, result)
+    return 0
+
+
+def run(args, sc, result: bench_common.Report) -> None:
     steps = math.ceil(sc.data.train / sc.optimizer.batch)
     iterations = args.iterations or sc.optimizer.epochs * steps
-    result = {"machine": machine_info(), "scene": sc.as_dict(), "command": " ".join(sys.argv)}
     sweeps = {"backprop": ("baseline", args.baseline_lr), "sip": ("optimizer", args.sip_lr)}
     if any(rates for _, rates in sweeps.values()):
         result["learning_rate_sweep"] = {}
@@ -240,19 +248,17 @@ def main(argv=None) -> int:
             for lr in rates or []:
                 swept = dataclasses.replace(sc, **{section: dataclasses.replace(getattr(sc, section), lr=lr)})
                 result["learning_rate_sweep"][f"{method} {lr:g}"] = train(swept, method, iterations, args.every)
-                write_json_atomically(result, args.out)
-        result["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
-        write_json_atomically(result, args.out)
-        return 0
+                result.save()
+        return
     task = MarkerInversionTask(sc, "backprop")
     result["sizes"] = {"velocity_dofs": task.physics.velocity_size, "marker_dofs": task.physics.marker_size}
     result["single_problems"] = single_problems(task, args)
     task.close()
-    write_json_atomically(result, args.out)
+    result.save()
     if not args.skip_training:
         sip = train(sc, "sip", iterations, args.every)
         result["training"] = {"sip": sip}
-        write_json_atomically(result, args.out)
+        result.save()
         adam = train(sc, "backprop", iterations, args.every, time_budget=sip["rows"][-1]["train_time"],
                      max_iterations=args.max_factor * iterations)
         result["training"]["adam"] = adam
@@ -261,9 +267,6 @@ def main(argv=None) -> int:
         result["summary"]["oracle_velocity_error"] = result["training"]["oracle"]["rows"][-1]["velocity_error"]
         result["least_squares_reference"] = least_squares_reference(sc, iterations)
         print(result["summary"], flush=True)
-    result["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
-    write_json_atomically(result, args.out)
-    return 0
 
 
 if __name__ == "__main__":

@@ -27,38 +27,36 @@ search, rtol 1e-10, atol 1e-12, MUMPS LU at every Newton step) and take the same
 
 Every side reports J, dJ/df, the Newton steps of one forward + gradient run and of one forward alone
 (fempdl's also its inner iterations and lagged LU set-ups, ``preconditioner_refreshes``, of one forward +
-gradient run), its peak resident memory and two times, each the minimum of ``--repeats`` runs after a
+gradient run), its peak resident memory and two times, each the minimum of ``--inner-repeats`` runs after a
 warm-up (runs of ``--warmup-steps`` steps, which set up and compile all a full one does): ``forward_s``,
 the forward rollout and J, and ``forward_gradient_s`` (also ``time_s``), forward and gradient;
 ``gradient_over_forward`` is what the gradient adds, over the forward. At n >= 200 a side runs
 ``--big-repeats`` times in one round, which keeps the default run (up to 66,049 DOFs) under about 25
 minutes on 2 cores; each row records its repeats and rounds. The driver runs the sides in turn,
-``--rounds`` times, keeps each side's minima, and checks that all sides agree (J to 1e-10, dJ/df to 1e-8
+``--repeats`` times (rounds, ``bench_common.interleaved``), each side's process timing
+``--inner-repeats`` runs, keeps each side's minima, and checks that all sides agree (J to 1e-10, dJ/df to 1e-8
 relative) and that each side's forward alone gives the J of its forward + gradient (to 1e-10).
 ``forward_over_fempdl`` and ``forward_gradient_over_fempdl`` are a side's times over fempdl's (above 1:
 fempdl is faster); for the fempdl sides ``forward_vs_dolfinx_adjoint``, ``forward_vs_hand`` and
 ``forward_gradient_vs_hand`` are their times over the other side's (below 1: fempdl is faster), and
 ``forward_gradient_speedup_vs_dolfinx_adjoint`` is dolfinx-adjoint's forward + gradient time over
-theirs. Writes ``bench-results/bench_rollout.json`` (``--out``) with the machine, and the load average
-at the start and at the end.
+theirs. Writes ``bench-results/bench_rollout.json`` (``--out``) through ``bench_common.report``.
 
 Run (from the repository root, on an idle machine)::
 
-    OMP_WAIT_POLICY=PASSIVE .venv-pypi/bin/python scripts/bench_rollout.py --dxa-path /path/to/dxa
+    OMP_WAIT_POLICY=PASSIVE .venv-pypi/bin/python benchmarks/bench_rollout.py --dxa-path /path/to/dxa
 
-A smoke run: ``... --n 8 16 --steps 5 --repeats 1 --rounds 1 --out /tmp/bench_rollout.json``. On the
+A smoke run: ``... --quick --out /tmp/bench_rollout.json``. On the
 Debian stack (DOLFINx 0.5) the hand-written side, which needs 0.10's SNES ``NonlinearProblem``, is left out.
 """
 from __future__ import annotations
 
-import argparse
-import datetime
+import functools
 import json
 import os
 import resource
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 from mpi4py import MPI  # noqa: F401  (the PyPI stack needs MPI loaded before dolfinx)
@@ -142,7 +140,7 @@ def side_fempdl(args, ksp: str = "lu"):
                 "preconditioner_refreshes": getattr(stats, "preconditioner_refreshes", 0),
                 "inner_iterations": stats.forward_iterations + stats.backward_iterations}
 
-    return timed(forward, gradient, args, counters)
+    return time_side(forward, gradient, args, counters)
 
 
 def side_hand(args):
@@ -220,7 +218,7 @@ def side_hand(args):
             g = assembled(vec_prev, grad_prev)
         return loss, grad
 
-    return timed(forward, gradient, args, lambda: {"newton_steps": newton[0]})
+    return time_side(forward, gradient, args, lambda: {"newton_steps": newton[0]})
 
 
 def side_dolfinx_adjoint(args):
@@ -269,33 +267,38 @@ def side_dolfinx_adjoint(args):
         del alive
         return float(J), grad.x.array[:n].copy()
 
-    return timed(forward, gradient, args, lambda: {"newton_steps": newton[0]})
+    return time_side(forward, gradient, args, lambda: {"newton_steps": newton[0]})
 
 
-def timed(forward, gradient, args, counters) -> dict:
-    """Warm-up runs of ``args.warmup_steps`` steps, then the minimum over ``args.repeats`` of the forward alone
-    and of forward + gradient; ``counters()`` (name -> a cumulative count) is read around the first run of
-    each, so the counts are those of one run."""
+def time_side(forward, gradient, args, counters) -> dict:
+    """Warm-up runs of ``args.warmup_steps`` steps, then the minimum over ``args.inner_repeats`` of the forward
+    alone and of forward + gradient, alternated (``bench_common.interleaved``: a change in the machine's load
+    hits both times alike); ``counters()`` (name -> a cumulative count) is read around the first run of each,
+    so the counts are those of one run."""
+    from bench_common import interleaved
+
     forward(args.warmup_steps)
     gradient(args.warmup_steps)
-    forward_times, gradient_times = [], []
-    for i in range(args.repeats):
-        # Alternated rather than all forwards first: a change in the machine's load hits both times alike.
+    first: dict = {}
+
+    def run_forward() -> None:
         before = counters()
-        t0 = time.perf_counter()
-        forward_loss = forward(args.steps)
-        forward_times.append(time.perf_counter() - t0)
-        middle = counters()
-        t0 = time.perf_counter()
+        loss = forward(args.steps)
+        first.setdefault("forward", (before, counters(), loss))
+
+    def run_gradient() -> None:
+        before = counters()
         loss, grad = gradient(args.steps)
-        gradient_times.append(time.perf_counter() - t0)
-        if i == 0:
-            after = counters()
-            counts = {name: after[name] - middle[name] for name in after}
-            counts["forward_newton_steps"] = middle["newton_steps"] - before["newton_steps"]
-            first = {"loss": loss, "forward_loss": forward_loss, "grad": grad.tolist()}
-    return {"forward_s": min(forward_times), "forward_gradient_s": min(gradient_times), **first, **counts,
-            "repeats": args.repeats, "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+        first.setdefault("gradient", (before, counters(), loss, grad))
+
+    timings = interleaved({"forward": run_forward, "gradient": run_gradient}, repeats=args.inner_repeats, warmup=0)
+    (before, middle, forward_loss), (_, after, loss, grad) = first["forward"], first["gradient"]
+    counts = {name: after[name] - middle[name] for name in after}
+    counts["forward_newton_steps"] = middle["newton_steps"] - before["newton_steps"]
+    return {"forward_s": timings["forward"].seconds, "forward_gradient_s": timings["gradient"].seconds,
+            "loss": loss, "forward_loss": forward_loss, "grad": grad.tolist(), **counts,
+            "repeats": args.inner_repeats,
+            "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
 SIDES = {"fempdl": side_fempdl, "fempdl-lagged": lambda args: side_fempdl(args, "lu-lagged"), "hand": side_hand,
@@ -307,7 +310,7 @@ BIG_N = 200           # from this many cells per side a row runs --big-repeats t
 # ------------------------------------------------------------------ the driver
 def run_side(side: str, n: int, repeats: int, args) -> dict:
     cmd = [sys.executable, __file__, "--side", side, "--n", str(n), "--steps", str(args.steps),
-           "--repeats", str(repeats), "--warmup-steps", str(args.warmup_steps)]
+           "--inner-repeats", str(repeats), "--warmup-steps", str(args.warmup_steps)]
     if args.dxa_path:
         cmd += ["--dxa-path", args.dxa_path]
     if args.schedule:
@@ -327,6 +330,13 @@ def keep_best(best: dict, side: str, r: dict) -> None:
     if r["forward_gradient_s"] < best[side]["forward_gradient_s"]:
         best[side] = r
     best[side]["forward_s"] = fastest_forward
+
+
+def keep_best_run(best: dict, side: str, n: int, inner: int, args) -> float:
+    """One round of a side (a fresh process); its forward + gradient seconds."""
+    r = run_side(side, n, inner, args)
+    keep_best(best, side, r)
+    return r["forward_gradient_s"]
 
 
 def compare(results: dict) -> dict:
@@ -369,20 +379,26 @@ def compare(results: dict) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    import bench_common
+
+    parser = bench_common.parser(__file__, __doc__.splitlines()[0], repeats=2, quick_repeats=1,
+                                 quick="n = 8 and 16, 5 steps, one timed run per process")
     parser.add_argument("--side", choices=list(SIDES))
-    parser.add_argument("--n", type=int, nargs="*", default=[32, 96, 256],
-                        help="cells per side (P1 DOFs: (n+1)^2: 1,089, 9,409, 66,049)")
-    parser.add_argument("--steps", type=int, default=100)
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--big-repeats", type=int, default=1, help=f"repeats at n >= {BIG_N} (in one round)")
-    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--n", type=int, nargs="*", default=None,
+                        help="cells per side (default 32 96 256; P1 DOFs: (n+1)^2: 1,089, 9,409, 66,049)")
+    parser.add_argument("--steps", type=int, default=None, help="time steps (default 100)")
+    parser.add_argument("--inner-repeats", type=int, default=None,
+                        help="timed runs inside each side's process (default 3)")
+    parser.add_argument("--big-repeats", type=int, default=1,
+                        help=f"timed runs inside the process at n >= {BIG_N} (and a single round)")
     parser.add_argument("--warmup-steps", type=int, default=2, help="steps of each side's warm-up runs")
     parser.add_argument("--schedule", default=None,
                         help="fempdl's schedule: autograd | all | revolve:<s> (default: one node)")
     parser.add_argument("--dxa-path", default=None, help="where dolfinx-adjoint is installed (else skipped)")
-    parser.add_argument("--out", type=Path, default=ROOT / "bench-results" / "bench_rollout.json")
     args = parser.parse_args()
+    args.n = args.n or ([8, 16] if args.quick else [32, 96, 256])
+    args.steps = args.steps or (5 if args.quick else 100)
+    args.inner_repeats = args.inner_repeats or (1 if args.quick else 3)
     if args.schedule and args.schedule.startswith("revolve:"):
         args.schedule_value = ("revolve", int(args.schedule.split(":")[1]))
     else:
@@ -393,28 +409,21 @@ def main() -> None:
         result = SIDES[args.side](args)
         print(json.dumps(result))
         return
-    from bench_common import machine_info, write_json_atomically
-
-    machine = machine_info()           # at the start: its load average is the one the runs began under
-    # The hand-written loop drives 0.10+'s SNES NonlinearProblem: on the Debian stack (0.5) only fempdl runs.
-    sides = ["fempdl", "fempdl-lagged"] + (["hand"] if machine["stack"] != "debian" else []) \
-        + (["dolfinx-adjoint"] if args.dxa_path else [])
-    rows = []
-    for n in args.n:
-        repeats, rounds = (args.big_repeats, 1) if n >= BIG_N else (args.repeats, args.rounds)
-        best: dict = {}
-        for _ in range(rounds):
-            for side in sides:
-                keep_best(best, side, run_side(side, n, repeats, args))
-        row = {"dofs": (n + 1) ** 2, "steps": args.steps, "repeats": repeats, "rounds": rounds,
-               "warmup_steps": args.warmup_steps, "sides": compare(best)}
-        rows.append(row)
-        print(json.dumps(row, indent=1), flush=True)
-    data = {"date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "machine": machine, "load_average_1_5_15_min_at_end": list(os.getloadavg()),
-            "schedule": args.schedule, "repeats": args.repeats, "big_repeats": args.big_repeats,
-            "rounds": args.rounds, "warmup_steps": args.warmup_steps, "rows": rows}
-    write_json_atomically(data, args.out)
+    with bench_common.report(__file__, args.out, repeats=args.repeats, schedule=args.schedule,
+                             inner_repeats=args.inner_repeats, big_repeats=args.big_repeats,
+                             warmup_steps=args.warmup_steps, rows=[]) as data:
+        # The hand-written loop drives 0.10+'s SNES NonlinearProblem: on the Debian stack (0.5) only fempdl runs.
+        sides = ["fempdl", "fempdl-lagged"] + (["hand"] if data["machine"]["stack"] != "debian" else []) \
+            + (["dolfinx-adjoint"] if args.dxa_path else [])
+        for n in args.n:
+            inner, rounds = (args.big_repeats, 1) if n >= BIG_N else (args.inner_repeats, args.repeats)
+            best: dict = {}
+            bench_common.interleaved({side: functools.partial(keep_best_run, best, side, n, inner, args)
+                                      for side in sides}, repeats=rounds, warmup=0)
+            row = {"dofs": (n + 1) ** 2, "steps": args.steps, "repeats": inner, "rounds": rounds,
+                   "warmup_steps": args.warmup_steps, "sides": compare(best)}
+            data["rows"].append(row)
+            print(json.dumps(row, indent=1), flush=True)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
 #   1. DOLFINx 0.5 / PETSc / mpi4py / gmsh from Debian (for /usr/bin/python3),
 #   2. a venv made from /usr/bin/python3 with --system-site-packages,
 #   3. torch (CPU build) and fempdl itself in editable mode with its test extra.
-# Usage: scripts/setup_env.sh [VENV_DIR]   (default: .venv)
+# Usage: tools/setup_env.sh [VENV_DIR]   (default: .venv)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 venv="${1:-.venv}"

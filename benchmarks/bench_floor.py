@@ -1,7 +1,7 @@
 """Benchmark: the batched Richardson-Jacobi solve against a memory-bandwidth floor.
 
 Poisson on the bundled L-shape (about 66k P1 DOFs, h=0.0073, as in
-``scripts/bench_krylov.py``), the source f as control, B=32 random sources,
+``benchmarks/bench_krylov.py``), the source f as control, B=32 random sources,
 Richardson + Jacobi capped at K=200 on the batched engine. One timed call is
 ``u = layer(f=F); (u * W).sum().backward()``: K sweeps for the forward solves
 and K for the transposed (adjoint) solves, all B columns at once.
@@ -21,8 +21,8 @@ is recorded too: a sweep whose iterates stay in cache can beat the floor.
 
 Run on an idle machine::
 
-    .venv/bin/python scripts/bench_floor.py
-    .venv/bin/python scripts/bench_floor.py --h 0.03 --repeats 2 --out /tmp/floor.json   # 4k DOFs, quick
+    .venv/bin/python benchmarks/bench_floor.py
+    .venv/bin/python benchmarks/bench_floor.py --quick --out /tmp/floor.json   # 4k DOFs, 2 repeats
 """
 from __future__ import annotations
 
@@ -30,19 +30,18 @@ import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # before torch loads OpenMP
 
-import argparse
-import datetime
 import time
-from pathlib import Path
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-import fempdl  # noqa: E402
+import fempdl.core.mesh  # noqa: E402
+import fempdl.forms  # noqa: E402
 from fempdl.bridge_torch import SolveLayer  # noqa: E402
 from fempdl.ksp_adjoint import KSPOptions  # noqa: E402
 
-from bench_common import machine_info, write_json_atomically  # noqa: E402  (loads MPI first)
+import bench_common  # noqa: E402
+from bench_common import interleaved, reduce, timed  # noqa: E402
 
 TARGET = 2.0
 STREAM_ELEMENTS = 2 ** 25
@@ -53,12 +52,7 @@ def triad_bandwidth(elements: int, repeats: int = 20) -> float:
     b = torch.rand(elements, dtype=torch.float64)
     c = torch.rand(elements, dtype=torch.float64)
     a = torch.empty_like(b)
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        torch.add(b, c, alpha=0.5, out=a)
-        best = min(best, time.perf_counter() - t0)
-    return 24 * elements / best
+    return 24 * elements / timed(lambda: torch.add(b, c, alpha=0.5, out=a), repeats=repeats, warmup=0).seconds
 
 
 def sweep_bytes(n: int, nnz: int, batch: int) -> int:
@@ -76,14 +70,20 @@ def call(layer, F, W) -> float:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=5,
+                                 quick="h = 0.03 (4k DOFs)", quick_repeats=2)
     parser.add_argument("--h", type=float, default=0.0073, help="mesh size of the L-shape (0.0073: 66k DOFs)")
     parser.add_argument("--k", type=int, default=200)
     parser.add_argument("--batch", type=int, default=32)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", type=Path, default=Path("bench-results/bench_floor.json"))
     args = parser.parse_args(argv)
+    if args.quick:
+        args.h = 0.03
+    with bench_common.report(__file__, args.out, repeats=args.repeats) as data:
+        measure(args, data)
+    return 0
 
+
+def measure(args, data: bench_common.Report) -> None:
     msh = fempdl.core.mesh.load("lshape", h=args.h)
     prob = fempdl.forms.poisson.problem(msh, controls=("f",), g=lambda x: 1.0 + x[0] * x[1])
     rng = np.random.default_rng(0)
@@ -94,23 +94,25 @@ def main(argv=None) -> int:
     n, nnz = A.shape[0], A.nnz
 
     stream_before = triad_bandwidth(STREAM_ELEMENTS)
-    for layer in layers.values():
-        call(layer, F, W)                                    # warm-up: JIT, assembly, operator copies
-    times = {e: [] for e in layers}
-    iteration_times, loads = [], []
-    for rep in range(args.repeats):
-        for e in (("batched", "petsc") if rep % 2 == 0 else ("petsc", "batched")):
-            times[e].append(call(layers[e], F, W))
-            if e == "batched":
-                iteration_times.append(layers[e].stats.forward_time + layers[e].stats.backward_time)
-        loads.append(list(os.getloadavg()))
+    iteration_times = []
+
+    def batched() -> float:
+        seconds = call(layers["batched"], F, W)
+        iteration_times.append(layers["batched"].stats.forward_time + layers["batched"].stats.backward_time)
+        return seconds
+
+    # warm-up: JIT, assembly, operator copies; then the engines alternate, in alternating order
+    timings = interleaved({"batched": batched, "petsc": lambda: call(layers["petsc"], F, W)},
+                          repeats=args.repeats, alternate=True, report=data)
+    iteration_times = iteration_times[1:]                    # not the warm-up's
+    times = {e: list(t.samples) for e, t in timings.items()}
     stream_after = triad_bandwidth(STREAM_ELEMENTS)
     stream = max(stream_before, stream_after)          # the higher bandwidth gives the lower, stricter floor
     in_cache = triad_bandwidth(n * args.batch)
     traffic = 2 * args.k * sweep_bytes(n, nnz, args.batch)
     floor = traffic / stream
-    best = {e: min(t) for e, t in times.items()}
-    iterations = min(iteration_times)
+    best = {e: t.seconds for e, t in timings.items()}
+    iterations = reduce(iteration_times)
     ratio = best["batched"] / floor
     print(f"n={n} nnz={nnz} B={args.batch} K={args.k}: {2 * args.k} sweeps x "
           f"{sweep_bytes(n, nnz, args.batch) / 1e6:.1f} MB = {traffic / 1e9:.2f} GB")
@@ -121,8 +123,7 @@ def main(argv=None) -> int:
           f"per right-hand side {1e3 * best['batched'] / args.batch:.1f} ms "
           f"against {1e3 * floor / args.batch:.1f} ms; PETSc loop {best['petsc']:.3f} s "
           f"({best['petsc'] / best['batched']:.2f}x slower)")
-    data = {"benchmark": "bench_floor", "date": datetime.datetime.now(datetime.UTC).isoformat(),
-            "machine": machine_info(), "torch_threads": torch.get_num_threads(),
+    data.update({"torch_threads": torch.get_num_threads(),
             "problem": "poisson on lshape, control f, g = 1 + x*y; Richardson + Jacobi, batched engine; "
                        "one call = B forward + B transposed capped solves",
             "dofs": n, "nnz": nnz, "B": args.batch, "K": args.k,
@@ -134,13 +135,9 @@ def main(argv=None) -> int:
             "floor_seconds": floor, "batched_seconds_min": best["batched"], "iteration_seconds_min": iterations,
             "ratio_to_floor": ratio, "iterations_ratio_to_floor": iterations / floor, "target_ratio": TARGET,
             "petsc_loop_seconds_min": best["petsc"], "speedup_over_petsc_loop": best["petsc"] / best["batched"],
-            "seconds_all": times, "statistic": "min over interleaved repeats",
-            "load_average_per_repeat": loads}
-    data["machine"]["load_average_1_5_15_min_at_end"] = list(os.getloadavg())
-    write_json_atomically(data, args.out)
+            "seconds_all": times})
     for layer in layers.values():
         layer.close()
-    return 0
 
 
 if __name__ == "__main__":

@@ -6,9 +6,9 @@
 # rank 0 writes metrics.csv/json and the checkpoints. With the same seed the
 # losses equal the serial run's to float32 rounding.
 #
-#   bash scripts/mpi_data_parallel.sh                      # 2 ranks, burgers-emulator, PRDP + baseline
-#   bash scripts/mpi_data_parallel.sh 2 heat-emulator-2d --k 8 --no-baseline
-#   bash scripts/mpi_data_parallel.sh 2 burgers-emulator --resume   # continue an interrupted run
+#   bash tools/mpi_data_parallel.sh                      # 2 ranks, burgers-emulator, PRDP + baseline
+#   bash tools/mpi_data_parallel.sh 2 heat-emulator-2d --k 8 --no-baseline
+#   bash tools/mpi_data_parallel.sh 2 burgers-emulator --resume   # continue an interrupted run
 #
 # A resumed run needs the same number of ranks. As root, Open MPI also wants
 # OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 in the environment.

@@ -8,7 +8,7 @@ The form: one backward-Euler step of nonlinear heat on the unit square (P1, u = 
 at a state u with values in [-1, 1], as ``forms.nonlinear_diffusion`` builds it, with kappa = alpha = 1
 either fixed numbers (``"constants"``: fem.Constants, what the form makes of a number) or P1 fields
 (``"fields"``: what it made of them before, and what it makes of controls). Timed, each the minimum of
-``--repeats`` calls after a warm-up, in milliseconds:
+``--repeats`` calls after a warm-up (``bench_common.timed``), in milliseconds:
 
 * ``jacobian_petsc_ms``: zero a PETSc matrix, ``dolfinx.fem.petsc.assemble_matrix``, MatAssembly (what a
   hand-written DOLFINx loop does, and fempdl on more than one rank);
@@ -19,8 +19,8 @@ The two Jacobians must be equal bit for bit. Writes ``bench-results/bench_assemb
 with the machine and the load average at the start and the end. Run (from the repository root, on an idle
 machine; either stack)::
 
-    OMP_WAIT_POLICY=PASSIVE .venv/bin/python scripts/bench_assembly.py
-    OMP_WAIT_POLICY=PASSIVE .venv-pypi/bin/python scripts/bench_assembly.py
+    OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/bench_assembly.py
+    OMP_WAIT_POLICY=PASSIVE .venv-pypi/bin/python benchmarks/bench_assembly.py
 """
 from __future__ import annotations
 
@@ -28,24 +28,12 @@ import os
 
 os.environ["OMP_NUM_THREADS"] = "1"          # before any OpenMP runtime loads: one thread, as the rollouts run
 
-import argparse
-import datetime
-import time
-from pathlib import Path
-
 from mpi4py import MPI
-
-ROOT = Path(__file__).resolve().parent.parent
 
 
 def timed_ms(fn, repeats: int) -> float:
-    fn()
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return 1e3 * best
+    from bench_common import timed
+    return 1e3 * timed(fn, repeats=repeats).seconds
 
 
 def measure(n: int, kind: str, repeats: int) -> dict:
@@ -81,16 +69,19 @@ def measure(n: int, kind: str, repeats: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, nargs="+", default=[32, 96, 256], help="cells per side")
-    parser.add_argument("--repeats", type=int, default=50)
-    parser.add_argument("--out", type=Path, default=None)
-    args = parser.parse_args()
     from fempdl.core import _dolfinx
 
-    from bench_common import machine_info, write_json_atomically
+    import bench_common
+    parser = bench_common.parser(__file__, __doc__.splitlines()[0], repeats=50, quick="n = 32 and 96", quick_repeats=10,
+                                 out_suffix=f"_{_dolfinx.STACK}")
+    parser.add_argument("--n", type=int, nargs="+", default=None, help="cells per side (default 32 96 256)")
+    args = parser.parse_args()
+    args.n = args.n or ([32, 96] if args.quick else [32, 96, 256])
+    with bench_common.report(__file__, args.out, repeats=args.repeats) as data:
+        data["rows"] = measure_all(args)
 
-    machine = machine_info()
+
+def measure_all(args) -> list:
     rows = [measure(n, kind, args.repeats) for n in args.n for kind in ("fields", "constants")]
     for row in rows:
         print({k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
@@ -102,10 +93,7 @@ def main() -> None:
             r["residual_constants_over_fields"] = r["residual_ms"] / base["residual_ms"]
             # Today's fempdl against its own path before: CSR + Constants over PETSc insertion + fields.
             r["jacobian_now_over_before"] = r["jacobian_csr_ms"] / base["jacobian_petsc_ms"]
-    data = {"date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"), "machine": machine,
-            "load_average_at_end": list(os.getloadavg()), "repeats": args.repeats, "statistic": "min",
-            "rows": rows}
-    write_json_atomically(data, args.out or ROOT / "bench-results" / f"bench_assembly_{_dolfinx.STACK}.json")
+    return rows
 
 
 if __name__ == "__main__":

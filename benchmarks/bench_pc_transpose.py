@@ -24,8 +24,10 @@ Each (problem, preconditioner) runs in its own process: a PETSc error inside
 KSPSolveTranspose (a preconditioner without a transpose) can leave mpi4py 4
 deadlocked when PETSc objects are freed afterwards.
 
-Writes ``bench-results/bench_pc_transpose_<stack>.json`` (``--out``).
-Run: ``python scripts/bench_pc_transpose.py`` (a minute or two).
+Writes ``bench-results/bench_pc_transpose_<stack>.json`` (``--out``) through
+``bench_common.report`` (nothing is timed: iteration counts and errors). ``--quick``:
+``burgers-lshape`` only.
+Run: ``python benchmarks/bench_pc_transpose.py`` (a minute or two).
 """
 from __future__ import annotations
 
@@ -35,8 +37,6 @@ import json
 import os
 import subprocess
 import sys
-import time
-from pathlib import Path
 
 from mpi4py import MPI  # before DOLFINx (PyPI's DOLFINx needs the MPI library loaded)
 import numpy as np
@@ -46,7 +46,7 @@ from fempdl import forms, mesh
 from fempdl.core import _dolfinx, matrices
 from fempdl.ksp_adjoint import CappedSolver, KSPOptions, SolverFailedError
 
-from bench_common import machine_info, write_json_atomically
+import bench_common
 
 RTOL = 1e-10
 HEIGHT = 0.41
@@ -168,15 +168,23 @@ def run_worker(problem: str, label: str) -> dict:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--out", type=Path, default=Path(f"bench-results/bench_pc_transpose_{_dolfinx.STACK}.json"))
+    parser = bench_common.parser(__file__, __doc__.split("\n")[0], repeats=None, quick="burgers-lshape only",
+                                 out_suffix=f"_{_dolfinx.STACK}")
     parser.add_argument("--worker", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
         worker(*args.worker)
         return 0
+    names = ["burgers-lshape"] if args.quick else list(SADDLE_POINT)
+    with bench_common.report(__file__, args.out, statistic=None, repeats=None, rtol=RTOL) as report:
+        report["rows"] = measure_all(names)
+    return 0
+
+
+def measure_all(names: list) -> list:
     rows = []
-    for name, saddle_point in SADDLE_POINT.items():
+    for name in names:
+        saddle_point = SADDLE_POINT[name]
         for label in preconditioners(saddle_point):
             row = run_worker(name, label)
             rows.append(row)
@@ -188,11 +196,7 @@ def main() -> int:
             print(f"{name:16s} {label:22s} fwd {row['forward']['iterations']:5d} "
                   f"transpose {row['transpose']['iterations']:5d} {row['transpose']['reason']:22s} {errors} | "
                   f"assembled {row['assembled']['iterations']:5d} err {row['assembled_error']:.1e}", flush=True)
-    report = {"benchmark": "bench_pc_transpose", "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S"),
-              "machine": machine_info(), "rtol": RTOL, "rows": rows}
-    write_json_atomically(report, args.out)
-    print(f"wrote {args.out}")
-    return 0
+    return rows
 
 
 if __name__ == "__main__":
