@@ -100,7 +100,8 @@ Run (from the repository root)::
     .venv/bin/python benchmarks/bench_unrolled.py --sizes small --ks 20 --solvers cg --out /tmp/u.json
 
 Figures go to ``bench-results/bench_unrolled.json`` (``--out`` to change); a
-table is printed.
+table is printed. The workload and its checks are in ``unrolled_cases.py``, the memory
+subprocesses in ``unrolled_memory.py``, the table in ``unrolled_table.py``.
 """
 from __future__ import annotations
 
@@ -108,8 +109,6 @@ import argparse
 import gc
 import json
 import os
-import resource
-import subprocess
 import sys
 import tempfile
 import time
@@ -135,39 +134,32 @@ if _OMP_POLICY_ARG == "passive":
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from mpi4py import MPI  # noqa: E402
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from unrolled_cases import (  # noqa: E402
+    AGREEMENT_TOL,
+    MESH_SIZES,
+    SOLVERS,
+    VARIANTS,
+    build_problem,
+    check_outputs,
+    checkpoint_limit,
+    layer_call,
+    make_inputs,
+    make_layer,
+    round_off_sensitivity,
+    stored_bytes,
+)
+from unrolled_memory import child_main, measure_memory_repeated, release_free_memory  # noqa: E402
+from unrolled_table import HEADER, print_row  # noqa: E402
 
-import fempdl.core.mesh  # noqa: E402
 import fempdl.core.meshgen  # noqa: E402
-import fempdl.forms  # noqa: E402
-from fempdl.bridge_torch import SolveLayer  # noqa: E402
 from fempdl.core.resources import available_memory  # noqa: E402
-from fempdl.iterative import unrolled  # noqa: E402
-from fempdl.ksp_adjoint import KSPOptions  # noqa: E402
 
 import bench_common  # noqa: E402
-from bench_common import apply_defaults, comma_list, interleaved, pick, timed  # noqa: E402
+from bench_common import apply_defaults, comma_list, interleaved, pick  # noqa: E402
 
-MESH_SIZES = {"small": 0.03, "large": 0.0073}   # h -> about 4k and 66k P1 DOFs (fempdl.core.meshgen)
-SOLVERS = ("jacobi", "cg")                      # Richardson+Jacobi, CG+Jacobi
-UNROLLED_METHOD = {"jacobi": "jacobi", "cg": "cg"}  # their fempdl.iterative.unrolled method names
-AGREEMENT_TOL = 1e-12           # relative; forward always, gradients for Jacobi
-ROUND_OFF = 1e-15               # relative perturbation of F that measures the output's round-off sensitivity
-SENSITIVITY_FACTOR = 10         # forward tolerance: max(AGREEMENT_TOL, this * that sensitivity)
 STATISTIC = "min"
 MAX_REPEATS = 20
-CHILD_TIMEOUT_S = 900
-CHILD_MARK = "BENCH_UNROLLED_CHILD_RESULT "
-WARMUP_BATCH = 2               # memory children warm up on this many samples
-# Variants: (diff, engine, checkpointed). "implicit" and "unrolled" use the default engine.
-VARIANTS = {
-    "implicit": ("implicit", "auto", False),
-    "unrolled": ("unrolled", "auto", False),
-    "implicit_batched": ("implicit", "batched", False),
-    "implicit_petsc": ("implicit", "petsc", False),
-    "unrolled_checkpointed": ("unrolled", "auto", True),
-}
 MEMORY_VARIANTS = ("implicit", "unrolled", "unrolled_checkpointed")
 MIB = 2.0 ** 20
 # Peak RSS increase of an unrolled call over its stored_values * 8 bytes: measured 0.6-1.05 for
@@ -176,172 +168,6 @@ MIB = 2.0 ** 20
 UNROLLED_MEMORY_BOUND = 2.5
 
 
-def solver_options(solver: str, max_it: int, engine: str) -> KSPOptions:
-    if solver == "jacobi":
-        return KSPOptions(max_it=max_it, engine=engine)
-    return KSPOptions.preset(solver, max_it=max_it, engine=engine)
-
-
-def build_problem(mesh):
-    """The benchmark problem on ``fempdl.core.mesh.load("lshape", h=mesh)``, or on a ``.msh`` path."""
-    msh = fempdl.core.mesh.load(mesh) if isinstance(mesh, str) else fempdl.core.mesh.load("lshape", h=mesh)
-    return msh, fempdl.forms.poisson.problem(msh, controls=("f",))
-
-
-def make_inputs(seed: int, batch: int, n_control: int, n_out: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Random sources F (leaf, requires grad) and loss weights W; the same in parent and children."""
-    rng = np.random.default_rng(seed)
-    F = torch.from_numpy(rng.standard_normal((batch, n_control))).requires_grad_()
-    W = torch.from_numpy(rng.standard_normal((batch, n_out)))
-    return F, W
-
-
-def stored_bytes(solver: str, K: int, n: int, batch: int) -> int:
-    return unrolled.stored_values(UNROLLED_METHOD[solver], K, n, batch) * 8
-
-
-def checkpoint_limit(solver: str, K: int, n: int, batch: int) -> int:
-    """The least max_unrolled_values a checkpointed solve fits in."""
-    return unrolled.checkpointed_values(UNROLLED_METHOD[solver], K, n, batch)
-
-
-def make_layer(prob, solver: str, K: int, variant: str, batch: int) -> SolveLayer:
-    diff, engine, checkpointed = VARIANTS[variant]
-    limit = checkpoint_limit(solver, K, prob.output_size, batch) if checkpointed else None
-    return SolveLayer(prob, solver_options(solver, K, engine), diff=diff, max_unrolled_values=limit)
-
-
-# ---------------------------------------------------------------- timed work
-def layer_call(layer: SolveLayer, F: torch.Tensor, W: torch.Tensor) -> dict:
-    """``u = layer(f=F); (u * W).sum().backward()``, timed in its two halves."""
-    F.grad = None
-    t0 = time.perf_counter()
-    u = layer(f=F)
-    t1 = time.perf_counter()
-    (u * W).sum().backward()
-    t2 = time.perf_counter()
-    return {"u": u.detach(), "grad": F.grad, "forward": t1 - t0, "backward": t2 - t1, "wall": t2 - t0}
-
-
-def max_relative_difference(X: torch.Tensor, Y: torch.Tensor) -> float:
-    """max over samples of ||x_i - y_i|| / ||y_i||."""
-    return float(((X - Y).norm(dim=1) / Y.norm(dim=1)).max())
-
-
-# ------------------------------------------------------- memory (subprocess)
-def _status_kib(key: str) -> int | None:
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith(key + ":"):
-                    return int(line.split()[1])
-    except OSError:
-        pass
-    return None
-
-
-def release_free_memory() -> None:
-    """Give memory freed by earlier configurations back to the system (glibc keeps it otherwise),
-    so that it is available to the next one and to the memory subprocesses."""
-    gc.collect()
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
-def _reset_peak_rss() -> bool:
-    """Reset the kernel's peak-RSS mark (VmHWM, and so ru_maxrss) to the current RSS (Linux >= 4.0)."""
-    try:
-        with open("/proc/self/clear_refs", "w") as fh:
-            fh.write("5")
-        return True
-    except OSError:
-        return False
-
-
-def child_main(spec: dict) -> int:
-    """One memory measurement (hidden ``--child`` mode); prints a result line for the parent."""
-    if spec["threads"] is not None:
-        torch.set_num_threads(spec["threads"])
-    _, prob = build_problem(spec["mesh"])
-    F, W = make_inputs(spec["seed"], spec["batch"], prob.control_size("f"), prob.output_size)
-    layer = make_layer(prob, spec["solver"], spec["K"], spec["variant"], spec["batch"])
-    # Warm up on a small batch (two samples, so that engine="auto" already picks the engine the
-    # full batch gets): JIT, assembly and operator copies, but little of the batch's memory.
-    warm = min(WARMUP_BATCH, spec["batch"])
-    layer_call(layer, F[:warm].detach().clone().requires_grad_(), W[:warm])
-    gc.collect()
-    reset = _reset_peak_rss()
-    rss_before_kib = _status_kib("VmRSS")
-    maxrss_before_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
-    t0 = time.perf_counter()
-    call = layer_call(layer, F, W)
-    wall = time.perf_counter() - t0
-    maxrss_after_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    hwm_after_kib = _status_kib("VmHWM")
-    if reset and rss_before_kib is not None and hwm_after_kib is not None:
-        # VmHWM is the memory map's own peak mark, which clear_refs resets. (ru_maxrss is
-        # max(VmHWM, a per-process value folded in whenever a thread exits), so after
-        # gmsh's or MPI's threads have exited it can still hold the meshing peak.)
-        increase_kib, method = hwm_after_kib - rss_before_kib, "VmHWM after - VmRSS before (peak reset)"
-    else:
-        increase_kib, method = maxrss_after_kib - maxrss_before_kib, "ru_maxrss after - ru_maxrss before"
-    result = {
-        "peak_rss_increase_mib": increase_kib / 1024.0,
-        "method": method,
-        "rss_before_mib": None if rss_before_kib is None else rss_before_kib / 1024.0,
-        "peak_rss_after_mib": None if hwm_after_kib is None else hwm_after_kib / 1024.0,
-        "ru_maxrss_before_mib": maxrss_before_kib / 1024.0,
-        "ru_maxrss_after_mib": maxrss_after_kib / 1024.0,
-        "peak_reset": reset,
-        "warmup_batch": warm,
-        "wall_s": wall,
-        "engine": dict(layer.stats.solves_by_engine),
-        "finite": bool(torch.isfinite(call["u"]).all() and torch.isfinite(call["grad"]).all()),
-    }
-    print(CHILD_MARK + json.dumps(result), flush=True)
-    return 0
-
-
-def measure_memory(size: str, solver: str, K: int, variant: str, args: argparse.Namespace) -> dict:
-    """Run one ``--child`` measurement in a fresh interpreter; its result or the error."""
-    spec = {"mesh": args.msh_files.get(size, MESH_SIZES[size]), "solver": solver, "K": K, "variant": variant,
-            "batch": args.batch, "seed": args.seed, "threads": args.threads}
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", json.dumps(spec),
-           f"{OMP_POLICY_OPTION}={_OMP_POLICY_ARG}"]
-    try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=CHILD_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        return {"error": f"timed out after {CHILD_TIMEOUT_S} s"}
-    for line in proc.stdout.splitlines():
-        if line.startswith(CHILD_MARK):
-            return json.loads(line[len(CHILD_MARK):])
-    tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-    return {"error": f"child exited with {proc.returncode} (a negative code is a signal, -9 often the "
-                     f"out-of-memory killer): {' | '.join(tail)}"}
-
-
-def measure_memory_repeated(size: str, solver: str, K: int, variant: str, args, repeats: int) -> dict:
-    """``repeats`` fresh-process measurements: the run with the smallest increase, plus all of them.
-
-    The same call's peak RSS varies between processes (up to 2.4x for unrolled CG on the 4k mesh,
-    with two modes and nothing else changed): where the allocator places and returns freed
-    blocks differs from run to run. The minimum is what the call needs at least."""
-    runs = []
-    timed(lambda: runs.append(measure_memory(size, solver, K, variant, args)), repeats=repeats, warmup=0)
-    good = [r for r in runs if "error" not in r]
-    if not good:
-        return runs[0]
-    best = pick(good, "peak_rss_increase_mib", "min")
-    samples = best.pop("peak_rss_increase_mib_samples")
-    best.update(samples_mib=samples, max_mib=max(samples), failed_runs=len(runs) - len(good))
-    return best
-
-
-# --------------------------------------------------------------- one config
 def bench_config(layers: dict, size: str, solver: str, K: int, F, W, args, heavy: bool,
                  largest_k: bool) -> dict:
     n, batch = F.shape[1], F.shape[0]
@@ -381,7 +207,8 @@ def bench_config(layers: dict, size: str, solver: str, K: int, F, W, args, heavy
     if args.memory:
         release_free_memory()
         memory_repeats = min(args.memory_repeats, args.heavy_repeats) if heavy else args.memory_repeats
-        memory = {v: measure_memory_repeated(size, solver, K, v, args, memory_repeats)
+        memory = {v: measure_memory_repeated(size, solver, K, v, args, memory_repeats,
+                                           f"{OMP_POLICY_OPTION}={_OMP_POLICY_ARG}")
                   for v in names if v in MEMORY_VARIANTS}
     mem = {v: (m or {}).get("peak_rss_increase_mib") for v, m in (memory or {}).items()}
 
@@ -416,54 +243,6 @@ def bench_config(layers: dict, size: str, solver: str, K: int, F, W, args, heavy
         "ratios": ratios,
         "check": check,
     }
-
-
-def round_off_sensitivity(layer: SolveLayer, F: torch.Tensor, u: torch.Tensor) -> float:
-    """How much the K-step output moves when F is perturbed at round-off level (relative 1e-15,
-    random): the scale below which two implementations of the same iteration cannot agree."""
-    generator = torch.Generator().manual_seed(1)
-    with torch.no_grad():
-        noise = torch.randn(F.shape, generator=generator, dtype=F.dtype)
-        u_perturbed = layer(f=F.detach() * (1.0 + ROUND_OFF * noise))
-    return max_relative_difference(u_perturbed, u)
-
-
-def check_outputs(warm: dict, solver: str, sensitivity: float) -> dict:
-    """Differences between the variants' outputs and gradients (the warm-up calls)."""
-    def diff(a, b, key):
-        return max_relative_difference(warm[a][key], warm[b][key])
-
-    check = {
-        "u_unrolled_vs_implicit": diff("unrolled", "implicit", "u"),
-        "grad_unrolled_vs_implicit": diff("unrolled", "implicit", "grad"),
-        "u_unrolled_vs_implicit_petsc": diff("unrolled", "implicit_petsc", "u"),
-        "grad_unrolled_vs_implicit_petsc": diff("unrolled", "implicit_petsc", "grad"),
-        "u_petsc_vs_batched": diff("implicit_petsc", "implicit_batched", "u"),
-        "grad_petsc_vs_batched": diff("implicit_petsc", "implicit_batched", "grad"),
-    }
-    if "unrolled_checkpointed" in warm:
-        check["u_checkpointed_vs_unrolled"] = diff("unrolled_checkpointed", "unrolled", "u")
-        check["grad_checkpointed_vs_unrolled"] = diff("unrolled_checkpointed", "unrolled", "grad")
-    # Checked: unrolled against the same iteration in the other mode (default engine) and against
-    # its checkpointed self; for Jacobi also against PETSc's KSP (round-off stays ~1e-16 there).
-    # Recorded only: CG against PETSc's KSPCG (round-off grows with K), CG gradients (implicit is
-    # not the VJP of the capped CG map, by design).
-    u_keys = ["u_unrolled_vs_implicit"]
-    grad_keys = []
-    if solver == "jacobi":
-        u_keys += ["u_unrolled_vs_implicit_petsc", "u_petsc_vs_batched"]
-        grad_keys += ["grad_unrolled_vs_implicit", "grad_unrolled_vs_implicit_petsc", "grad_petsc_vs_batched"]
-    if "unrolled_checkpointed" in warm:
-        u_keys.append("u_checkpointed_vs_unrolled")
-        grad_keys.append("grad_checkpointed_vs_unrolled")
-    check["u_change_from_round_off_perturbation"] = sensitivity
-    check["tolerance"] = AGREEMENT_TOL
-    check["forward_tolerance"] = max(AGREEMENT_TOL, SENSITIVITY_FACTOR * sensitivity)
-    check["forward_checked"] = u_keys
-    check["forward_agrees"] = all(check[k] <= check["forward_tolerance"] for k in u_keys)
-    check["gradients_checked"] = grad_keys
-    check["gradients_agree"] = all(check[k] <= AGREEMENT_TOL for k in grad_keys)
-    return check
 
 
 def bench_size(size: str, args: argparse.Namespace, skipped: list) -> tuple[dict, list]:
@@ -503,36 +282,6 @@ def bench_size(size: str, args: argparse.Namespace, skipped: list) -> tuple[dict
         del layers
         gc.collect()
     return mesh_info, results
-
-
-# ------------------------------------------------------------------- output
-HEADER = (f"{'size':<6}{'dofs':>6} {'solver':<7}{'K':>4}{'B':>4} {'impl s':>8}{'unrl s':>8}{'t u/i':>7} "
-          f"{'impl MiB':>9}{'unrl MiB':>9}{'m u/i':>7}{'stored':>8} "
-          f"{'petsc s':>8}{'batch s':>8}{'p/b':>6} {'ckpt t/u':>8}{'ckpt m/u':>9} "
-          f"{'du':>8}{'dgrad':>8}{'reps':>5}")
-
-
-def _fmt(value, width: int, spec: str) -> str:
-    return f"{'-':>{width}}" if value is None else f"{value:>{width}{spec}}"
-
-
-def print_row(row: dict, flush: bool = False) -> None:
-    t, r, c = row["times_s"], row["ratios"], row["check"]
-    mem = row["memory"] or {}
-    mi = mem.get("implicit", {}).get("peak_rss_increase_mib")
-    mu = mem.get("unrolled", {}).get("peak_rss_increase_mib")
-    du = max(c["u_unrolled_vs_implicit"], c["u_unrolled_vs_implicit_petsc"])
-    print(f"{row['size']:<6}{row['dofs']:>6} {row['solver']:<7}{row['K']:>4}{row['B']:>4} "
-          f"{t['implicit']:>8.3f}{t['unrolled']:>8.3f}{r['time_unrolled_over_implicit']:>7.2f} "
-          f"{_fmt(mi, 9, '.1f')}{_fmt(mu, 9, '.1f')}{_fmt(r['memory_unrolled_over_implicit'], 7, '.1f')}"
-          f"{row['stored_iterates_mib']:>8.0f} "
-          f"{t['implicit_petsc']:>8.3f}{t['implicit_batched']:>8.3f}"
-          f"{r['engine_speedup_petsc_over_batched']:>6.2f} "
-          f"{_fmt(r.get('checkpointed_time_over_unrolled'), 8, '.2f')}"
-          f"{_fmt(r.get('checkpointed_memory_over_unrolled'), 9, '.3f')} "
-          f"{du:>8.1e}{c['grad_unrolled_vs_implicit']:>8.1e}{row['repeats']:>5}"
-          + ("" if c["forward_agrees"] and c["gradients_agree"] else "  CHECK FAILED"),
-          flush=flush)
 
 
 # ---------------------------------------------------------------------- CLI
