@@ -82,7 +82,7 @@ def test_no_grad_calls_and_a_controller_without_health_never_refine(stiff_heat):
         layer(u0=u0)
     assert ctrl.k == layer.max_it == 1 and not ctrl.health_refinements
     off = PRDP(NewtonCaps(layer, "newton"), k0=1, k_cap=20, health=None)
-    assert layer.health is None and layer.system.call_health.limit is None   # the old check taken away
+    assert layer.health is None                                             # the old check taken away
     layer(u0=u0.clone().requires_grad_())
     assert off.k == 1 and not off.health_refinements and layer.last_health_ratio is None
     layer.close()
@@ -146,7 +146,7 @@ def test_a_garbage_solve_at_k_cap_warns_and_is_kept_and_calls_are_measured_every
     assert [bool(w) for w in warned] == [i % HEALTH_EVERY == 0 for i in range(2 * HEALTH_EVERY + 1)]
     assert ctrl.k == 3 and not ctrl.health_refinements and layer.last_health_ratio > 0.5
     layer.max_it = 2                                   # new caps: measured at once
-    with pytest.warns(SolverWarning, match="at caps 2"):
+    with pytest.warns(SolverWarning, match=r"at Caps\(max_it=2\)"):
         layer(f=f.clone().requires_grad_())
     layer.close()
 
@@ -188,6 +188,18 @@ def test_health_settings_are_checked_and_saved():
         PRDP(None, k0=1, k_cap=4, health=0.5).load_state_dict(state)
     ctrl.k = 4
     assert not ctrl.refine_for_health(3.0)      # at k_cap
+
+
+def test_a_solve_measures_into_the_call_health_it_is_handed_and_keeps_none(stiff_heat):
+    """The measured ratio is the call's return channel: the system keeps no health state between calls."""
+    problem, u0 = stiff_heat
+    layer = NonlinearSolveLayer(problem, NewtonOptions(max_it=1, ksp="lu"))
+    arrays = {"u0": u0.numpy()}
+    health = CallHealth(1.0)
+    layer.system.solve(arrays, 2, health=health)
+    assert health.ratio == pytest.approx(max(newton_ratios(problem, u0, [1])), rel=1e-12)
+    assert not any("health" in name for name in vars(layer.system))
+    layer.close()
 
 
 def test_call_health_ratio():

@@ -7,10 +7,15 @@ failed with DIVERGED_MAX_IT after 50 steps. (A singular J, whose tiny steps leav
 round-off, still fails and says why: tests/test_newton_messages.py.)"""
 from __future__ import annotations
 
+import gc
+import weakref
+
 import pytest
 import torch
 
 from fempdl import NewtonOptions, NonlinearSolveLayer, forms
+from fempdl.solve.newton_stop import NewtonMode, NewtonStop
+from fempdl.solve.nonlinear_system import NonlinearSystem
 
 
 def problem(msh, scale=1.0):
@@ -72,3 +77,25 @@ def test_a_warm_start_at_the_solution_converges_at_once(coarse_lshape, scale, ma
     last = layer.stats.last_newton
     assert last.steps <= 1 and last.ok and last.reason_name == "CONVERGED_SNORM_RELATIVE"
     torch.testing.assert_close(again, u, rtol=1e-13, atol=1e-13)
+
+
+def test_the_stop_rule_is_one_value_chosen_from_diff(coarse_lshape):
+    """``NewtonMode.for_diff`` builds the stop rule once; the system and its SNES take it as one value."""
+    implicit, unrolled = NewtonMode.for_diff("implicit"), NewtonMode.for_diff("unrolled")
+    assert (implicit, unrolled) == (NewtonMode(budget=True), NewtonMode(force_step=True))
+    with pytest.raises(ValueError, match="diff must be one of"):
+        NewtonMode.for_diff("adjoint")
+    capped, uncapped = NewtonOptions(max_it=3, ksp="lu"), NewtonOptions(ksp="lu")
+    assert isinstance(implicit.convergence_test(capped), NewtonStop) and unrolled.convergence_test(capped) is None
+    assert unrolled.convergence_test(uncapped).force_step and not implicit.convergence_test(uncapped).force_step
+    prob, _ = problem(coarse_lshape)
+    assert NonlinearSolveLayer(prob, capped, diff="unrolled").system.mode == unrolled
+    # The reverse pass reaches the system's transposed solve through a weak reference: no cycle.
+    gc.disable()
+    try:
+        system = NonlinearSystem(prob, capped, mode=implicit)
+        ref = weakref.ref(system)
+        del system
+        assert ref() is None
+    finally:
+        gc.enable()

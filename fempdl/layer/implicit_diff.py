@@ -55,11 +55,11 @@ def nonfinite_control_message(name: str, bad: int) -> str:
 
 # ------------------------------------------------------------------ operators
 @torch.library.custom_op("fempdl::implicit_solve", mutates_args=())
-def implicit_solve(handle: int, names: str, batch: int, keep_matrices: bool, float32: bool,
+def implicit_solve(handle: int, names: str, batch: int, training: bool, float32: bool,
                    tensors: list[Tensor]) -> tuple[Tensor, Tensor]:
     """U (batch, n) in float64 on the CPU, and the packed state the solve read (the layer's
     ``call_state``: a copy of its Constants and fixed Functions, small beside a solve);
-    ``names`` comma-separated, one per tensor."""
+    ``names`` comma-separated, one per tensor; ``training``: a backward may follow."""
     layer = _layer(handle)
     t0 = time.perf_counter()
     names = _split(names)
@@ -72,10 +72,12 @@ def implicit_solve(handle: int, names: str, batch: int, keep_matrices: bool, flo
     shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
     arrays = _batched(values, batch)
     guess = arrays.pop(INITIAL_GUESS, None)
-    # A training call (one that keeps matrices for its backward) is solved again at a refined cap while its
-    # capped solves are garbage; the state is packed after, so the backward runs at the caps that held.
-    U = layer.solve_healthy(lambda: layer.system.solve(arrays, batch, shared, initial_guess=guess,
-                                                       keep_matrices=keep_matrices), keep_matrices)
+    # A training call (its backward follows: the solve keeps per-sample matrices for it) is solved again at a
+    # refined cap while its capped solves are garbage; the state is packed after, so the backward runs at the
+    # caps that held.
+    U = layer.solve_healthy(lambda health: layer.system.solve(arrays, batch, shared, initial_guess=guess,
+                                                              keep_matrices=training, health=health),
+                            training=training)
     state = layer.call_state.pack(layer.system)
     if float32 and count_nonfinite(U.astype(np.float32), layer.problem):
         layer._report_overflow(torch.float32)
@@ -85,7 +87,7 @@ def implicit_solve(handle: int, names: str, batch: int, keep_matrices: bool, flo
 
 
 @implicit_solve.register_fake
-def _(handle, names, batch, keep_matrices, float32, tensors):
+def _(handle, names, batch, training, float32, tensors):
     layer = _layer(handle)
     return (torch.empty((batch, layer.problem.output_size), dtype=torch.float64, device="cpu"),
             torch.empty((layer.call_state.size,), dtype=torch.float64, device="cpu"))
@@ -121,12 +123,12 @@ def _(handle, names, wanted, tensors, u, du, state):
     return [torch.empty((du.shape[0], sizes[n]), dtype=torch.float64, device="cpu") for n in _split(wanted)]
 
 
-def _solve_vmap(info, in_dims, handle, names, batch, keep_matrices, float32, tensors):
+def _solve_vmap(info, in_dims, handle, names, batch, training, float32, tensors):
     V, dims = info.batch_size, in_dims[5]
     if all(d is None for d in dims):
-        return implicit_solve(handle, names, batch, keep_matrices, float32, tensors), (None, None)
+        return implicit_solve(handle, names, batch, training, float32, tensors), (None, None)
     folded = [_fold(t, d, V, batch) for t, d in zip(tensors, dims)]
-    U, state = implicit_solve(handle, names, V * batch, keep_matrices, float32, folded)
+    U, state = implicit_solve(handle, names, V * batch, training, float32, folded)
     return (U.reshape(V, batch, U.shape[-1]), state), (0, None)
 
 
@@ -171,15 +173,16 @@ class ImplicitSolve(torch.autograd.Function):
     """The forward solve with the adjoint solve as its backward (setup_context style, so
     torch.func transforms apply; vmap goes through the operators' vmap rules).
 
-    ``ImplicitSolve.apply(handle, names, batch, keep_matrices, float32, *tensors)`` -> (U, state):
-    ``names`` a tuple with one control name per tensor, ``batch`` the native batch B; ``state`` the
-    packed values the solve read, not differentiable."""
+    ``ImplicitSolve.apply(handle, names, batch, training, float32, *tensors)`` -> (U, state):
+    ``names`` a tuple with one control name per tensor, ``batch`` the native batch B, ``training`` whether
+    a backward may follow (gradients are wanted); ``state`` the packed values the solve read, not
+    differentiable."""
 
     generate_vmap_rule = True
 
     @staticmethod
-    def forward(handle: int, names: tuple, batch: int, keep_matrices: bool, float32: bool, *tensors):
-        return implicit_solve(handle, ",".join(names), batch, keep_matrices, float32, list(tensors))
+    def forward(handle: int, names: tuple, batch: int, training: bool, float32: bool, *tensors):
+        return implicit_solve(handle, ",".join(names), batch, training, float32, list(tensors))
 
     @staticmethod
     def setup_context(ctx, inputs, output):

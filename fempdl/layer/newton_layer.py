@@ -41,8 +41,10 @@ from fempdl.core.resources import format_bytes, memory_budget
 from fempdl.layer.implicit_diff import count_on_all_ranks
 from fempdl.layer.newton_unrolled import UnrolledNewton, check_unrolled_newton, stored_values
 from fempdl.layer.system_layer import SystemLayer, check_diff
+from fempdl.solve.caps import Caps
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.newton_stats import NewtonCumulativeStats
+from fempdl.solve.newton_stop import NewtonMode
 from fempdl.solve.nonlinear_system import NonlinearSystem
 from fempdl.solve.options import default_options
 
@@ -99,9 +101,7 @@ class NonlinearSolveLayer(SystemLayer):
         self.max_unrolled_values, self.memory_budget = max_unrolled_values, memory_budget
         # Implicit: the cap is a budget (a solve stops at its tolerances before it); unrolled: exactly N steps,
         # and at least one even from a solution, where the map is not the identity nearby.
-        self._init_system(problem, NonlinearSystem(problem, options, force_step=diff == "unrolled",
-                                                   budget=diff == "implicit"),
-                          backward_caps=("inner_max_it",))
+        self._init_system(problem, NonlinearSystem(problem, options, mode=NewtonMode.for_diff(diff)))
 
     second_derivative_message = (
         "second derivatives through NonlinearSolveLayer are not implemented: both its implicit and its unrolled "
@@ -119,8 +119,13 @@ class NonlinearSolveLayer(SystemLayer):
             check_unrolled_newton(options)
         self.system.options = options                               # built once, checked once
 
-    def _caps(self) -> tuple:
-        return self.max_it, self.inner_max_it
+    counts_newton_steps = True
+
+    def _check_caps(self, caps: Caps) -> None:
+        # Both caps are checked before either moves: refused caps leave the layer as it was.
+        options = self.system.options.with_max_it(caps.max_it).with_inner_max_it(caps.inner_max_it)
+        if self.diff == "unrolled":
+            check_unrolled_newton(options)
 
     @property
     def stats(self) -> NewtonCumulativeStats:
@@ -174,23 +179,6 @@ class NonlinearSolveLayer(SystemLayer):
         cap = (f"cap Newton lower (max_it={self.options.max_it})" if self.options.max_it is not None
                else f"lower NewtonOptions.converged_max_it={self.options.converged_max_it}")
         return f"{cap}, pass fewer samples per call, or use diff='implicit' (it keeps one state per sample)"
-
-    def get_extra_state(self) -> dict:
-        """Both caps travel with ``state_dict()``."""
-        return {"max_it": self.max_it, "inner_max_it": self.inner_max_it}
-
-    def set_extra_state(self, state: dict) -> None:
-        if not isinstance(state, dict) or "max_it" not in state:
-            raise ValueError(f"{type(self).__name__} state must be a dict with 'max_it', got {state!r}")
-        # Both caps are checked before either moves: a refused state leaves the layer as it was.
-        options = self.system.options.with_max_it(state["max_it"])
-        if "inner_max_it" in state:
-            options = options.with_inner_max_it(state["inner_max_it"])
-        if self.diff == "unrolled":
-            check_unrolled_newton(options)
-        self.max_it = state["max_it"]
-        if "inner_max_it" in state:
-            self.inner_max_it = state["inner_max_it"]
 
     def extra_repr(self) -> str:
         if self._system is None:

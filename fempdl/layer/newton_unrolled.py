@@ -58,8 +58,9 @@ class UnrolledNewton(torch.autograd.Function):
             layer.problem.check_control_values(name, t)
         arrays = {n: np.broadcast_to(t.numpy(), (batch, t.shape[-1])) for n, t in zip(names, tensors)}
         guess = arrays.pop(INITIAL_GUESS, None)
-        U, path = layer.solve_healthy(lambda: layer.system.solve(arrays, batch, initial_guess=guess, record=True),
-                                      any(ctx.needs_input_grad[3:]))
+        U, path = layer.solve_healthy(
+            lambda health: layer.system.solve(arrays, batch, initial_guess=guess, record=True, health=health),
+            training=any(ctx.needs_input_grad[3:]))
         ctx.state = layer.call_state.pack(layer.system)        # the caps the kept solve ran at
         ctx.layer, ctx.names, ctx.path = layer, names, path
         ctx.shared = [t.dim() == 1 for t in tensors]

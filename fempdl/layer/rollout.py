@@ -47,10 +47,12 @@ from contextlib import contextmanager
 import numpy as np
 import torch
 
+from fempdl.layer.cap_target import LayerCaps
 from fempdl.layer.implicit_diff import SECOND_DERIVATIVE_MESSAGE, FirstOrderOnly, count_on_all_ranks
 from fempdl.layer.rollout_checkpoint import CheckpointedRollout, ScheduleStats, StatelessRollout, make_schedule
 from fempdl.layer.rollout_inputs import checked_call
 from fempdl.layer.system_layer import SystemLayer
+from fempdl.solve.caps import Caps
 from fempdl.solve.linear_system import INITIAL_GUESS
 
 __all__ = ["Rollout", "AUTOGRAD"]
@@ -105,17 +107,30 @@ class Rollout(torch.nn.Module):
 
     @property
     def layers(self) -> list:
-        """The step layer, as PRDP looks for the layers a target moves."""
+        """The step layer, whose caps every step shares."""
         return [self.step]
 
     @property
-    def max_it(self):
-        """The step layer's cap, shared by every step (assignable: PRDP moves it)."""
+    def max_it(self) -> int | None:
+        """The step layer's own cap, shared by every step (assignable)."""
         return self.step.max_it
 
     @max_it.setter
-    def max_it(self, value) -> None:
+    def max_it(self, value: int | None) -> None:
         self.step.max_it = value
+
+    @property
+    def caps(self) -> Caps:
+        """The step layer's caps, shared by every step (assignable)."""
+        return self.step.caps
+
+    @caps.setter
+    def caps(self, caps: Caps) -> None:
+        self.step.caps = caps
+
+    def as_target(self) -> LayerCaps:
+        """What PRDP moves (:mod:`fempdl.layer.cap_target`): the step layer's cap; keyword inputs call the rollout."""
+        return LayerCaps((self.step,), call=self)
 
     def forward(self, initial: torch.Tensor, steps: int, *, constants: Mapping[str, Sequence[float]] | None = None,
                 per_step: Mapping[str, torch.Tensor] | None = None, outputs: Sequence[int] | None = None,
@@ -299,11 +314,11 @@ class _Plan:
     def run(self, k: int, u: np.ndarray, first: bool, training: bool) -> np.ndarray:
         self.set_constants(k)
         guess = u if self.rollout.warm_start else None
-        solve = lambda: self.system.solve(self.step_controls(k, u), self.batch, frozenset(self.shared),  # noqa: E731
-                                          initial_guess=guess)
+        solve = lambda health=None: self.system.solve(  # noqa: E731
+            self.step_controls(k, u), self.batch, frozenset(self.shared), initial_guess=guess, health=health)
         if first:
             out = self.layer.solve_healthy(solve, training)
-            self.caps[k] = self.layer._caps()
+            self.caps[k] = self.layer.caps
             return out
         with _caps_set(self.layer, self.caps[k]):
             return solve()
@@ -350,23 +365,14 @@ class _Plan:
 
 
 @contextmanager
-def _caps_set(layer, caps):
-    """The layer at ``caps`` (as its ``_caps()`` reads them) within the block."""
-    before = layer._caps()
-    _write_caps(layer, caps)
+def _caps_set(layer, caps: Caps):
+    """The layer at ``caps`` within the block."""
+    before = layer.caps
+    layer.caps = caps
     try:
         yield
     finally:
-        _write_caps(layer, before)
-
-
-def _write_caps(layer, caps) -> None:
-    if layer._caps() == caps:
-        return
-    if isinstance(caps, tuple):
-        layer.max_it, layer.inner_max_it = caps
-    else:
-        layer.max_it = caps
+        layer.caps = before
 
 
 def _float64(t: torch.Tensor) -> np.ndarray:

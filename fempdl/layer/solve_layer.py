@@ -107,7 +107,7 @@ class SolveLayer(SystemLayer):
             t0 = time.perf_counter()
             given = {n: t.to(device="cpu", dtype=torch.float64) for n, t in zip(names, tensors)}
             training = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
-            out = self.solve_healthy(lambda: self._unrolled.solve(self.system, given, batch), training)
+            out = self.solve_healthy(lambda health: self._unrolled.solve(self.system, given, batch, health), training)
             self.stats.layer_time += time.perf_counter() - t0
         else:
             out = self._implicit(names, tensors, batch, dtype)

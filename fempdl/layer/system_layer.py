@@ -4,22 +4,27 @@
 :class:`SystemLayer` is the base of :class:`~fempdl.layer.solve_layer.SolveLayer` (a linear system) and
 :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (a Newton solve). A subclass calls
 :meth:`SystemLayer._init_system` with its problem and system; the system has ``stats``,
-``options``/``max_it``, ``solve``/``adjoint`` on arrays and ``destroy``.
+``options``/``caps``, ``solve``/``adjoint`` on arrays and ``destroy``. A layer's caps are one
+:class:`~fempdl.solve.caps.Caps` value (``layer.caps``), which PRDP moves through :meth:`SystemLayer.as_target`.
 
 Shapes: each control tensor is (B, n_m) or (n_m,) with n_m = ``problem.control_size(name)``; a
 (n_m,) tensor is shared by all samples; ``initial_guess`` is (B, n) or (n,).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
+import weakref
 from collections.abc import Callable
 
 import numpy as np
 import torch
 
 from fempdl.core.ranks import different_metrics_message, torch_group_initialised, training_ranks
+from fempdl.layer.cap_target import LayerCaps
 from fempdl.layer.implicit_diff import ImplicitSolve, count_on_all_ranks, nonfinite_control_message, register_layer
 from fempdl.solve.call_state import CallState
+from fempdl.solve.caps import Caps
 from fempdl.solve.health import CallHealth, HealthCheck
 from fempdl.solve.linear_system import INITIAL_GUESS
 from fempdl.solve.stats import CumulativeStats, SolverWarning, warn_at_caller
@@ -44,14 +49,18 @@ def check_diff(diff) -> None:
         raise ValueError(f"diff must be one of {list(DIFF_MODES)}, got {diff!r}")
 
 
+def _nobody() -> None:
+    """The controller of a layer no PRDP moves."""
+    return None
+
+
 class SystemLayer(torch.nn.Module):
     """The common part of the solve layers (module docstring)."""
 
-    def _init_system(self, problem, system, backward_caps: tuple = ("max_it",)) -> None:
-        """``backward_caps``: the system's caps its backward solves use (put back as the forward read them)."""
+    def _init_system(self, problem, system) -> None:
         self.problem = problem
         self._system = system
-        self.call_state = CallState(problem, backward_caps)
+        self.call_state = CallState(problem)
         # Plain values for forward, so torch.compile traces it without entering the Problem.
         self._distributed = problem.V.mesh.comm.size > 1
         self._sizes = {**{n: problem.control_size(n) for n in problem.control_names},
@@ -67,9 +76,7 @@ class SystemLayer(torch.nn.Module):
         self.__dict__.update(route=None, reference_twin=None)
         #: Calls without gradients at a cap (a validation computed with capped physics), counted for PRDP.
         self.capped_eval_calls = 0
-        #: (steps, last metric, k_cap) of the PRDP moving this layer, which the ranks of a torch.distributed
-        #: group agree on with the caps at each training call (:meth:`_check_caps_over_torch_group`).
-        self.prdp_steps: tuple = (0, None, None)
+        self._mover = _nobody             # a weak reference to the PRDP moving this layer (moved_by)
 
     def __setattr__(self, name: str, value) -> None:
         if name in ("route", "reference_twin"):       # torch would register a Module value as a submodule
@@ -114,27 +121,25 @@ class SystemLayer(torch.nn.Module):
             raise TypeError(f"health must be a fempdl.solve.health.HealthCheck or None, got {type(check).__name__}")
         self._health, self._health_due = check, (None, 0)
 
-    def solve_healthy(self, solve: Callable, training: bool):
-        """``solve()``, one call's solves on the system, run again at a refined cap while a training call's
-        capped solves are garbage (their largest residual ratio above the health limit, agreed over the
-        ranks that train together). A no-grad call (validation) is never refined: it trains nothing, and a
-        validation that one rank runs alone must not enter a collective. Refinement ends when the ratio
-        is within the limit, when the caps cannot rise, or when a refinement did not lower the ratio (a
-        diverging iteration: more of it does not help); the last two warn and keep the solve. Measured are
-        the first training call at new caps and every ``HEALTH_EVERY``-th after (the same calls on every
-        rank: the caps agree and training calls run in step)."""
+    def solve_healthy(self, solve: Callable[[CallHealth | None], object], training: bool):
+        """``solve(health)``, one call's solves on the system, which measure their residual ratios into
+        ``health`` (a fresh :class:`CallHealth`, or ``None``: measure nothing), run again at a refined cap
+        while a training call's capped solves are garbage (their largest residual ratio above the health
+        limit, agreed over the ranks that train together). A no-grad call (validation) is never refined: it
+        trains nothing, and a validation that one rank runs alone must not enter a collective. Refinement
+        ends when the ratio is within the limit, when the caps cannot rise, or when a refinement did not
+        lower the ratio (a diverging iteration: more of it does not help); the last two warn and keep the
+        solve. Measured are the first training call at new caps and every ``HEALTH_EVERY``-th after (the
+        same calls on every rank: the caps agree and training calls run in step)."""
         check = self._health
         if check is None or not training or not self._health_is_due():
-            return solve()
+            return solve(None)
         previous = math.inf
         for _ in range(MAX_HEALTH_REFINES):
-            self.system.call_health = CallHealth(check.limit)
-            try:
-                result = solve()
-            finally:
-                measured, self.system.call_health = self.system.call_health, CallHealth()
+            measured = CallHealth(check.limit)
+            result = solve(measured)
             ratio = self.last_health_ratio = self._agreed_health(measured.ratio)
-            self._health_due = (self._caps(), 1)
+            self._health_due = (self.caps, 1)
             if ratio is None or ratio <= check.limit:
                 return result
             if ratio >= previous:
@@ -148,13 +153,13 @@ class SystemLayer(torch.nn.Module):
         else:
             why = f"{MAX_HEALTH_REFINES} refinements did not cure it"
         warn_at_caller(f"a capped solve of this {type(self).__name__} ends with its residual at {ratio:.3g} times "
-                       f"its start (health limit {check.limit:g}) at caps {self._caps()}, and {why}; the network "
+                       f"its start (health limit {check.limit:g}) at {self.caps}, and {why}; the network "
                        "trains on that solve", SolverWarning)
         return result
 
     def _health_is_due(self) -> bool:
         caps, since = self._health_due
-        if caps == self._caps() and since % HEALTH_EVERY:
+        if caps == self.caps and since % HEALTH_EVERY:
             self._health_due = (caps, since + 1)
             return False
         return True
@@ -181,6 +186,39 @@ class SystemLayer(torch.nn.Module):
     @max_it.setter
     def max_it(self, value: int | None) -> None:
         self.system.max_it = value
+
+    #: Whether this layer's own cap (``caps.max_it``) counts Newton steps rather than Krylov iterations.
+    counts_newton_steps = False
+
+    @property
+    def caps(self) -> Caps:
+        """This layer's caps as one value (:mod:`fempdl.solve.caps`); assign a :class:`Caps` to move them."""
+        return self.system.caps
+
+    @caps.setter
+    def caps(self, caps: Caps) -> None:
+        if not isinstance(caps, Caps):
+            raise TypeError(f"caps must be a fempdl.Caps, got {type(caps).__name__}; or set max_it")
+        if caps != self.system.caps:
+            self._check_caps(caps)
+            self.system.caps = caps
+
+    def _check_caps(self, caps: Caps) -> None:
+        """Refuse caps this layer cannot solve at, before any cap moves (a Newton layer checks both)."""
+
+    def moved_by(self, controller) -> None:
+        """Make ``controller`` (a PRDP, held weakly; ``None``: none) what moves this layer's caps. Its record
+        (``controller.steps_record``: steps, last metric, k_cap) is what the ranks of a torch.distributed group
+        agree on with the caps at each training call (:meth:`_check_caps_over_torch_group`)."""
+        self._mover = _nobody if controller is None else weakref.ref(controller)
+
+    def _prdp_record(self) -> tuple:
+        controller = self._mover()
+        return (0, None, None) if controller is None else controller.steps_record
+
+    def as_target(self) -> LayerCaps:
+        """What PRDP moves on this layer (:mod:`fempdl.layer.cap_target`): its own cap, ``caps.max_it``."""
+        return LayerCaps((self,), call=self)
 
     @property
     def system(self):
@@ -227,7 +265,7 @@ class SystemLayer(torch.nn.Module):
         """What every rank's call of this layer on a distributed mesh must share (the solves are collective,
         and the dtype, a control's sharing and the grad mode choose which collectives run; the Constants
         are the physics: ranks at different dt would each assemble their rows of a different operator)."""
-        return {"caps": self._caps(), "batch": batch, "controls": tuple(names),
+        return {"caps": self.caps, "batch": batch, "controls": tuple(names),
                 "dtypes": tuple(str(t.dtype).removeprefix("torch.") for t in tensors),
                 "shared (n,) or batched (B, n)": tuple("shared" if t.dim() == 1 else "batched" for t in tensors),
                 "requires_grad": tuple(t.requires_grad for t in tensors) if torch.is_grad_enabled() else "no_grad",
@@ -257,10 +295,10 @@ class SystemLayer(torch.nn.Module):
         parameters, silently. A training call (gradients enabled) is collective under DDP anyway, so one
         all-reduce of the caps there cannot hang a loop that validates on rank 0 alone."""
         ranks = training_ranks()
-        mine = self._caps()
-        if ranks is None or ranks.agree((*(mine if isinstance(mine, tuple) else (mine,)), *self.prdp_steps)):
+        mine, record = self.caps, self._prdp_record()
+        if ranks is None or ranks.agree((mine.max_it, mine.inner_max_it, *record)):
             return
-        every = ranks.allgather((mine, self.prdp_steps))
+        every = ranks.allgather((mine, record))
         steps, metrics, k_caps = ([record[i] for _, record in every] for i in range(3))
         if len(set(steps)) > 1:
             raise ValueError(
@@ -281,10 +319,6 @@ class SystemLayer(torch.nn.Module):
                 f"({every}, by rank); every rank must train at the same caps: step PRDP on every rank with the "
                 "same (all-reduced) metric, or set max_it on every rank")
 
-    def _caps(self):
-        """The caps every rank's call must share (a Newton layer adds its inner cap)."""
-        return self.max_it
-
     def _check_finite(self, names, tensors) -> None:
         for name, t in zip(names, tensors):
             bad = count_on_all_ranks(~torch.isfinite(t.detach()), self.problem)
@@ -301,13 +335,13 @@ class SystemLayer(torch.nn.Module):
             raise OverflowError(message)
 
     def get_extra_state(self) -> dict:
-        """The cap travels with ``state_dict()``: a saved model reloads at the K it was trained at."""
-        return {"max_it": self.max_it}
+        """The caps travel with ``state_dict()``: a saved model reloads at the K it was trained at."""
+        return dataclasses.asdict(self.caps)
 
     def set_extra_state(self, state: dict) -> None:
         if not isinstance(state, dict) or "max_it" not in state:
             raise ValueError(f"{type(self).__name__} state must be a dict with 'max_it', got {state!r}")
-        self.max_it = state["max_it"]
+        self.caps = Caps(state["max_it"], state.get("inner_max_it", self.caps.inner_max_it))
 
     def __getstate__(self):
         raise TypeError(f"a {type(self).__name__} holds DOLFINx and PETSc objects, which cannot be pickled or "

@@ -58,9 +58,9 @@ class UnrolledPath:
         self._operators = None          # ((names, fingerprint), (A, D^-1, b_base, {name: C_m}))
         self._jacobians: dict = {}      # name -> (fingerprint of a's other inputs, rows, cols, diagonal, v0, J)
 
-    def solve(self, system: LinearSystem, given: dict, batch: int) -> torch.Tensor:
+    def solve(self, system: LinearSystem, given: dict, batch: int, health: CallHealth | None = None) -> torch.Tensor:
         """u (B, n) = X_K^T for the controls ``given`` (name -> float64 (B, n_m) or (n_m,); the
-        key ``initial_guess`` starts the iterations there)."""
+        key ``initial_guess`` starts the iterations there); the residual ratios measured into ``health``."""
         options, problem = system.options, system.problem
         if not options.capped:
             raise ValueError("diff='unrolled' differentiates a capped iteration: set max_it")
@@ -82,8 +82,8 @@ class UnrolledPath:
                            memory_budget=self.memory_budget)
         system.record_batch("forward", options, time.perf_counter() - t_solve,
                             torch.isfinite(X).all(0).numpy(), "unrolled")
-        if system.call_health.measuring:
-            _measure_health(system, A, R, X0, X)
+        if health is not None:
+            _measure_health(health, A, R, X0, X)
         out = X.T
         if out.requires_grad:
             out.register_hook(_count_backward(system, batch))
@@ -209,14 +209,13 @@ def _distance_two_colors(m_cells: np.ndarray, v_cells: np.ndarray, n_m: int) -> 
     return colors
 
 
-def _measure_health(system: LinearSystem, A, R: torch.Tensor, X0: torch.Tensor | None, X: torch.Tensor) -> None:
-    """The call's residual ratios ||r_K|| / ||r_0|| (:mod:`fempdl.solve.health`), columns of R and X (n, B)."""
+def _measure_health(health: CallHealth, A, R: torch.Tensor, X0: torch.Tensor | None, X: torch.Tensor) -> None:
+    """The call's residual ratios ||r_K|| / ||r_0|| into ``health`` (:mod:`fempdl.solve.health`), columns of
+    R and X (n, B)."""
     with torch.no_grad():
         R, X = R.detach(), X.detach()
         starts = R if X0 is None else R - A @ X0.detach()
-        system.call_health = CallHealth(system.call_health.limit)
-        system.call_health.add_rows(*(M.norm(dim=0).tolist() for M in (R - A @ X, starts, X, R)),
-                                    lambda: _inf_norm(A))
+        health.add_rows(*(M.norm(dim=0).tolist() for M in (R - A @ X, starts, X, R)), lambda: _inf_norm(A))
 
 
 def _inf_norm(A) -> float:

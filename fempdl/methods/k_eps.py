@@ -13,74 +13,38 @@ The target's caps and counters are left as they are.
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from contextlib import contextmanager
 
 from mpi4py import MPI
+import numpy as np
 import torch
 
 from fempdl.core.parallel import batch_size, shard_inputs
+from fempdl.layer.cap_target import CapTarget, as_target, layers_target
 from fempdl.layer.reference import converged_counts, counters_kept
-from fempdl.layer.system_layer import SystemLayer
 from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps
 
-__all__ = ["k_eps", "newton_k_eps", "converged_caps", "layers_of", "targets_of", "measure_call",
-           "caps_kept", "left_as_is"]
-
-
-def targets_of(target) -> list:
-    """The objects with a ``max_it`` that ``target`` names (none for None or a plain callable)."""
-    if target is None or callable(target) and not hasattr(target, "max_it"):
-        return []
-    return list(target) if isinstance(target, Iterable) and not hasattr(target, "max_it") else [target]
-
-
-def layers_of(target) -> list[SystemLayer]:
-    """The solve layers whose caps ``target`` moves: a layer itself, a list's layers, a ``NewtonCaps``'
-    or a ``Rollout``'s (their ``layers``)."""
-    found = []
-    for t in targets_of(target):
-        for layer in getattr(t, "layers", [t]):
-            if isinstance(layer, SystemLayer) and not any(layer is seen for seen in found):
-                found.append(layer)
-    return found
+__all__ = ["k_eps", "newton_k_eps", "converged_caps", "measure_call", "left_as_is"]
 
 
 @contextmanager
-def caps_kept(target):
-    """Within the block ``target`` may run at other caps: its layers' caps (as ``state_dict`` carries them)
-    and a NewtonCaps' K are put back on exit."""
-    layers = layers_of(target)
-    k = getattr(target, "max_it", None) if isinstance(target, NewtonCaps) else None
-    states = [layer.get_extra_state() for layer in layers]
-    try:
-        yield
-    finally:
-        if k is not None:
-            target.max_it = k
-        for layer, state in zip(layers, states):
-            layer.set_extra_state(state)
-
-
-@contextmanager
-def left_as_is(target):
-    """:func:`caps_kept`, and the layers' counters put back too (probe runs are not training)."""
-    with caps_kept(target), counters_kept(layers_of(target)):
+def left_as_is(target: CapTarget):
+    """Within the block the target may run at other caps: its caps (``target.kept()``) and its layers'
+    counters are put back on exit (probe runs are not training)."""
+    with target.kept(), counters_kept(list(target.layers)):
         yield
 
 
-def _callee(target):
-    """What keyword inputs are passed to: the target itself, or a NewtonCaps' (or list's) one layer."""
-    if not isinstance(target, NewtonCaps) and callable(target):
-        return target
-    layers = layers_of(target)
-    if len(layers) != 1:
-        raise TypeError(f"{type(target).__name__} over {len(layers)} layers: give call= a function that runs "
-                        "them as the loop does")
-    return layers[0]
+def _callee(target: CapTarget):
+    """What keyword inputs are passed to: the target's layer or rollout."""
+    if target.call is None:
+        raise TypeError(f"a target over {len(target.layers)} layers: give call= a function that runs them as the "
+                        "loop does")
+    return target.call
 
 
-def measure_call(target, call: Callable | None, inputs: dict, what: str) -> Callable[[], object]:
+def measure_call(target: CapTarget, call: Callable | None, inputs: dict, what: str) -> Callable[[], object]:
     """The function that runs ``target`` as the loop does: ``call`` itself, or ``target(**inputs)``."""
     if call is not None:
         if inputs:
@@ -90,7 +54,7 @@ def measure_call(target, call: Callable | None, inputs: dict, what: str) -> Call
             raise TypeError(f"call must be a function that runs the target's layers, got {type(call).__name__}")
         return call
     if not inputs:
-        names = [name for layer in layers_of(target) for name in layer.problem.control_names][:1] or ["f"]
+        names = [name for layer in target.layers for name in layer.problem.control_names][:1] or ["f"]
         raise ValueError(f"give the inputs to measure {what} on as keyword arguments, e.g. {names[0]}=tensor, or "
                          "call= a function that runs the target's layers")
     callee = _callee(target)
@@ -116,22 +80,21 @@ def k_eps(target, *, rtol: float = 1e-8, shard_over: MPI.Comm = MPI.COMM_SELF, b
     Example:
         ``ctrl = PRDP(layer, k0=1, dk=1, k_cap=k_eps(layer, f=f_val, rtol=1e-6))``
     """
-    layers = layers_of(target)
-    if not layers:
-        raise TypeError(f"target must be a SolveLayer, a NonlinearSolveLayer, a NewtonCaps, a Rollout or a list of "
-                        f"them, got {type(target).__name__}")
+    target = layers_target(target)
     run = measure_call(target, call, inputs, "K_eps")
     if call is None and all(isinstance(v, torch.Tensor) for v in inputs.values()):
         run = _sharded(run, target, inputs, shard_over, batch)
-    counts = converged_counts(layers, run, rtol)
-    steps = shard_over.allreduce(max((n or 0) for n, _ in counts), op=MPI.MAX)
-    iterations = shard_over.allreduce(max(k for _, k in counts), op=MPI.MAX)
-    if isinstance(target, NewtonCaps):
-        target.converged = ConvergedCaps(max(steps, 1), max(iterations, 1))
-        return target.k_eps
-    newton = any(n is not None for n, _ in counts)
-    linear = any(n is None for n, _ in counts)
-    return max(1, max(steps if newton else 0, iterations if linear else 0))
+    return target.k_eps_from(_most_over(converged_counts(list(target.layers), run, rtol), shard_over))
+
+
+def _most_over(counts: list, comm: MPI.Comm) -> list:
+    """Each layer's counts ``(newton_steps or None, iterations)``, the most over the ranks of ``comm``."""
+    if comm.size == 1:
+        return counts
+    mine = np.array([[-1 if n is None else n, k] for n, k in counts], dtype=np.int64)
+    most = np.empty_like(mine)
+    comm.Allreduce(mine, most, op=MPI.MAX)
+    return [(None if n < 0 else int(n), int(k)) for n, k in most]
 
 
 def _sharded(run, target, inputs: dict, comm: MPI.Comm, batch: int | None):
@@ -151,7 +114,8 @@ def converged_caps(layer, *, rtol: float = 1e-8, **controls) -> ConvergedCaps:
     """What converged solves of ``controls`` (a Newton layer's keyword inputs, e.g. validation samples)
     need: the most Newton steps and the most inner iterations of a step (at least 1 each), Newton and
     the inner solve run to ``rtol`` (a direct inner solve as it is)."""
-    (steps, per_step), = converged_counts([layer], measure_call(layer, None, controls, "the converged caps"), rtol)
+    run = measure_call(as_target(layer), None, controls, "the converged caps")
+    (steps, per_step), = converged_counts([layer], run, rtol)
     return ConvergedCaps(max(steps, 1), max(per_step, 1))
 
 

@@ -34,23 +34,17 @@ from collections.abc import Callable
 import torch
 
 from fempdl.core.checks import check_int
-from fempdl.layer.newton_layer import NonlinearSolveLayer
+from fempdl.layer.cap_target import layers_target
 from fempdl.layer.reference import converged_options, routed, twin_of
-from fempdl.methods.k_eps import layers_of, left_as_is, measure_call
-from fempdl.methods.newton_caps import NewtonCaps
+from fempdl.methods.k_eps import left_as_is, measure_call
 from fempdl.solve.stats import SolverFailedError
 
-__all__ = ["k_start", "capped_target", "default_tolerance", "CONSISTENT_TOLERANCE", "IMPLICIT_TOLERANCE"]
+__all__ = ["k_start", "default_tolerance", "CONSISTENT_TOLERANCE", "IMPLICIT_TOLERANCE"]
 
 #: k0's relative error where the capped gradient is the derivative of the capped map (module docstring).
 CONSISTENT_TOLERANCE = 0.5
 #: k0's relative error where it is the implicit-function approximation at an unconverged state.
 IMPLICIT_TOLERANCE = 0.01
-
-
-def capped_target(target):
-    """What PRDP's K moves: a NonlinearSolveLayer's Newton cap is a NewtonCaps(layer, "newton")."""
-    return NewtonCaps(target, "newton") if isinstance(target, NonlinearSolveLayer) else target
 
 
 def default_tolerance(layers) -> float:
@@ -60,7 +54,7 @@ def default_tolerance(layers) -> float:
         if layer.diff == "unrolled":
             return True
         options = layer.options
-        return (not isinstance(layer, NonlinearSolveLayer) and options.ksp_type == "richardson"
+        return (not layer.counts_newton_steps and options.ksp_type == "richardson"
                 and options.pc_type == "jacobi" and not layer.problem.matrix_controls)
     return CONSISTENT_TOLERANCE if all(consistent(layer) for layer in layers) else IMPLICIT_TOLERANCE
 
@@ -86,11 +80,8 @@ def k_start(target, *, tolerance: float | None = None, k_max: int = 100_000, rto
     Example:
         ``ctrl = PRDP(layer, k0=k_start(layer, f=f_val), k_cap=k_eps(layer, f=f_val))``
     """
-    target = capped_target(target)
-    layers = layers_of(target)
-    if not layers:
-        raise TypeError(f"target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps (or a Rollout, or a "
-                        f"list of layers), got {type(target).__name__}")
+    target = layers_target(target)
+    layers = list(target.layers)
     run = measure_call(target, call, inputs, "k0")
     if tolerance is None:
         tolerance = default_tolerance(layers)
@@ -98,7 +89,7 @@ def k_start(target, *, tolerance: float | None = None, k_max: int = 100_000, rto
         raise ValueError(f"tolerance must be a relative error in (0, 1], got {tolerance!r}")
     check_int("k_max", k_max, minimum=1)
     for layer in layers:
-        if not isinstance(layer, NonlinearSolveLayer) and layer.options.direct:
+        if not layer.counts_newton_steps and layer.options.direct:
             raise ValueError(f"the layer solves directly (ksp_type={layer.options.ksp_type!r}): it has no "
                              "iteration cap to start")
     twins = [twin_of(layer, converged_options(layer, rtol)) for layer in layers]
@@ -109,7 +100,7 @@ def k_start(target, *, tolerance: float | None = None, k_max: int = 100_000, rto
                 reference = _tensors(run())
 
             def error(k: int) -> float:
-                target.max_it = k
+                target.set_k(k)
                 try:
                     return max(_relative_error(u, ref, comm) for u, ref in zip(_tensors(run()), reference))
                 except SolverFailedError:          # a capped solve that broke down is garbage too

@@ -22,11 +22,15 @@ Example:
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
+from collections.abc import Iterator
 
 from fempdl.core.checks import check_int
+from fempdl.layer.cap_target import CapTarget
 from fempdl.layer.newton_unrolled import check_unrolled_newton
+from fempdl.solve.caps import Caps
 
 __all__ = ["ConvergedCaps", "NewtonCaps", "REFINE"]
 
@@ -47,7 +51,8 @@ class ConvergedCaps:
 
 
 class NewtonCaps:
-    """A PRDP target moving the caps of Newton layers by one rule (module docstring).
+    """A PRDP target moving the caps of Newton layers by one rule (module docstring); a
+    :class:`~fempdl.layer.cap_target.CapTarget` itself.
 
     Args:
         layers: a :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` or a list of them.
@@ -61,7 +66,7 @@ class NewtonCaps:
 
     def __init__(self, layers, refine: str = "newton", *, inner_per_k: int = 1):
         self.layers = list(layers) if isinstance(layers, (list, tuple)) else [layers]
-        if not self.layers or not all(hasattr(layer, "inner_max_it") for layer in self.layers):
+        if not self.layers or not all(getattr(layer, "counts_newton_steps", False) for layer in self.layers):
             raise TypeError("NewtonCaps moves the caps of NonlinearSolveLayers; pass one or a list of them")
         if refine not in REFINE:
             raise ValueError(f"refine must be one of {list(REFINE)}, got {refine!r}")
@@ -85,23 +90,60 @@ class NewtonCaps:
         """The first layer's problem (PRDP reads its communicator)."""
         return self.layers[0].problem
 
+    def as_target(self) -> CapTarget:
+        return self
+
+    @property
+    def call(self):
+        """What keyword inputs are passed to: the one layer (None for several)."""
+        return self.layers[0] if len(self.layers) == 1 else None
+
+    @property
+    def counts_newton_steps(self) -> bool:
+        """Whether K caps the Newton steps (``"newton"``, ``"both"``) or only the inner solve."""
+        return self.refine in ("newton", "both")
+
+    @property
+    def k(self) -> int | None:
+        """The K last set (None before PRDP sets it)."""
+        return self._k
+
     @property
     def max_it(self) -> int | None:
-        """The K last set (None before PRDP sets it)."""
+        """The K last set (:attr:`k`); assigning sets K (:meth:`set_k`)."""
         return self._k
 
     @max_it.setter
     def max_it(self, k: int) -> None:
+        self.set_k(k)
+
+    def set_k(self, k: int) -> None:
+        """Move every layer's caps to K under the rule."""
         check_int("K", k, minimum=1)
         newton, inner = k, (k if self.refine == "inner" else self.inner_per_k * k)
         if self.refine == "both" and self.converged is not None:
             newton, inner = min(newton, self.converged.newton_steps), min(inner, self.converged.inner_iterations)
         for layer in self.layers:
-            if self.refine in ("newton", "both"):
-                layer.max_it = newton
-            if self.refine in ("inner", "both"):
-                layer.inner_max_it = inner
+            caps = layer.caps
+            layer.caps = Caps(newton if self.counts_newton_steps else caps.max_it,
+                              inner if self.refine in ("inner", "both") else caps.inner_max_it)
         self._k = k
+
+    @contextlib.contextmanager
+    def kept(self) -> Iterator[None]:
+        """Within the block the caps may move; K and every layer's caps are put back on exit."""
+        k, saved = self._k, [layer.caps for layer in self.layers]
+        try:
+            yield
+        finally:
+            for layer, caps in zip(self.layers, saved):
+                layer.caps = caps
+            self._k = k
+
+    def k_eps_from(self, counts: list) -> int:
+        """K_eps from converged counts ``[(newton_steps, inner_iterations), ...]``, recorded as ``converged``."""
+        self.converged = ConvergedCaps(max(1, max(n or 0 for n, _ in counts)), max(1, max(k for _, k in counts)))
+        return self.k_eps
 
     @property
     def k_eps(self) -> int:
@@ -115,10 +157,6 @@ class NewtonCaps:
         if self.refine == "inner":
             return per_step
         return max(steps, math.ceil(per_step / self.inner_per_k))
-
-    def caps(self) -> tuple:
-        """(Newton cap, inner cap) of the first layer."""
-        return self.layers[0].max_it, self.layers[0].inner_max_it
 
     def __repr__(self) -> str:
         extra = f", inner_per_k={self.inner_per_k}" if self.refine == "both" else ""

@@ -42,8 +42,9 @@ from collections.abc import Callable
 import torch
 
 from fempdl.core.ranks import Ranks, different_metrics_message, training_ranks
+from fempdl.layer.cap_target import CapTarget, as_target
 from fempdl.layer.reference import reference_physics
-from fempdl.methods.k_eps import k_eps, layers_of, targets_of
+from fempdl.methods.k_eps import k_eps
 from fempdl.methods.prdp_settings import SETTING_NAMES, PRDPRecord, PRDPSettings
 from fempdl.solve.health import HealthCheck
 
@@ -70,9 +71,10 @@ class PRDP:
     than ``gap`` (|capped - reference| / the smaller; module docstring).
 
     Args:
-        target: a layer (anything with a ``max_it`` attribute), a list of them,
-            a callable ``f(k)``, or ``None`` (read :attr:`k` yourself). Its cap is
-            set to ``k0`` at construction.
+        target: what K moves (:func:`fempdl.layer.cap_target.as_target`): a solve layer, a
+            :class:`~fempdl.methods.newton_caps.NewtonCaps`, a Rollout, an object with a ``max_it``
+            attribute, a list of them, a callable ``f(k)``, or ``None`` (read :attr:`k` yourself).
+            Its cap is set to ``k0`` at construction.
         settings: a :class:`PRDPSettings`, or none to give its fields as keywords:
         k0: the starting cap (>= 1).
         dk: increment per refinement (>= 1).
@@ -116,12 +118,11 @@ class PRDP:
         elif not isinstance(settings, PRDPSettings):
             raise TypeError(f"settings must be PRDPSettings, got {type(settings).__name__}")
         self.settings = settings
-        self._apply = _setter(target)
+        self._target = target = as_target(target)
         self._given_comm = comm
         self.comm = comm if comm is not None else _layers_comm(target)
         self.alpha = 2.0 / (settings.ema_window + 1.0)
         self.k = settings.k0
-        self._target = target
         self._k_cap = settings.k_cap
         self._warned = False
         self._gap_closed_at: tuple | None = None
@@ -131,8 +132,8 @@ class PRDP:
         #: Refinements for garbage solves between validations: dicts of the step (validations so far),
         #: the cap before and after and the residual ratio that asked for it.
         self.health_refinements: list[dict] = []
-        self._apply(self.k)
-        self._install_health(target)
+        target.set_k(self.k)
+        self._install_on(target)
 
     def __getattr__(self, name: str):
         if name in SETTING_NAMES and "settings" in self.__dict__:
@@ -151,14 +152,14 @@ class PRDP:
     @property
     def layers(self) -> list:
         """The solve layers whose caps PRDP moves."""
-        return layers_of(self._target)
+        return list(self._target.layers)
 
     def reference(self):
         """A context in which the layers PRDP moves solve at reference physics (converged; their
         ``reference_stats`` count it): ``with torch.no_grad(), ctrl.reference(): metric = ...``."""
         layers = self.layers
         if not layers:
-            raise TypeError(f"PRDP's target ({type(self._target).__name__}) moves no solve layers to run at reference "
+            raise TypeError("PRDP's target moves no solve layers to run at reference "
                             "physics; compute the metric with converged solves yourself and pass it as a number")
         return reference_physics(layers)
 
@@ -222,9 +223,14 @@ class PRDP:
             _log.info("PRDP: K %d -> %d (%s) at step %d, metric %.3e", k_used, self.k, cause,
                       len(self.history) - 1, metric)
         self._eval_calls = self._capped_eval_calls()
-        for layer in self.layers:
-            layer.prdp_steps = (len(self.history), metric, self.k_cap)
         return refine
+
+    @property
+    def steps_record(self) -> tuple:
+        """(steps, last metric, k_cap): what the ranks of a torch.distributed group must agree on, which the
+        layers PRDP moves read at each training call (:meth:`SystemLayer.moved_by
+        <fempdl.layer.system_layer.SystemLayer.moved_by>`)."""
+        return len(self.history), (self.history[-1].metric if self.history else None), self.k_cap
 
     def _run(self, validate: Callable, at_reference: bool) -> float:
         """The metric ``validate()`` computes, without gradients, at reference physics or at the caps."""
@@ -278,7 +284,7 @@ class PRDP:
     def _refine(self) -> None:
         k = max(self.k + self.dk, math.ceil(self.growth * self.k - 1e-9))
         self.k = k if self.k_cap is None else min(k, self.k_cap)
-        self._apply(self.k)
+        self._target.set_k(self.k)
 
     def refine_for_health(self, ratio: float) -> bool:
         """Refine K now, for a training call whose capped solves ended with residual ratio ``ratio``
@@ -292,9 +298,13 @@ class PRDP:
                   k_used, self.k, ratio, len(self.history))
         return True
 
-    def _install_health(self, target) -> None:
-        """Give the target's layers the health check (``health`` set), or take a previous one away."""
-        layers = layers_of(target)
+    def _install_on(self, target: CapTarget) -> None:
+        """Make this controller what moves the target's layers (:meth:`SystemLayer.moved_by
+        <fempdl.layer.system_layer.SystemLayer.moved_by>`), and give them the health check (``health`` set)
+        or take a previous one away."""
+        layers = target.layers
+        for layer in layers:
+            layer.moved_by(self)
         if self.health is None:
             for layer in layers:
                 layer.health = None
@@ -312,7 +322,7 @@ class PRDP:
 
     def _check_ranks_agree(self, metric: float) -> None:
         """Over an MPI communicator, now (its ranks step in lockstep). Over a torch.distributed group, at the
-        layers' next training call (:attr:`SystemLayer.prdp_steps <fempdl.layer.system_layer.SystemLayer>`):
+        layers' next training call (:attr:`steps_record`):
         validating and stepping on rank 0 alone is a common DDP pattern, and a collective here would wait
         for ranks that never come while they wait in DDP's all-reduce (a hang); a training call is
         collective under DDP anyway, so every rank gets the refusal there."""
@@ -348,39 +358,18 @@ class PRDP:
         self.checkpoint = state["checkpoint"]
         self.history = [PRDPRecord(**rec) for rec in state["history"]]
         self.health_refinements = [dict(event) for event in state.get("health_refinements", [])]
-        self._apply(self.k)
+        self._target.set_k(self.k)
 
     def __repr__(self) -> str:
         settings = ", ".join(f"{key}={value}" for key, value in dataclasses.asdict(self.settings).items())
         return f"PRDP(k={self.k}, {settings}, steps={len(self.history)})"
 
 
-def _layers_comm(target):
-    """The communicator of the first target layer's mesh (``None`` for other targets)."""
-    for t in targets_of(target):
-        problem = getattr(t, "problem", None)
-        if problem is not None:
-            return problem.V.mesh.comm
-    return None
+def _layers_comm(target: CapTarget):
+    """The communicator of the first target layer's mesh (``None`` for a target without layers)."""
+    return target.layers[0].problem.V.mesh.comm if target.layers else None
 
 
 def _cannot_refine(ratio: float) -> bool:
     """The health check of a controller that no longer exists."""
     return False
-
-
-def _setter(target) -> Callable[[int], None]:
-    if target is None:
-        return lambda k: None
-    if callable(target) and not hasattr(target, "max_it"):
-        return target
-    targets = targets_of(target)
-    for i, t in enumerate(targets):
-        if not hasattr(t, "max_it"):
-            raise TypeError(f"PRDP target {i} ({type(t).__name__}) has no max_it attribute; pass SolveLayers, "
-                            "a callable f(k), or None")
-
-    def apply(k: int) -> None:
-        for t in targets:
-            t.max_it = k
-    return apply

@@ -30,10 +30,9 @@ from collections.abc import Callable
 import torch
 
 from fempdl.core.checks import check_int
-from fempdl.layer.newton_layer import NonlinearSolveLayer
-from fempdl.methods.k_eps import caps_kept, k_eps, layers_of, left_as_is, measure_call
-from fempdl.methods.k_start import capped_target, k_start
-from fempdl.methods.newton_caps import NewtonCaps
+from fempdl.layer.cap_target import CapTarget, layers_target
+from fempdl.methods.k_eps import k_eps, left_as_is, measure_call
+from fempdl.methods.k_start import k_start
 
 __all__ = ["Preflight", "preflight"]
 
@@ -96,20 +95,15 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
     check_int("steps", steps, minimum=1)
     if not callable(step):
         raise TypeError(f"step must be a callable running one training step, got {type(step).__name__}")
-    target = capped_target(target)
-    layers = layers_of(target)
-    if not layers:
-        raise TypeError("target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps (or a Rollout, or a list "
-                        f"of layers), got {type(target).__name__}")
+    target = layers_target(target)
+    layers = list(target.layers)
     run = measure_call(target, call, inputs, "K_eps")
-    newton_cap = (target.refine in ("newton", "both") if isinstance(target, NewtonCaps)
-                  else any(isinstance(layer, NonlinearSolveLayer) for layer in layers))
-    parts = ("iterations", "setup", "assembly") if newton_cap else ("iterations",)
+    parts = ("iterations", "setup", "assembly") if target.counts_newton_steps else ("iterations",)
     k_cap = k_eps(target, rtol=rtol, call=run)
     k0 = min(k_start(target, tolerance=tolerance, rtol=rtol, k_max=k_cap, call=run), k_cap)
     cost_ratio = _solve_cost(target, run, k0, parts) / max(_solve_cost(target, run, k_cap, parts), 1)
-    with caps_kept(target):                     # the steps are real training: their counters stay
-        target.max_it = k_cap
+    with target.kept():                         # the steps are real training: their counters stay
+        target.set_k(k_cap)
         step()
         before = [_capped_seconds(layer.stats, parts) for layer in layers]
         t0 = time.perf_counter()
@@ -121,12 +115,12 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
                      cost_ratio=cost_ratio)
 
 
-def _solve_cost(target, run, k: int, parts: tuple) -> int:
+def _solve_cost(target: CapTarget, run, k: int, parts: tuple) -> int:
     """What ``run()`` ran with the target capped at ``k``: Newton steps where the cap moves them (each repeats
     assembly and set-up), else inner iterations (the target's caps and counters are put back)."""
-    layers = layers_of(target)
+    layers = target.layers
     with torch.no_grad(), left_as_is(target):
-        target.max_it = k
+        target.set_k(k)
         before = [_cost(layer.stats, parts) for layer in layers]
         run()
         return sum(_cost(layer.stats, parts) - b for layer, b in zip(layers, before))

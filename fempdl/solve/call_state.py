@@ -7,8 +7,8 @@ coefficient Function, or the cap (PRDP moves it). The adjoint must be that of
 the call that ran, so :class:`CallState` packs those values into one float64
 array at the forward and puts them back around the backward.
 
-Layout of a packed state (local to each rank): the backward's caps (``None``
-as -1), then every read input's values in :func:`read_inputs` order (a
+Layout of a packed state (local to each rank): the system's :class:`~fempdl.solve.caps.Caps`
+(``max_it``, ``inner_max_it``; ``None`` as -1), then every read input's values in :func:`read_inputs` order (a
 Function's whole local array, ghosts included; a Constant's value).
 """
 from __future__ import annotations
@@ -18,10 +18,12 @@ from contextlib import contextmanager
 import numpy as np
 
 from fempdl.solve.assembly import value_of
+from fempdl.solve.caps import Caps
 
 __all__ = ["CallState", "read_inputs"]
 
 _NO_CAP = -1.0
+_CAP_FIELDS = 2         # Caps.max_it, Caps.inner_max_it
 
 
 def read_inputs(problem) -> tuple:
@@ -40,23 +42,21 @@ def read_inputs(problem) -> tuple:
 
 
 class CallState:
-    """Packs and restores a problem's read inputs and a system's backward caps.
+    """Packs and restores a problem's read inputs and a system's caps (``system.caps``).
 
     Args:
         problem: the layer's Problem or NonlinearProblem.
-        caps: names of the system's attributes that set the caps its backward uses
-            (``("max_it",)`` for a linear system, ``("inner_max_it",)`` for a Newton one).
     """
 
-    def __init__(self, problem, caps: tuple):
+    def __init__(self, problem):
         self._inputs = read_inputs(problem)
-        self._caps = tuple(caps)
         self._sizes = [np.size(value_of(obj)) for obj in self._inputs]
-        self.size = len(self._caps) + sum(self._sizes)
+        self.size = _CAP_FIELDS + sum(self._sizes)
 
     def pack(self, system) -> np.ndarray:
         """The state the next solve of ``system`` reads, as one (size,) float64 array."""
-        caps = [_NO_CAP if getattr(system, c) is None else float(getattr(system, c)) for c in self._caps]
+        caps = system.caps
+        caps = [_NO_CAP if c is None else float(c) for c in (caps.max_it, caps.inner_max_it)]
         return np.concatenate([np.asarray(caps, dtype=np.float64),
                                *(np.asarray(value_of(obj), dtype=np.float64).ravel() for obj in self._inputs)])
 
@@ -81,11 +81,8 @@ class CallState:
             self._write(system, current)
 
     def _write(self, system, packed: np.ndarray) -> None:
-        for i, cap in enumerate(self._caps):
-            value = None if packed[i] == _NO_CAP else int(packed[i])
-            if getattr(system, cap) != value:
-                setattr(system, cap, value)
-        offset = len(self._caps)
+        system.caps = Caps(*(None if c == _NO_CAP else int(c) for c in packed[:_CAP_FIELDS]))   # sets what moved
+        offset = _CAP_FIELDS
         for obj, size in zip(self._inputs, self._sizes):
             values = packed[offset:offset + size]
             offset += size

@@ -2,9 +2,10 @@
 
 PRDP trains on capped solves because a coarse solve still points the right way.
 A capped solve whose residual grew, or stayed where it started, does not: the
-network would train on garbage until the validation metric noticed. A system
-whose ``call_health`` has a limit (a layer's :class:`HealthCheck` sets it)
-measures, for every capped forward solve of a call, the residual ratio
+network would train on garbage until the validation metric noticed. A solve
+handed a :class:`CallHealth` (``system.solve(..., health=CallHealth(limit))``,
+which a layer's :class:`HealthCheck` does) measures into it, for every capped
+forward solve of the call, the residual ratio
 
     rho = ||r_K|| / ||r_0||,   r = b - A x (linear), r = F(u) (Newton),
 
@@ -12,7 +13,7 @@ from the start x_0 (zero, or the warm start) to the K-th iterate, in the
 2-norm over every rank's owned DOFs, and keeps the largest over the call's
 samples (:attr:`CallHealth.ratio`). A solve that met a tolerance, or whose
 final residual lies within the round-off of the terms it sums
-(||r_K|| <= FLOOR_RESIDUAL eps (||A||_inf ||x_K|| + ||b||): a warm start at the
+(:func:`~fempdl.solve.round_off.round_off_floor`: a warm start at the
 solution), counts as healthy. The measure costs one matrix-vector product per
 capped sample (two from a warm start); a Newton solve has its residuals already.
 
@@ -26,14 +27,9 @@ import dataclasses
 import math
 from collections.abc import Callable
 
-import numpy as np
-from petsc4py import PETSc
+from fempdl.solve.round_off import round_off_floor
 
-from fempdl.solve.newton_stop import FLOOR_RESIDUAL
-
-__all__ = ["HealthCheck", "CallHealth", "round_off_floor"]
-
-_EPS = float(np.finfo(np.float64).eps)
+__all__ = ["HealthCheck", "CallHealth"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,14 +55,11 @@ class HealthCheck:
 
 class CallHealth:
     """The largest residual ratio rho of one call's capped forward solves (``ratio``; ``None``: none was
-    measured), for a health limit ``limit`` (``None``: measure nothing)."""
+    measured), for a health limit ``limit``. The caller makes one per call and hands it to the solve, which
+    adds each capped sample's residual norms."""
 
-    def __init__(self, limit: float | None = None):
+    def __init__(self, limit: float):
         self.limit, self.ratio = limit, None
-
-    @property
-    def measuring(self) -> bool:
-        return self.limit is not None
 
     def add(self, final: float, start: float, floor: Callable[[], float]) -> None:
         """One sample's residual norms; ``floor()``, the round-off level under which a final residual is a
@@ -91,9 +84,3 @@ class CallHealth:
         for final, start, x, b in zip(finals, starts, x_norms, b_norms):
             self.add(float(final), float(start), lambda x=x, b=b: floor(float(x), float(b)))
 
-
-def round_off_floor(A: PETSc.Mat | float, x_norm: float, b_norm: float = 0.0) -> float:
-    """The residual of an exact solution in floating point: FLOOR_RESIDUAL eps (||A||_inf ||x|| + ||b||)
-    (``A``: the matrix, or its infinity norm)."""
-    a_norm = A if isinstance(A, float) else A.norm(PETSc.NormType.INFINITY)
-    return FLOOR_RESIDUAL * _EPS * (a_norm * x_norm + b_norm)

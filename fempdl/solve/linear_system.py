@@ -33,10 +33,12 @@ from fempdl.core.problem import Problem
 from fempdl.solve import assembly
 from fempdl.solve.assembly import ControlValues, Timer
 from fempdl.solve.capped_solver import CappedSolver
+from fempdl.solve.caps import Caps
 from fempdl.solve.control_forms import ControlForms
-from fempdl.solve.health import CallHealth, round_off_floor
+from fempdl.solve.health import CallHealth
 from fempdl.solve.options import KSPOptions
 from fempdl.solve.petsc import petsc_to_scipy
+from fempdl.solve.round_off import round_off_floor
 from fempdl.solve.stats import CumulativeStats, record_batch
 
 __all__ = ["LinearSystem", "INITIAL_GUESS"]
@@ -84,9 +86,6 @@ class LinearSystem:
         # the system is freed as soon as its last owner drops it)
         self._forms = ControlForms(problem, self._b, functools.partial(Timer, self._solver.stats, "assembly_time"))
         self._kept_matrices = assembly.KeptMatrices(problem.matrix_controls)
-        #: The last call's residual ratios of capped forward solves, measured when its limit is set (a layer's
-        #: health check sets it: :mod:`fempdl.solve.health`).
-        self.call_health = CallHealth()
 
     # ------------------------------------------------------------ properties
     @property
@@ -102,12 +101,24 @@ class LinearSystem:
         self._solver.max_it = value
 
     @property
+    def caps(self) -> Caps:
+        """The solve's cap as a :class:`~fempdl.solve.caps.Caps` (a linear solve has no inner cap)."""
+        return Caps(self.max_it)
+
+    @caps.setter
+    def caps(self, caps: Caps) -> None:
+        if caps.inner_max_it is not None:
+            raise ValueError(f"a linear solve has one cap, max_it; got {caps}")
+        self.max_it = caps.max_it
+
+    @property
     def stats(self) -> CumulativeStats:
         return self._solver.stats
 
     # ----------------------------------------------------------------- solve
     def solve(self, controls: Mapping[str, np.ndarray], batch: int, shared=frozenset(),
-              initial_guess: np.ndarray | None = None, keep_matrices: bool = False) -> np.ndarray:
+              initial_guess: np.ndarray | None = None, keep_matrices: bool = False,
+              health: CallHealth | None = None) -> np.ndarray:
         """Forward solves for ``batch`` samples; returns U of shape (batch, n).
 
         ``shared`` names controls whose rows are all equal (one tensor for the
@@ -115,6 +126,7 @@ class LinearSystem:
         ``initial_guess`` (batch, n) warm-starts the iterations (a broadcast view is fine).
         ``keep_matrices``: keep copies of per-sample matrices for the adjoint of
         this call (it then copies them instead of assembling again).
+        ``health``: measure the residual ratio of each capped solve into it (:mod:`fempdl.solve.health`).
         """
         p = self.problem
         names = frozenset(controls)
@@ -124,8 +136,7 @@ class LinearSystem:
         use_batched = self._use_batched(batch, per_sample_matrix)
         U = np.empty((batch, p.output_size))
         kept = self._kept_matrices.start(controls, batch) if keep_matrices and per_sample_matrix else None
-        self.call_health = CallHealth(self.call_health.limit)
-        health = self.call_health.measuring and self.options.capped
+        health = health if self.options.capped else None      # a solve to its tolerances is healthy
         with ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             b_base = self._forms.base_rhs(names, ctl) if affine else None
@@ -153,12 +164,13 @@ class LinearSystem:
                 else:
                     if initial_guess is not None:
                         self._x.setArray(initial_guess[i])
-                    start = self._residual_norm() if health and initial_guess is not None else None
+                    start = self._residual_norm() if health is not None and initial_guess is not None else None
                     self._lag_preconditioner(per_sample_matrix and i > 0)
                     self._solver.solve(self._b, self._x, warm=initial_guess is not None)
                     U[i] = self._x.getArray(readonly=True)
-                    if health:            # from zero r_0 = b (its null-space part removed by the solve)
-                        self._add_health(self._residual_norm(), self._b.norm() if start is None else start)
+                    if health is not None:      # from zero r_0 = b (its null-space part removed by the solve)
+                        health.add(self._residual_norm(), self._b.norm() if start is None else start,
+                                   lambda: round_off_floor(self._A, self._x.norm(), self._b.norm()))
             self._lag_preconditioner(False)
         if use_batched:
             U = self._batched_forward(U, initial_guess, health)
@@ -172,16 +184,13 @@ class LinearSystem:
         self._rhs.aypx(-1.0, self._b)
         return self._rhs.norm()
 
-    def _add_health(self, final: float, start: float) -> None:
-        self.call_health.add(final, start, lambda: round_off_floor(self._A, self._x.norm(), self._b.norm()))
-
-    def _batched_forward(self, R: np.ndarray, initial_guess: np.ndarray | None, health: bool) -> np.ndarray:
-        """The forward solves of R's rows on the batched engine, their residual ratios measured if ``health``."""
+    def _batched_forward(self, R: np.ndarray, initial_guess: np.ndarray | None, health: CallHealth | None):
+        """The forward solves of R's rows on the batched engine, their residual ratios measured into ``health``."""
         X = self._batched_solve(R, "forward", initial_guess)
-        if health:
+        if health is not None:
             starts = R if initial_guess is None else R - self._batched.matmul(np.asarray(initial_guess))
             norms = [np.linalg.norm(M, axis=1) for M in (R - self._batched.matmul(X), starts, X, R)]
-            self.call_health.add_rows(*norms, lambda: self._A.norm(PETSc.NormType.INFINITY))
+            health.add_rows(*norms, lambda: self._A.norm(PETSc.NormType.INFINITY))
         return X
 
     def _direct_many(self, batch: int, per_sample_matrix: bool) -> bool:
@@ -309,7 +318,7 @@ class LinearSystem:
             return False  # e.g. the cap was lifted to max_it=None after construction
         if self.options.engine == "batched":
             return True
-        # Measured rules (scripts/bench_floor.py, scripts/bench_krylov.py), for both directions' solvers.
+        # Measured rules (benchmarks/bench_floor.py, benchmarks/bench_krylov.py), for both directions' solvers.
         return all(self._batched.faster_than_petsc(batch, opts.ksp_type)
                    for opts in (self.options, self.options.adjoint_options))
 

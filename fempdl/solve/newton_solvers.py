@@ -15,6 +15,7 @@ from petsc4py import PETSc
 
 from fempdl.solve.capped_solver import CappedSolver, set_interrupt_checks
 from fempdl.solve.newton_options import NewtonOptions
+from fempdl.solve.newton_stop import NewtonMode
 from fempdl.solve.petsc import create_ksp, destroy_ksp, set_norm_type, unique_prefix
 from fempdl.solve.snes import create_snes, destroy_snes
 
@@ -31,7 +32,7 @@ class NewtonSolvers:
             (``None``: J).
         callbacks: the SNES's (residual, jacobian, monitor); ``b`` its residual vector.
         stats: the cumulative stats the adjoint solves count in.
-        stop: a convergence test in place of PETSc's (``None``: exactly ``max_it`` steps).
+        mode: when the SNES stops (:class:`~fempdl.solve.newton_stop.NewtonMode`).
 
     Attributes:
         snes, ksp: the SNES and its inner KSP; ``adjoint``, ``exact_adjoint``: the capped solvers
@@ -40,10 +41,10 @@ class NewtonSolvers:
 
     def __init__(self, options: NewtonOptions, *, J: PETSc.Mat, dFdu: PETSc.Mat, P: PETSc.Mat | None,
                  callbacks: tuple[Callable, Callable, Callable], b: PETSc.Vec, comm, fields, stats,
-                 force_step: bool, stop: Callable | None):
+                 mode: NewtonMode):
         self._inner = options.ksp
         self.ksp = create_ksp(J, self._inner, unique_prefix("newton_ksp"), fields)
-        self.snes = create_snes(comm, options, self.ksp, *callbacks, b, J, force_step=force_step, stop=stop, P=P)
+        self.snes = create_snes(comm, options, self.ksp, *callbacks, b, J, mode=mode, P=P)
         set_interrupt_checks(self.ksp, self._inner)      # Ctrl-C within a long inner solve
         self.adjoint = CappedSolver(J, self._inner, fields=fields, preconditioner_matrix=P)
         self.adjoint.stats = stats

@@ -7,40 +7,75 @@ may lie below the floor (a neo-Hookean beam with E = 1e4 sits at 6e-11 against
 atol = 1e-12), so the solve ran to ``converged_max_it`` and failed. Here a step
 that is negligible beside the state (||du|| <= ``FLOOR_STEP`` ||u||), that did
 not reduce the residual (||F_k+1|| > ``FLOOR_STALL`` ||F_k||), and a residual
-within the round-off of the terms it sums (||F|| <= ``FLOOR_RESIDUAL`` eps
-||J||_inf ||u||: each entry of F = J u - f rounds to about eps |J| |u|) end
-the solve as converged (``CONVERGED_SNORM_RELATIVE``). Above the floor Newton's
+at the round-off floor (:func:`~fempdl.solve.round_off.round_off_floor` of J
+and u) end the solve as converged (``CONVERGED_SNORM_RELATIVE``). Above the floor Newton's
 quadratic phase shrinks the residual by far more than ``FLOOR_STALL``; and a
 singular J (a missing Dirichlet condition) also gives a tiny step that leaves
 the residual where it was, but far above that scale, so it still fails and
 says why. The floor's J norm is computed only when the first two hold.
 
-:class:`NewtonStop` is the SNES convergence test of every solve that stops at
-its tolerances: uncapped solves, and capped ones whose cap is a budget (under
-implicit differentiation, where the gradient at a converged state is exact).
-A capped solve differentiated as the N-step map (``diff="unrolled"``) keeps
-PETSc's test with zero tolerances: exactly N steps.
+:class:`NewtonMode` is the stop rule of a system's solves, chosen once from how a
+layer differentiates them (:meth:`NewtonMode.for_diff`): :class:`NewtonStop` is
+the SNES convergence test of every solve that stops at its tolerances: uncapped
+solves, and capped ones whose cap is a budget (under implicit differentiation,
+where the gradient at a converged state is exact). A capped solve differentiated
+as the N-step map (``diff="unrolled"``) keeps PETSc's test with zero tolerances:
+exactly N steps, and at least one even from a solution.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
-import numpy as np
 from petsc4py import PETSc
 
-__all__ = ["NewtonStop", "FLOOR_STEP", "FLOOR_STALL", "FLOOR_RESIDUAL"]
+from fempdl.solve.newton_options import NewtonOptions
+from fempdl.solve.round_off import round_off_floor
+
+__all__ = ["NewtonMode", "NewtonStop", "FLOOR_STEP", "FLOOR_STALL"]
 
 #: A Newton step this small relative to the state changes it by round-off (PETSc's default stol).
 FLOOR_STEP = 1e-8
 #: A step at the floor leaves the residual where it was; any step of Newton's quadratic phase above
 #: the floor divides it by far more than 1 / FLOOR_STALL.
 FLOOR_STALL = 0.5
-#: The residual's round-off, in units of eps ||J||_inf ||u||_2: room for the sum over entries and
-#: cancellation, and still orders of magnitude below a singular J's stuck residual.
-FLOOR_RESIDUAL = 1e4
-_EPS = float(np.finfo(np.float64).eps)
 
 _REASON = PETSc.SNES.ConvergedReason
+
+
+@dataclasses.dataclass(frozen=True)
+class NewtonMode:
+    """How a system's Newton solves stop, one value from the layer's ``diff`` (:meth:`for_diff`).
+
+    Attributes:
+        budget: a capped solve may stop at its tolerances before the cap (implicit gradients are
+            exact at a converged state); otherwise it runs exactly ``max_it`` steps.
+        force_step: take at least one step even from a solution (an unrolled derivative needs one:
+            the N-step map is not the identity near a solution).
+    """
+
+    budget: bool = False
+    force_step: bool = False
+
+    @classmethod
+    def for_diff(cls, diff: str) -> NewtonMode:
+        """The mode of a layer that differentiates its solves implicitly or unrolled."""
+        modes = {"implicit": cls(budget=True), "unrolled": cls(force_step=True)}
+        if diff not in modes:
+            raise ValueError(f"diff must be one of {list(modes)}, got {diff!r}")
+        return modes[diff]
+
+    def stops_at_tolerances(self, options: NewtonOptions) -> bool:
+        """Whether a solve under ``options`` stops at its tolerances (an uncapped one, or
+        one whose cap is a budget) rather than after exactly ``max_it`` steps."""
+        return not options.capped or self.budget
+
+    def convergence_test(self, options: NewtonOptions) -> NewtonStop | None:
+        """The SNES convergence test of a solve under ``options``: :class:`NewtonStop`, or ``None`` (PETSc's
+        test with the capped options' zero tolerances: exactly ``max_it`` steps)."""
+        if not self.stops_at_tolerances(options):
+            return None
+        return NewtonStop(options.rtol, options.atol, force_step=self.force_step)
 
 
 class NewtonStop:
@@ -64,7 +99,7 @@ class NewtonStop:
         elif its > 0 and fnorm <= self.rtol * self._first:
             reason = _REASON.CONVERGED_FNORM_RELATIVE
         elif (its > 0 and step_norm <= FLOOR_STEP * xnorm and fnorm > FLOOR_STALL * self._previous
-              and fnorm <= FLOOR_RESIDUAL * _EPS * snes.getJacobian()[0].norm(PETSc.NormType.INFINITY) * xnorm):
+              and fnorm <= round_off_floor(snes.getJacobian()[0], xnorm)):
             reason = _REASON.CONVERGED_SNORM_RELATIVE
         self._previous = fnorm
         return reason

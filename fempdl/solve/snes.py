@@ -18,6 +18,7 @@ import weakref
 from petsc4py import PETSc
 
 from fempdl.solve.newton_options import NewtonOptions
+from fempdl.solve.newton_stop import NewtonMode
 from fempdl.solve.options import MAX_PETSC_INT
 from fempdl.solve.petsc import unique_prefix
 
@@ -27,13 +28,14 @@ _OPTION_KEYS = ("snes_linesearch_type", "snes_linesearch_damping", "snes_diverge
 
 
 def create_snes(comm, options: NewtonOptions, ksp: PETSc.KSP, residual, jacobian, monitor,
-                b: PETSc.Vec, J: PETSc.Mat, force_step: bool = False, stop=None,
+                b: PETSc.Vec, J: PETSc.Mat, mode: NewtonMode,
                 P: PETSc.Mat | None = None) -> PETSc.SNES:
     """A SNES solving F(u) = 0 with ``residual(snes, x, b)`` into ``b``, ``jacobian(snes, x, J, P)``
     into ``J``, each step's linear solve by ``ksp``, and ``monitor(snes, its, fnorm)`` called per
-    step. ``force_step``: take at least one step even from a solution (an unrolled map needs one).
-    ``stop``: a convergence test ``stop(snes, its, (xnorm, step_norm, fnorm)) -> reason`` in place of
-    PETSc's (:class:`~fempdl.solve.newton_stop.NewtonStop`); SNES's own ``max_it`` still ends the solve.
+    step. ``mode`` (:class:`~fempdl.solve.newton_stop.NewtonMode`): whether to take at least one step
+    even from a solution (an unrolled map needs one), and the convergence test in place of PETSc's
+    (:class:`~fempdl.solve.newton_stop.NewtonStop`) of a solve that stops at its tolerances; SNES's own
+    ``max_it`` still ends the solve.
     ``P``: the matrix the inner preconditioner is set up on, when not ``J`` (``jacobian`` fills both)."""
     snes = PETSc.SNES().create(comm)
     prefix = unique_prefix("snes")
@@ -55,8 +57,9 @@ def create_snes(comm, options: NewtonOptions, ksp: PETSc.KSP, residual, jacobian
         snes.setDivergenceTolerance(getattr(PETSc, "UNLIMITED", -1.0))
     snes.setMaxFunctionEvaluations(MAX_PETSC_INT)
     snes.setMaxLinearSolveFailures(MAX_PETSC_INT if options.ksp.capped else 1)
-    snes.setForceIteration(force_step)
+    snes.setForceIteration(mode.force_step)
     snes.setMonitor(monitor)
+    stop = mode.convergence_test(options)
     if stop is not None:
         snes.setConvergenceTest(stop)
     return snes
