@@ -16,7 +16,7 @@ Measured in each venv:
   per sample) and ``lu`` (MUMPS); also the final values' digest, to show the
   stacks compute the same numbers.
 * ``solve_columns``: 32 right-hand sides through a MUMPS LU of the same
-  matrix, ``_dolfinx.solve_columns`` (one KSPMatSolve where petsc4py has it)
+  matrix, :func:`solve_columns` (one KSPMatSolve where petsc4py >= 3.19 has it)
   against one KSPSolve per column, ms (median of 5).
 * ``scenes``: ``fempdl run SCENE --k 8 --epochs E --no-baseline --threads 1``
   for ``heat-emulator-2d`` and ``burgers-emulator``: wall seconds of the
@@ -46,7 +46,7 @@ from petsc4py import PETSc
 
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
-from fempdl.core import _dolfinx, matrices
+from fempdl.core import matrices
 from fempdl.ksp_adjoint import KSPOptions
 
 import bench_common
@@ -87,6 +87,49 @@ def layer_timings(repeats: int) -> dict:
     return out
 
 
+def solve_columns(ksp: PETSc.KSP, B: np.ndarray) -> np.ndarray:
+    """Solve A X = B for every column of B with ``ksp`` (its operator A set up).
+
+    B is (owned rows, k), this rank's rows in the operator's row layout; returns
+    X of the same shape. Where petsc4py has ``KSP.matSolve`` (PETSc >= 3.19)
+    this is one KSPMatSolve: a direct solver then applies its factors to all
+    columns at once (MatMatSolve). Otherwise, one KSPSolve per column. Krylov
+    methods iterate each column either way (PETSc's KSPMatSolve loops them
+    unless the KSP is a block method).
+    """
+    B = np.asarray(B, dtype=PETSc.ScalarType)
+    if B.ndim != 2:
+        raise ValueError(f"B must be (owned rows, columns), got shape {B.shape}")
+    A = ksp.getOperators()[0]
+    (n_local, n_global), _ = A.getSizes()
+    if B.shape[0] != n_local:
+        raise ValueError(f"B must have the operator's {n_local} owned rows on this rank, got {B.shape[0]}")
+    k = B.shape[1]
+    comm = A.getComm()
+    if hasattr(ksp, "matSolve") and k > 0:
+        # Dense PETSc matrices store their local rows column by column (Fortran order).
+        rhs = PETSc.Mat().createDense(((n_local, n_global), (PETSc.DECIDE, k)),
+                                      array=np.asfortranarray(B).ravel(order="F"), comm=comm)
+        sol = PETSc.Mat().createDense(((n_local, n_global), (PETSc.DECIDE, k)), comm=comm)
+        try:
+            ksp.matSolve(rhs, sol)
+            return sol.getDenseArray(readonly=True).copy(order="C")
+        finally:
+            rhs.destroy()
+            sol.destroy()
+    X = np.empty_like(B)
+    b, x = A.createVecs()
+    try:
+        for j in range(k):
+            b.getArray()[:] = B[:, j]
+            ksp.solve(b, x)
+            X[:, j] = x.getArray(readonly=True)
+    finally:
+        b.destroy()
+        x.destroy()
+    return X
+
+
 def solve_columns_timings() -> dict:
     prob = forms.poisson.problem(mesh.load("lshape", MPI.COMM_SELF, h=0.01), controls=("f",))
     A = matrices.create_matrix(prob.a_form)
@@ -111,11 +154,11 @@ def solve_columns_timings() -> dict:
     def ms(fn) -> float:
         return 1e3 * timed(fn, repeats=5, statistic=STATISTIC).seconds
 
-    together, one_by_one = ms(lambda: _dolfinx.solve_columns(ksp, B)), ms(loop)
-    difference = float(np.abs(_dolfinx.solve_columns(ksp, B) - loop()).max())
+    together, one_by_one = ms(lambda: solve_columns(ksp, B)), ms(loop)
+    difference = float(np.abs(solve_columns(ksp, B) - loop()).max())
     for obj in (b, x, ksp, A):
         obj.destroy()
-    return {"dofs": int(B.shape[0]), "columns": int(B.shape[1]), "mat_solve": _dolfinx.HAS_MAT_SOLVE,
+    return {"dofs": int(B.shape[0]), "columns": int(B.shape[1]), "mat_solve": hasattr(ksp, "matSolve"),
             "solve_columns_ms": together, "column_loop_ms": one_by_one, "max_difference": difference}
 
 

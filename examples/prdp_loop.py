@@ -15,7 +15,7 @@ import torch
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.ksp_adjoint import KSPOptions
-from fempdl.methods.prdp import PRDP, k_eps
+from fempdl.prdp import PRDP, k_eps
 
 small = os.environ.get("FEMPDL_EXAMPLE_SMALL") == "1"
 problem = forms.heat.problem(mesh.load("lshape", h=0.2) if small else mesh.load("lshape"), controls=("u0",),

@@ -6,12 +6,15 @@ Public names, in one line::
     from fempdl import NonlinearProblem, NonlinearSolveLayer, NewtonOptions
 
 They load on first use, so ``import fempdl`` (and ``fempdl --help``) does not pay
-for DOLFINx and torch until a name needs them. The package's floors, bottom to
-top: ``core`` and ``forms`` (FEniCSx), ``solve`` (PETSc), ``iterative``
-(torch-only K-step maths), ``layer`` (the torch layers), ``methods`` (PRDP, SIP,
-HIG), ``app`` (scenes and the command). ``fempdl.ksp_adjoint``,
-``fempdl.bridge_torch`` and ``fempdl.prdp`` are the documented import paths:
-re-exports of those floors.
+for DOLFINx and torch until a name needs them.
+
+This module is the documented import path. So are its public submodules
+``fempdl.forms``, ``fempdl.mesh`` and ``fempdl.io``, and the design card's modules
+``fempdl.ksp_adjoint``, ``fempdl.bridge_torch`` and ``fempdl.prdp`` (re-exports of
+the same objects; each is an attribute of ``fempdl`` too). The packages below
+them are internal, and their module paths may move: ``core`` (FEniCSx),
+``solve`` (PETSc), ``iterative`` (torch-only K-step maths), ``layer`` (the torch
+layers), ``methods`` (PRDP, SIP, HIG) and ``app`` (scenes and the command).
 """
 import importlib
 import logging
@@ -20,7 +23,7 @@ import signal
 import threading
 
 # OpenMP threads (torch's, the BLAS's) that spin-wait between parallel regions
-# stall any other busy process on the same cores (scripts/bench_stall.py). The policy is read when the OpenMP
+# stall any other busy process on the same cores (benchmarks/bench_stall.py). The policy is read when the OpenMP
 # runtime loads, so it is set here, before anything that loads it; a value the
 # user set wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -56,15 +59,22 @@ _PUBLIC = {
     "CumulativeStats": "fempdl.solve.stats",
     "SolverFailedError": "fempdl.solve.stats",
     "SolverWarning": "fempdl.solve.stats",
+    "Caps": "fempdl.solve.caps",
     "PRDP": "fempdl.methods.prdp",
     "PRDPSettings": "fempdl.methods.prdp_settings",
+    "k_eps": "fempdl.methods.k_eps",
+    "newton_k_eps": "fempdl.methods.k_eps",
+    "k_start": "fempdl.methods.k_start",
+    "preflight": "fempdl.methods.preflight",
     "reference_physics": "fempdl.layer.reference",
     "NewtonCaps": "fempdl.methods.newton_caps",
+    "ConvergedCaps": "fempdl.methods.newton_caps",
     "PointObservation": "fempdl.layer.observation",
     "MassInner": "fempdl.layer.observation",
     "Rollout": "fempdl.layer.rollout",
 }
-_SUBMODULES = {"forms": "fempdl.forms", "mesh": "fempdl.mesh", "io": "fempdl.io"}
+_SUBMODULES = {"forms": "fempdl.forms", "mesh": "fempdl.mesh", "io": "fempdl.io",
+               "ksp_adjoint": "fempdl.ksp_adjoint", "bridge_torch": "fempdl.bridge_torch", "prdp": "fempdl.prdp"}
 
 __all__ = sorted(_PUBLIC) + sorted(_SUBMODULES) + ["__version__"]
 

@@ -68,5 +68,6 @@ def test_k_start_errors(heat, coarse_lshape):
         k_start(layer, tolerance=1e-3, k_max=2, u0=u0)
     with pytest.raises(ValueError, match="solves directly"):
         k_start(SolveLayer(prob, "lu"), u0=u0)
-    with pytest.raises(TypeError, match="target must be a SolveLayer, a NonlinearSolveLayer or a NewtonCaps"):
+    with pytest.raises(TypeError, match="target must be a SolveLayer, a NonlinearSolveLayer, a NewtonCaps, a "
+                                        "Rollout or a list of them"):
         k_start(object(), u0=u0)

@@ -87,3 +87,17 @@ def test_mesh_and_io_are_one_module_whichever_import_comes_first():
     for first in ("attribute", "module"):
         done = subprocess.run([sys.executable, "-c", code, first], capture_output=True, text=True, timeout=300)
         assert done.returncode == 0, done.stderr[-3000:]
+
+
+def test_the_card_modules_are_attributes_of_fempdl_in_a_fresh_interpreter():
+    """``import fempdl`` alone reaches the card's modules (``fempdl.ksp_adjoint.KSPOptions``) and every public
+    name, and each is the one object whichever path names it."""
+    code = ("import fempdl\n"
+            "assert fempdl.ksp_adjoint.KSPOptions is fempdl.KSPOptions\n"
+            "assert fempdl.bridge_torch.SolveLayer is fempdl.SolveLayer\n"
+            "assert fempdl.prdp.PRDP is fempdl.PRDP and fempdl.prdp.k_eps is fempdl.k_eps\n"
+            "assert fempdl.Caps(3).max_it == 3\n"
+            "missing = [name for name in fempdl.__all__ if getattr(fempdl, name, None) is None]\n"
+            "assert not missing, missing\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]

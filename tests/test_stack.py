@@ -10,7 +10,6 @@ import os
 
 from mpi4py import MPI
 import dolfinx
-import numpy as np
 import pytest
 from petsc4py import PETSc
 
@@ -26,10 +25,8 @@ def test_the_shim_names_the_stack_it_runs_on():
     assert _dolfinx.PETSC_VERSION == tuple(PETSc.Sys.getVersion())
     if _dolfinx.STACK == "debian":
         assert _dolfinx.DOLFINX_VERSION == (0, 5) and _dolfinx.PETSC_VERSION[:2] == (3, 18)
-        assert not _dolfinx.HAS_MAT_SOLVE
     else:
         assert _dolfinx.STACK == "current" and _dolfinx.DOLFINX_VERSION >= (0, 9)
-        assert _dolfinx.HAS_MAT_SOLVE == (_dolfinx.PETSC_VERSION >= (3, 19, 0))
 
 
 def test_the_mpi_launcher_belongs_to_the_mpi_mpi4py_loaded():
@@ -71,38 +68,6 @@ def test_cell_dofs_and_cell_diameters_have_one_row_per_cell(poisson):
     assert _dolfinx.cell_dofs(poisson.V).shape == (n_local + n_ghost, 3)      # P1 triangles
     h = _dolfinx.cell_diameters(msh)
     assert h.shape == (n_local,) and 0.02 < h.min() <= h.max() < 0.3        # mesh size 0.1
-
-
-@pytest.mark.parametrize("factor", ["mumps", "petsc"])
-def test_solve_columns_equals_one_solve_per_column(matrix, factor):
-    if factor == "petsc" and COMM.size > 1:
-        pytest.skip("PETSc's own LU is serial")
-    ksp = PETSc.KSP().create(COMM)
-    ksp.setOperators(matrix)
-    ksp.setType("preonly")
-    ksp.getPC().setType("lu")
-    ksp.getPC().setFactorSolverType(factor)
-    B = np.random.default_rng(COMM.rank).standard_normal((matrix.getLocalSize()[0], 5))
-    X = _dolfinx.solve_columns(ksp, B)
-    b, x = matrix.createVecs()
-    for j in range(B.shape[1]):
-        b.getArray()[:] = B[:, j]
-        ksp.solve(b, x)
-        np.testing.assert_allclose(X[:, j], x.getArray(), rtol=0, atol=1e-13 * np.abs(x.getArray()).max())
-    assert X.shape == B.shape and _dolfinx.solve_columns(ksp, B[:, :0]).shape == (B.shape[0], 0)
-    for obj in (b, x, ksp):
-        obj.destroy()
-
-
-def test_solve_columns_rejects_a_block_with_the_wrong_rows(matrix):
-    ksp = PETSc.KSP().create(COMM)
-    ksp.setOperators(matrix)
-    n = matrix.getLocalSize()[0]
-    with pytest.raises(ValueError, match=f"B must have the operator's {n} owned rows on this rank, got {n + 1}"):
-        _dolfinx.solve_columns(ksp, np.zeros((n + 1, 2)))
-    with pytest.raises(ValueError, match=r"B must be \(owned rows, columns\), got shape \(3,\)"):
-        _dolfinx.solve_columns(ksp, np.zeros(3))
-    ksp.destroy()
 
 
 def test_the_schur_preset_uses_hypre_only_where_petsc_has_it():

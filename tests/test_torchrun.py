@@ -57,8 +57,8 @@ def test_layers_refuse_training_at_drifted_caps(tmp_path):
     seen = [json.loads(Path(f"{out}.rank{r}.json").read_text()) for r in range(2)]
     assert seen[0]["rank0_alone"] > 0                    # a no-grad call on one rank does not wait for the other
     for rank in seen:
-        assert "train this SolveLayer at different caps ([5, 6], by rank)" in rank["layer"]
-        assert "NonlinearSolveLayer at different caps ([(4, None), (5, None)], by rank)" in rank["newton"]
+        assert "train this SolveLayer at different caps ([Caps(max_it=5), Caps(max_it=6)], by rank)" in rank["layer"]
+        assert "NonlinearSolveLayer at different caps ([Caps(max_it=4), Caps(max_it=5)], by rank)" in rank["newton"]
         assert rank["agreed"] == seen[0]["agreed"] > 0
     # rank 0's garbage solve refined both ranks' caps together (rank 1's own solves were healthy at K = 1)
     assert seen[0]["health_k"] == seen[1]["health_k"] > 1

@@ -5,10 +5,10 @@ DOLFINx >= 0.9 (tested: 0.11 with PETSc 3.25 from PyPI). Between them DOLFINx
 renamed or moved several calls used here (``FunctionSpace`` ->
 ``functionspace``, ``ufl.MixedElement`` -> ``basix.ufl.mixed_element``,
 ``gmshio`` -> ``gmsh`` and its return value, ``create_vector``'s argument,
-``BoundingBoxTree`` -> ``bb_tree``, adjacency lists -> 2D arrays), and petsc4py
-gained ``KSP.matSolve``. Each difference is decided once here, by what the
-installed package offers; everything else in fempdl calls these functions, so
-no other module asks for a version.
+``BoundingBoxTree`` -> ``bb_tree``, adjacency lists -> 2D arrays). Each
+difference is decided once here, by what the installed package offers;
+everything else in fempdl calls these functions, so no other module asks for a
+version.
 
 Debian's 0.5.2 ``gmshio.read_from_msh`` is broken, so .msh files are read
 through ``model_to_mesh`` on both stacks.
@@ -49,9 +49,6 @@ DOLFINX_VERSION: tuple[int, int] = tuple(int(p) for p in dolfinx.__version__.spl
 PETSC_VERSION: tuple[int, int, int] = tuple(PETSc.Sys.getVersion())
 #: The stack's name: "debian" (DOLFINx 0.5) or "current" (DOLFINx >= 0.9).
 STACK = "debian" if DOLFINX_VERSION < (0, 9) else "current"
-
-#: ``KSP.matSolve`` (one call for many right-hand sides) is in petsc4py >= 3.19.
-HAS_MAT_SOLVE = hasattr(PETSc.KSP, "matSolve")
 
 
 def mpi_launcher() -> list[str]:
@@ -360,46 +357,3 @@ def point_evaluator(msh, points: np.ndarray):
             found.append(i)
             cells.append(links[0])
     return np.asarray(found, dtype=np.int64), np.asarray(cells, dtype=np.int32)
-
-
-def solve_columns(ksp: PETSc.KSP, B: np.ndarray) -> np.ndarray:
-    """Solve A X = B for every column of B with ``ksp`` (its operator A set up).
-
-    B is (owned rows, k), this rank's rows in the operator's row layout; returns
-    X of the same shape. Where petsc4py has ``KSP.matSolve`` (PETSc >= 3.19)
-    this is one KSPMatSolve: a direct solver then applies its factors to all
-    columns at once (MatMatSolve). Otherwise, one KSPSolve per column. Krylov
-    methods iterate each column either way (PETSc's KSPMatSolve loops them
-    unless the KSP is a block method).
-    """
-    B = np.asarray(B, dtype=PETSc.ScalarType)
-    if B.ndim != 2:
-        raise ValueError(f"B must be (owned rows, columns), got shape {B.shape}")
-    A = ksp.getOperators()[0]
-    (n_local, n_global), _ = A.getSizes()
-    if B.shape[0] != n_local:
-        raise ValueError(f"B must have the operator's {n_local} owned rows on this rank, got {B.shape[0]}")
-    k = B.shape[1]
-    comm = A.getComm()
-    if HAS_MAT_SOLVE and k > 0:
-        # Dense PETSc matrices store their local rows column by column (Fortran order).
-        rhs = PETSc.Mat().createDense(((n_local, n_global), (PETSc.DECIDE, k)),
-                                      array=np.asfortranarray(B).ravel(order="F"), comm=comm)
-        sol = PETSc.Mat().createDense(((n_local, n_global), (PETSc.DECIDE, k)), comm=comm)
-        try:
-            ksp.matSolve(rhs, sol)
-            return sol.getDenseArray(readonly=True).copy(order="C")
-        finally:
-            rhs.destroy()
-            sol.destroy()
-    X = np.empty_like(B)
-    b, x = A.createVecs()
-    try:
-        for j in range(k):
-            b.getArray()[:] = B[:, j]
-            ksp.solve(b, x)
-            X[:, j] = x.getArray(readonly=True)
-    finally:
-        b.destroy()
-        x.destroy()
-    return X
