@@ -156,10 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     """Parse ``argv`` (default: the command line) and run the command; returns the exit code."""
     args = build_parser().parse_args(argv)
-    # Imported once the arguments are parsed, so that --help and argument errors answer
-    # without loading MPI, DOLFINx and torch (seconds).
-    from fempdl.app import commands
-    return commands.execute(args)
+    # Imported once the arguments are parsed, so that --help and argument errors answer without
+    # loading MPI, DOLFINx and torch (seconds): commands.py, in cli's room, imports them all.
+    from fempdl.app.commands import execute
+    return execute(args)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,10 @@
 """What the ``fempdl`` command does once its arguments are parsed (:mod:`fempdl.app.cli`): load the
 scene, lock the output directory, train the runs, print and write the reports.
 
+The scene is resolved once, into a :class:`~fempdl.app.runs.plan.ScenePlan` (its task looked up, the
+caps of the command's runs checked before anything is written, the parallel mode checked), and every
+run of the command trains from that plan.
+
 The command records in its output directory what it trains there (command, mode, K, baseline;
 :func:`fempdl.app.runs.files.record_command`): a ``--resume`` asking for other runs is refused,
 naming what differs, instead of quietly starting them beside the ones it would continue."""
@@ -18,8 +22,8 @@ from fempdl.app import scene
 from fempdl.app.reports import compare, tradeoff
 from fempdl.app.runs import files, rundir, runner
 from fempdl.app.runs.checkpoints import CheckpointError, remove_stale_temporaries
+from fempdl.app.runs.plan import ScenePlan
 from fempdl.app.runs.settings import RunSettings
-from fempdl.app.tasks import spec_of
 from fempdl.core import parallel
 from fempdl.solve.stats import SolverFailedError
 
@@ -102,23 +106,24 @@ def _load_and_run(args) -> int:
         return 2
     if error is not None:
         raise error
-    refusal = _ranks_refusal(args, sc, MPI.COMM_WORLD.size)
+    if args.epochs is not None:
+        sc = dataclasses.replace(sc, optimizer=dataclasses.replace(sc.optimizer, epochs=args.epochs))
+    plan = ScenePlan.of(sc)             # the scene's task looked up once, for the whole command
+    refusal = _ranks_refusal(args, plan, MPI.COMM_WORLD.size)
     if refusal is not None:
         if MPI.COMM_WORLD.rank == 0:
             print(f"fempdl: {refusal}", file=sys.stderr)
         return 2
-    if args.epochs is not None:
-        sc = dataclasses.replace(sc, optimizer=dataclasses.replace(sc.optimizer, epochs=args.epochs))
-    _check_caps(args, sc)
-    out = _output_directory(args, sc)
+    plan = _plan_caps(args, plan)
+    out = _output_directory(args, plan)
     # The whole command holds the lock: a second command on the same --out is refused,
     # not only a second run in one of its subdirectories.
     with rundir.RunLock(out) if MPI.COMM_WORLD.rank == 0 else contextlib.nullcontext():
         if MPI.COMM_WORLD.rank == 0:
             remove_stale_temporaries(out)       # of reports a killed command was writing
-            files.record_command(out, _command_record(args, sc))
+            files.record_command(out, _command_record(args, plan))
         try:
-            return _command(args, sc, out)
+            return _command(args, plan, out)
         except KeyboardInterrupt as err:
             raise _Interrupted(out) from err
 
@@ -164,61 +169,58 @@ def _library_log(every: int | None, rank: int):
         logger.propagate = propagate
 
 
-def _ranks_refusal(args, sc, ranks: int) -> str | None:
-    """Why the command cannot run ``sc`` on ``ranks`` processes as asked (None if it can): without a
-    ``--parallel`` mode every rank would train the same runs and write the same files."""
+def _ranks_refusal(args, plan: ScenePlan, ranks: int) -> str | None:
+    """Why the command cannot run the plan's scene on ``ranks`` processes as asked (None if it can):
+    without a ``--parallel`` mode every rank would train the same runs and write the same files."""
     if ranks == 1 or getattr(args, "parallel", None) is not None:
         return None
-    modes = spec_of(sc.task).parallel
-    if not modes:           # sip and hig scenes: check_parallel says why they train on one process
-        try:
-            runner.check_parallel(sc, "data")
-        except ValueError as err:
-            return str(err)
-    one_run = f"`fempdl run {sc.name} --parallel {'|'.join(modes)}`"
+    modes = plan.spec.parallel
+    if not modes:           # sip and hig scenes: the plan says why they train on one process
+        return plan.parallel_refusal("data")
+    one_run = f"`fempdl run {plan.name} --parallel {'|'.join(modes)}`"
     if args.command == "run":
         return f"running on {ranks} ranks needs a mode: {one_run}"
     return (f"`fempdl {args.command}` trains its runs on one process; run it without mpirun (one run on "
             f"{ranks} ranks: {one_run})")
 
 
-def _check_caps(args, sc) -> None:
-    """Refuse the caps of the command's runs (--k, --ks, [prdp] k0 and k_cap) that no solve could take
-    before anything is written or trained: such a cap used to be refused only when its own run began,
-    after the baseline had trained."""
-    if spec_of(sc.task).trains != "cap" or args.command not in ("run", "tradeoff"):
-        return          # `fempdl compare` on such a scene is refused as it is
-    fixed = [("--k", args.k)] if args.command == "run" and args.k else [("--ks", k) for k in
-                                                                       getattr(args, "ks", None) or ()]
-    for name, k in fixed:
-        runner.check_caps(sc, "fixed", k, name)
-    if args.command == "tradeoff" or not (args.k or args.converged):
-        runner.check_caps(sc, "prdp")
+def _plan_caps(args, plan: ScenePlan) -> ScenePlan:
+    """The plan with the caps of the command's runs checked (the converged baseline; --k or --ks, and
+    PRDP's [prdp] k0 and k_cap), so that a cap no solve could take is refused before anything is
+    written or trained: it used to be refused only when its own run began, after the baseline had
+    trained. The runs take their caps from the plan; nothing checks them again."""
+    if plan.trains_methods or args.command not in ("run", "tradeoff"):
+        return plan     # `fempdl compare` on a solver-cap scene is refused as it is
+    baseline = [("converged", None)] if args.command == "tradeoff" or args.converged or not args.no_baseline else []
+    fixed = [("fixed", args.k, "--k")] if args.command == "run" and args.k else [("fixed", k, "--ks") for k in
+                                                                                getattr(args, "ks", None) or ()]
+    prdp = [("prdp", None)] if args.command == "tradeoff" or not (args.k or args.converged) else []
+    return plan.with_caps(*fixed, *prdp, *baseline)
 
 
-def _output_directory(args, sc) -> Path:
+def _output_directory(args, plan: ScenePlan) -> Path:
     """--out, or runs/<scene name>[/tradeoff|/compare]; refused (RunDirectoryError) when it holds a run
     that neither --resume nor --overwrite says what to do with, or files of the user's without --overwrite
     (:func:`fempdl.app.runs.rundir.check_output_directory`)."""
-    default = rundir.child(Path("runs"), sc.name, "scene name")
+    default = rundir.child(Path("runs"), plan.name, "scene name")
     out = args.out or {"run": default, "tradeoff": default / "tradeoff", "compare": default / "compare"}[args.command]
     resume = getattr(args, "resume", False)
     if resume and args.overwrite:
         raise rundir.RunDirectoryError("--resume and --overwrite contradict each other: give one")
     rundir.check_output_directory(out, resume=resume, overwrite=args.overwrite)
     earlier = files.command_of(out) if resume and rundir.holds_run(out) else None
-    refusal = None if earlier is None else _resume_refusal(out, earlier, _command_record(args, sc))
+    refusal = None if earlier is None else _resume_refusal(out, earlier, _command_record(args, plan))
     if refusal is not None:
         raise rundir.RunDirectoryError(refusal)
     return out
 
 
-def _command_record(args, sc) -> dict:
+def _command_record(args, plan: ScenePlan) -> dict:
     """What the command trains into its output directory, which a --resume must ask for again."""
     if args.command != "run":
         return {"command": args.command}
     baseline = args.converged or not args.no_baseline
-    if spec_of(sc.task).trains == "method":
+    if plan.trains_methods:
         return {"command": "run", "baseline": baseline}
     mode = "converged" if args.converged else "fixed" if args.k else "prdp"
     return {"command": "run", "mode": mode, "k": args.k, "baseline": baseline}
@@ -259,19 +261,19 @@ def _command_line(record: dict) -> str:
     return " ".join(parts + ["--resume"])
 
 
-def _command(args, sc, out: Path) -> int:
-    """The run, tradeoff or compare command of a loaded scene, into ``out``."""
+def _command(args, plan: ScenePlan, out: Path) -> int:
+    """The run, tradeoff or compare command of a planned scene, into ``out``."""
     progress = not args.no_progress and sys.stderr.isatty()
-    method_scene = spec_of(sc.task).trains == "method"
-    if (args.command == "compare") != method_scene and args.command != "run":
-        use = "fempdl compare" if method_scene else "fempdl tradeoff"
+    sc = plan.scene
+    if (args.command == "compare") != plan.trains_methods and args.command != "run":
+        use = "fempdl compare" if plan.trains_methods else "fempdl tradeoff"
         print(f"fempdl: `fempdl {args.command}` does not apply to the {sc.task} scene {sc.name!r}; use `{use}`",
               file=sys.stderr)
         return 2
-    if method_scene:
-        return _methods(args, sc, progress, out)
+    if plan.trains_methods:
+        return _methods(args, plan, progress, out)
     if args.command == "tradeoff":
-        runs = tradeoff.sweep(sc, ks=args.ks, out_dir=out, progress=progress, overwrite=args.overwrite)
+        runs = tradeoff.sweep(plan, ks=args.ks, out_dir=out, progress=progress, overwrite=args.overwrite)
         split = tradeoff.savings(runs, stop_at=sc.optimizer.stop_at, refine=sc.solver.refine)
         paths = tradeoff.write_report(sc, runs, split, out)
         print(tradeoff.comparison_table(runs))
@@ -280,11 +282,11 @@ def _command(args, sc, out: Path) -> int:
         return 0
 
     try:
-        runner.check_parallel(sc, args.parallel)
+        plan = plan.in_parallel(args.parallel)
     except ValueError as err:
         print(f"fempdl: {err}", file=sys.stderr)
         return 2
-    if args.save_fields and not spec_of(sc.task).writes_fields:
+    if args.save_fields and not plan.spec.writes_fields:
         print(f"fempdl: --save-fields writes the fields of {' and '.join(runner.field_tasks())} scenes; "
               f"{sc.name!r} is of task {sc.task!r}", file=sys.stderr)
         return 2
@@ -293,14 +295,13 @@ def _command(args, sc, out: Path) -> int:
     common = RunSettings(progress=progress, parallel=args.parallel, seed=args.seed, save=args.save_fields,
                          tensorboard=args.tensorboard)
     if not args.no_baseline or args.converged:
-        baseline = runner.run(sc, "converged", None, common, out_dir=out / "converged",
-                              **_run_files(args, out / "converged"))
+        baseline = runner.train(plan, plan.caps("converged"), common, out_dir=out / "converged",
+                                **_run_files(args, out / "converged"))
+        plan = plan.measured(baseline.k_eps, baseline.converged_caps)      # the next run takes them
     if not args.converged:
         mode, k, label = ("fixed", args.k, f"K={args.k}") if args.k else ("prdp", None, "PRDP")
         sub = out / (f"k{args.k}" if args.k else "prdp")
-        runs[label] = runner.run(sc, mode, k, common, out_dir=sub, **_run_files(args, sub),
-                                 k_eps_value=None if baseline is None else baseline.k_eps,
-                                 converged_caps=None if baseline is None else baseline.converged_caps)
+        runs[label] = runner.train(plan, plan.caps(mode, k), common, out_dir=sub, **_run_files(args, sub))
     if baseline is not None:
         runs[f"K_eps={baseline.k_eps}"] = baseline
     if MPI.COMM_WORLD.rank == 0:
@@ -316,8 +317,9 @@ def _command(args, sc, out: Path) -> int:
     return 0
 
 
-def _methods(args, sc, progress: bool, out: Path) -> int:
+def _methods(args, plan: ScenePlan, progress: bool, out: Path) -> int:
     """`fempdl run` and `fempdl compare` on a sip or hig scene: its method and Adam with backpropagation."""
+    sc = plan.scene
     if args.command == "run":
         if args.save_fields:
             print(f"fempdl: --save-fields writes the fields of PRDP scenes; the {sc.task} scene {sc.name!r} "
@@ -329,13 +331,13 @@ def _methods(args, sc, progress: bool, out: Path) -> int:
             return 2
         names = [sc.task] + ([] if args.no_baseline else [compare.BASELINE])
         common = RunSettings(progress=progress, tensorboard=args.tensorboard)
-        runs = {name: runner.run_method(sc, name, common, out_dir=out / name, **_run_files(args, out / name))
+        runs = {name: runner.train_method(plan, name, common, out_dir=out / name, **_run_files(args, out / name))
                 for name in names}
         print(f"scene {sc.name}: {sc.description}")
         print(compare.table(sc, runs))
         print(f"metrics and checkpoints in {out}")
         return 0
-    runs, split, paths = compare.compare_and_report(sc, out, equal_time=not args.equal_iterations_only,
+    runs, split, paths = compare.compare_and_report(plan, out, equal_time=not args.equal_iterations_only,
                                                     resume=args.resume, progress=progress,
                                                     overwrite=args.overwrite)
     print(f"scene {sc.name}: {sc.description}")

@@ -17,14 +17,18 @@ from typing import Any
 from fempdl.methods.newton_caps import REFINE
 from fempdl.methods.prdp_settings import PRDPSettings
 
-__all__ = ["Scene", "SceneError", "Spec", "TaskSpec", "SECTIONS", "PDE_UNUSED", "NONLINEAR_PDES", "REQUIRED",
-           "SEED_MAX", "POSITIVE", "specs", "check_slug",
+__all__ = ["Scene", "SceneError", "Spec", "TaskSpec", "SECTIONS", "PDE_UNUSED", "NONLINEAR_PDES", "PARALLEL_MODES",
+           "REQUIRED", "SEED_MAX", "POSITIVE", "specs", "check_slug",
            "SceneSection", "MeshConfig", "PdeConfig", "DataConfig", "NetworkConfig", "InverseConfig", "SipConfig",
            "MarkerConfig", "HigConfig", "BaselineConfig", "HybridConfig", "OptimizerConfig", "SolverConfig",
            "PRDPSettings"]
 
 #: The PDE types solved by Newton (a NonlinearSolveLayer): [pde] alpha and [solver] refine apply to them.
 NONLINEAR_PDES = ("nonlinear-heat", "nonlinear-poisson")
+
+#: The ways a task may train on several ranks (``--parallel``): ``"data"`` spreads every batch over
+#: them, ``"mesh"`` distributes the mesh.
+PARALLEL_MODES = ("data", "mesh")
 
 #: The largest seed of a scene or run, as of the command's --seed: TOML's largest integer (a signed
 #: 64-bit one); torch's generators fail beyond 2^64 - 1 ("Overflow when unpacking long long").
@@ -318,7 +322,7 @@ class TaskSpec:
 
     def __post_init__(self):
         unknown = sorted((set(self.required) | set(self.optional) | set(self.unused)) - set(SECTIONS))
-        if unknown or self.trains not in ("cap", "method") or set(self.parallel) - {"data", "mesh"}:
+        if unknown or self.trains not in ("cap", "method") or set(self.parallel) - set(PARALLEL_MODES):
             raise ValueError(f"task {self.name!r} declares unknown sections {unknown}, trains={self.trains!r} "
                              f"or parallel={self.parallel!r}")
 

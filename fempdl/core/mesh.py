@@ -244,7 +244,7 @@ def _load_bundled(name: str, comm, h, rank, gdim, max_cells: int = DEFAULT_MAX_C
         with importlib.resources.as_file(resource) as path:
             if not path.is_file():
                 raise FileNotFoundError(f"bundled mesh file {str(path)!r} is missing; regenerate it "
-                                        "with `python scripts/regenerate_meshes.py` or reinstall fempdl")
+                                        "with `python tools/regenerate_meshes.py` or reinstall fempdl")
             mesh, cell_tags, facet_tags = _read_msh(path, comm, rank, bundled_gdim)
     return TaggedMesh(mesh, cell_tags, facet_tags, name, meshgen.FACET_TAGS[name])
 

@@ -21,7 +21,7 @@ Every cell has tag ``CELL_TAG``; every exterior facet one tag of
 exactly one facet tag; interior facets carry none.
 
 Cell and DOF counts per h are in docs/meshes.md. Regenerate the committed files with
-``python scripts/regenerate_meshes.py`` (options ``--out DIR``, ``--name NAME``, ``--h H``). Meshing runs
+``python tools/regenerate_meshes.py`` (options ``--out DIR``, ``--name NAME``, ``--h H``). Meshing runs
 on one thread with the user's gmsh configuration files ignored, so the output is reproducible for a
 given gmsh version.
 """

@@ -10,7 +10,7 @@ For B right-hand sides stacked as the columns of R (n, B), K iterations of
 KSPRICHARDSON + PCJACOBI computes column by column. The engine runs the
 second form: one fused sparse product per iteration that reads X and c and
 writes the next iterate, the least memory traffic a Jacobi sweep can have
-(``scripts/bench_floor.py``); the iterates agree with PETSc's to round-off. CG and GMRES(m) run
+(``benchmarks/bench_floor.py``); the iterates agree with PETSc's to round-off. CG and GMRES(m) run
 the recurrences of PETSc's KSPCG and KSPGMRES (classical Gram-Schmidt, as
 :mod:`fempdl.iterative.unrolled`) in place and without autograd
 (:mod:`fempdl.iterative.batched_cg`, :func:`fast_gmres`): whole-block operations, no loop over
@@ -20,8 +20,8 @@ diagonal entry by 1, and so does this engine.
 
 The operator is a torch CSR copy of the assembled PETSc matrix (serial only,
 int32 indices), refreshed when the matrix is reassembled. When batching pays
-is :meth:`BatchedEngine.faster_than_petsc` (measured: ``scripts/bench_floor.py``,
-``scripts/bench_krylov.py``).
+is :meth:`BatchedEngine.faster_than_petsc` (measured: ``benchmarks/bench_floor.py``,
+``benchmarks/bench_krylov.py``).
 
 This module knows PETSc and torch, nothing of UFL.
 """

@@ -7,7 +7,7 @@ omega, X <- X + omega P (R - A X), is the sweep X <- c + M X with
 
 One fused sparse product per sweep (read X and c, write the next iterate into a
 second buffer) is the least memory traffic such a sweep can have
-(``scripts/bench_floor.py``). Columns run in groups of about :data:`fempdl.core.tuning.SWEEP_GROUP`
+(``benchmarks/bench_floor.py``). Columns run in groups of about :data:`fempdl.core.tuning.SWEEP_GROUP`
 per thread so that a group's iterates stay in cache, and small products run on
 one torch thread (waking a second one per product costs more than it saves).
 """

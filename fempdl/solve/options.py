@@ -55,7 +55,7 @@ PRIVATE_PREFIX = "fempdl_"
 _PREFIX = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 ENGINES = ("auto", "petsc", "batched")
 ADJOINT_OPERATORS = ("auto", "transpose", "assembled")
-# Preconditioners whose transpose is missing or wrong (scripts/bench_pc_transpose.py):
+# Preconditioners whose transpose is missing or wrong (benchmarks/bench_pc_transpose.py):
 # PETSc 3.18's fieldsplit transpose falls back silently (error 0.56 on the DFG
 # channel) and its hypre one returns a wrong answer; 3.25 transposes a Schur
 # fieldsplit but not LSC inside it (an error), and neither has one for SOR.
@@ -293,7 +293,7 @@ class KSPOptions:
         by the least-squares commutator (PCLSC, its B B^T solve by hypre
         BoomerAMG, or by MUMPS where PETSc has no hypre); for saddle-point problems with fields ``"u"`` and ``"p"``,
         the Stokes and Oseen forms, whose iteration counts stay flat down to
-        small viscosities where "selfp" does not: scripts/bench_flow.py),
+        small viscosities where "selfp" does not: benchmarks/bench_flow.py),
         ``"lu"`` (direct; MUMPS, which pivots through
         the zero pressure block of a saddle point), ``"cholesky"`` (direct, for
         problems declared symmetric: PETSc's own Cholesky on one process, about

@@ -26,6 +26,7 @@ from fempdl.app import tasks
 from fempdl.app.reports.tradeoff import write_figure
 from fempdl.app.runs import rundir, runner
 from fempdl.app.runs.files import write_recorded
+from fempdl.app.runs.plan import ScenePlan
 from fempdl.app.runs.runner import RunResult
 from fempdl.app.runs.settings import RunSettings
 from fempdl.app.schema import Scene
@@ -35,16 +36,18 @@ __all__ = ["compare", "compare_and_report", "summary", "summary_lines", "table",
 BASELINE = "backprop"
 
 
-def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_time: bool = True,
+def compare(scene: Scene | ScenePlan, out_dir: Path, *, epochs: int | None = None, equal_time: bool = True,
             max_factor: int = 20, resume: bool = False, progress: bool = False,
             overwrite: bool = False) -> dict[str, RunResult]:
-    """Train the scene's method and the baseline (module docstring); runs keyed by method.
+    """Train the scene's method and the baseline (module docstring); runs keyed by method. ``scene``
+    may be its plan (:class:`~fempdl.app.runs.plan.ScenePlan`).
 
     Each run keeps its metrics and checkpoint under ``out_dir``/<method>;
     ``resume`` continues runs that have a checkpoint fempdl wrote and starts the others afresh
     (replacing only files fempdl wrote there); ``overwrite`` replaces the runs' files."""
     out_dir = Path(out_dir)
-    method = tasks.method_of(scene)
+    plan = ScenePlan.resolve(scene)
+    method = tasks.method_of(plan.scene)
 
     common = RunSettings(progress=progress)
 
@@ -52,7 +55,7 @@ def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_tim
         sub = out_dir / name
         again = resume and rundir.can_resume(sub)
         anew = not again and (overwrite or (resume and not rundir.foreign_entries(sub)))
-        return runner.run_method(scene, name, common, out_dir=sub, resume=again, overwrite=anew, **changes)
+        return runner.train_method(plan, name, common, out_dir=sub, resume=again, overwrite=anew, **changes)
 
     runs = {method: train(method, epochs=epochs)}
     n = len(runs[method].rows)
@@ -60,18 +63,19 @@ def compare(scene: Scene, out_dir: Path, *, epochs: int | None = None, equal_tim
     budget = runs[method].rows[-1]["train_time"]
     if equal_time and runs[BASELINE].rows[-1]["train_time"] < budget:
         sub = out_dir / BASELINE
-        runs[BASELINE] = runner.run_method(scene, BASELINE, common, out_dir=sub, resume=True,
-                                           epochs=max_factor * n, stop_at_time=budget)
+        runs[BASELINE] = runner.train_method(plan, BASELINE, common, out_dir=sub, resume=True,
+                                             epochs=max_factor * n, stop_at_time=budget)
     return runs
 
 
-def compare_and_report(scene: Scene, out_dir: Path, *, equal_time: bool = True, resume: bool = False,
+def compare_and_report(scene: Scene | ScenePlan, out_dir: Path, *, equal_time: bool = True, resume: bool = False,
                        progress: bool = False, overwrite: bool = False
                        ) -> tuple[dict[str, RunResult], dict, list[Path]]:
     """:func:`compare`, :func:`summary` and :func:`write_report` into ``out_dir``: (runs, summary, paths)."""
-    runs = compare(scene, out_dir, equal_time=equal_time, resume=resume, progress=progress, overwrite=overwrite)
-    split = summary(scene, runs, equal_time=equal_time)
-    return runs, split, write_report(scene, runs, split, out_dir)
+    plan = ScenePlan.resolve(scene)
+    runs = compare(plan, out_dir, equal_time=equal_time, resume=resume, progress=progress, overwrite=overwrite)
+    split = summary(plan.scene, runs, equal_time=equal_time)
+    return runs, split, write_report(plan.scene, runs, split, out_dir)
 
 
 def steps_per_epoch(scene: Scene) -> int:

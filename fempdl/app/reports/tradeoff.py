@@ -34,6 +34,7 @@ from pathlib import Path
 
 from fempdl.app.runs import runner
 from fempdl.app.runs.files import write_recorded
+from fempdl.app.runs.plan import ScenePlan
 from fempdl.app.runs.runner import RunResult
 from fempdl.app.runs.settings import RunSettings
 from fempdl.app.runs.training import TIME_PARTS
@@ -52,19 +53,21 @@ def geometric_caps(k_eps: int) -> list[int]:
     return ks
 
 
-def sweep(scene: Scene, *, ks: list[int] | None = None, out_dir: Path | None = None,
+def sweep(scene: Scene | ScenePlan, *, ks: list[int] | None = None, out_dir: Path | None = None,
           progress: bool = False, overwrite: bool = False) -> dict[str, RunResult]:
-    """Train ``scene`` with every fixed K, the converged baseline and PRDP (``overwrite``: replace
-    the runs of an earlier sweep in ``out_dir``, which is refused otherwise)."""
-    common = RunSettings(progress=progress, overwrite=overwrite)
-    baseline = runner.run(scene, "converged", None, common, out_dir=_sub(out_dir, "converged"))
+    """Train ``scene`` (or a plan of it, :class:`~fempdl.app.runs.plan.ScenePlan`, whose checked caps
+    the runs take) with every fixed K, the converged baseline and PRDP (``overwrite``: replace the runs
+    of an earlier sweep in ``out_dir``, which is refused otherwise)."""
+    plan = ScenePlan.resolve(scene)
+    common = RunSettings(progress=progress, overwrite=overwrite, parallel=plan.parallel)
+    baseline = runner.train(plan, plan.caps("converged"), common, out_dir=_sub(out_dir, "converged"))
     keps = baseline.k_eps
-    measured = {"k_eps_value": keps, "converged_caps": baseline.converged_caps}     # the baseline's, not again
+    plan = plan.measured(keps, baseline.converged_caps)     # the baseline's, not measured again
     runs = {}
     for k in ks or geometric_caps(keps):
-        runs[f"K={k}"] = runner.run(scene, "fixed", k, common, out_dir=_sub(out_dir, f"k{k}"), **measured)
+        runs[f"K={k}"] = runner.train(plan, plan.caps("fixed", k), common, out_dir=_sub(out_dir, f"k{k}"))
     runs[f"K_eps={keps}"] = baseline
-    runs["PRDP"] = runner.run(scene, "prdp", None, common, out_dir=_sub(out_dir, "prdp"), **measured)
+    runs["PRDP"] = runner.train(plan, plan.caps("prdp"), common, out_dir=_sub(out_dir, "prdp"))
     return runs
 
 

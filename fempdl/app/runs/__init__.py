@@ -1,1 +1,2 @@
-"""Runs of a scene: run directories and their lock, checkpoints, the training loop, the runner."""
+"""Runs of a scene: run directories and their lock, checkpoints, the training loop, the scene's plan
+(its task resolved and its runs' caps checked once), the runner."""

@@ -16,6 +16,11 @@ steps and inner iterations of a step converged solves need on the reference inpu
 bounds the caps under ``refine = "both"``, and with ``refine = "inner"`` the Newton
 cap is its Newton steps. A run returns it (``RunResult.converged_caps``) so that
 later runs of the same scene take it (``converged_caps=``) instead of measuring again.
+
+A run trains from its scene's plan (:class:`~fempdl.app.runs.plan.ScenePlan`: the task resolved,
+the parallel mode and the run's caps checked, K_eps once known): :func:`train` and
+:func:`train_method` take a plan, as the command and the reports make it, once per command;
+:func:`run` and :func:`run_method` make one from a scene and train it.
 """
 from __future__ import annotations
 
@@ -27,24 +32,25 @@ from mpi4py import MPI
 import torch
 
 from fempdl.app.runs import files
+from fempdl.app.runs.plan import MODES, RunCaps, ScenePlan, check_caps
 from fempdl.app.runs.settings import RunSettings
 from fempdl.app.runs.training import Trainer
-from fempdl.app.schema import NONLINEAR_PDES, Scene
-from fempdl.app.tasks import SPECS, spec_of, task_class
-from fempdl.app.tasks.base import cap_target, set_cap
+from fempdl.app.schema import Scene
+from fempdl.app.tasks import SPECS
+from fempdl.app.tasks.base import cap_target
 from fempdl.app.tasks.solver_options import layer_options, solver_options
 from fempdl.core import io, mesh
-from fempdl.core.checks import check_int
 from fempdl.methods.k_eps import k_eps, newton_k_eps
 from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps
 from fempdl.methods.prdp import PRDP
-from fempdl.solve.options import MAX_PETSC_INT, KSPOptions
+from fempdl.solve.options import KSPOptions
 
-__all__ = ["build_task", "check_caps", "check_parallel", "measure_k_eps", "run",
-           "run_method", "run_settings", "save_fields", "RunResult", "MODES"]
+# check_caps, MODES and the [solver] options (layer_options, solver_options) are re-exported: scripts
+# and tests reach them as runner's, from before the plan held them.
+__all__ = ["build_task", "check_caps", "check_parallel", "measure_k_eps", "newton_caps", "run", "train",
+           "run_method", "train_method", "run_settings", "save_fields", "RunResult", "MODES", "ScenePlan",
+           "layer_options", "solver_options"]
 _log = logging.getLogger(__name__)
-
-MODES = ("fixed", "converged", "prdp")
 
 
 @dataclasses.dataclass
@@ -92,36 +98,22 @@ class RunResult:
 
 def build_task(scene: Scene, options: KSPOptions, parallel: str | None = None,
                comm: MPI.Comm = MPI.COMM_WORLD, seed: int | None = None):
-    """The training task of a solver-cap scene, with its layer solving under ``options``.
+    """The training task of a solver-cap scene, with its layer solving under ``options``
+    (:meth:`ScenePlan.build_task <fempdl.app.runs.plan.ScenePlan.build_task>` of the scene's plan in
+    the ``parallel`` mode).
 
     ``parallel="mesh"`` distributes the mesh over ``comm``; every other mode
     builds the whole problem on each rank (``COMM_SELF``). ``seed`` initialises
     the network (default: the scene's data seed; the data stay the scene's)."""
-    check_parallel(scene, parallel)
-    if spec_of(scene.task).trains != "cap":
-        raise ValueError(f"scene {scene.name!r} compares training methods, not solver caps: train it with "
-                         "run_method (the commands `fempdl run` and `fempdl compare` do)")
-    cls = task_class(scene.task, scene.pde.type)
-    return cls(scene, options, comm=comm if parallel == "mesh" else MPI.COMM_SELF, seed=seed)
+    plan = ScenePlan.of(scene, parallel=parallel)
+    plan.require_caps()
+    return plan.build_task(options, comm, seed)
 
 
 def check_parallel(scene: Scene, parallel: str | None) -> None:
-    """Raise ``ValueError`` when the scene's task cannot train in the ``parallel`` mode."""
-    if parallel not in (None, "data", "mesh"):
-        raise ValueError(f"parallel must be None, 'data' or 'mesh', got {parallel!r}")
-    modes = spec_of(scene.task).parallel
-    if parallel is None or parallel in modes:
-        return
-    if not modes:
-        raise ValueError(f"scene {scene.name!r}: {scene.task} scenes train on one process (the exact inverse "
-                         "assembles serial scipy operators and HIG decomposes the whole batch's Jacobian at once); "
-                         "run them without mpirun")
-    if parallel == "data":
-        raise ValueError(f"scene {scene.name!r}: --parallel data splits batches of samples, and the {scene.task} "
-                         f"task has one; use --parallel {modes[0]} instead")
-    raise ValueError(f"scene {scene.name!r}: --parallel mesh distributes the mesh, but the {scene.task} task's "
-                     "network (an MLP or graph network on whole DOF vectors) needs the whole field on every "
-                     f"rank; use --parallel {modes[0]} to spread its samples over the ranks instead")
+    """Raise ``ValueError`` when the scene's task cannot train in the ``parallel`` mode
+    (:meth:`~fempdl.app.runs.plan.ScenePlan.in_parallel`)."""
+    ScenePlan.of(scene, parallel=parallel)
 
 
 def field_tasks() -> list[str]:
@@ -129,23 +121,11 @@ def field_tasks() -> list[str]:
     return [name for name, spec in SPECS.items() if spec.writes_fields]
 
 
-def check_caps(scene: Scene, mode: str, k: int | None = None, name: str = "k") -> None:
-    """Raise ValueError when a run of ``scene`` in ``mode`` could not take its caps: ``k`` (named
-    ``name``) in fixed mode, ``[prdp] k0`` and ``k_cap`` in PRDP mode. Checked before anything is
-    built or trained: a cap beyond PETSc's int range used to be refused only when it was first set,
-    after K_eps was measured (and, in the command, after the baseline had trained)."""
-    caps = [(f"{name} {k!r}" if name.startswith("--") else f"{name}={k!r}", k)] if mode == "fixed" else []
-    if mode == "prdp" and scene.prdp is not None:
-        caps += [(f"[prdp] {key} = {value!r}", value) for key, value in
-                 (("k0", scene.prdp.k0), ("k_cap", scene.prdp.k_cap)) if value is not None]
-    for shown, cap in caps:
-        try:
-            if scene.pde.type in NONLINEAR_PDES:     # K counts Newton steps or inner iterations, each a PETSc int
-                check_int("K", cap, minimum=1, maximum=MAX_PETSC_INT)
-            else:
-                solver_options(scene, cap)
-        except (TypeError, ValueError) as err:
-            raise ValueError(f"{shown} cannot cap the solver of scene {scene.name!r}: {err}") from None
+def newton_caps(task) -> NewtonCaps | None:
+    """The Newton caps rule a Newton task declares as its ``caps``, else None (the cap is its layers'
+    ``max_it``). The one place the runner tells the two apart: K_eps, the caps' rule and the converged
+    caps a run returns all follow from it."""
+    return getattr(task, "caps", None)
 
 
 def measure_k_eps(task, scene: Scene, shard_over: MPI.Comm = MPI.COMM_SELF) -> int:
@@ -154,11 +134,12 @@ def measure_k_eps(task, scene: Scene, shard_over: MPI.Comm = MPI.COMM_SELF) -> i
     :func:`~fempdl.methods.newton_caps.newton_k_eps` under its caps' rule (which records the
     converged caps as ``task.caps.converged``). ``shard_over`` spreads the samples over its ranks."""
     rtol = scene.data.k_eps_rtol
-    if isinstance(getattr(task, "caps", None), NewtonCaps):
-        most = newton_k_eps(task.caps, rtol=rtol, shard_over=shard_over, **task.k_eps_rhs())
+    newton = newton_caps(task)
+    if newton is not None:
+        most = newton_k_eps(newton, rtol=rtol, shard_over=shard_over, **task.k_eps_rhs())
         _log.info("K_eps = %d (Newton, refine=%s, to rtol %s; what converged solves take at most: Newton steps "
-                  "%d, inner iterations per step %d)", most, task.caps.refine, rtol,
-                  task.caps.converged.newton_steps, task.caps.converged.inner_iterations)
+                  "%d, inner iterations per step %d)", most, newton.refine, rtol,
+                  newton.converged.newton_steps, newton.converged.inner_iterations)
         return most
     layer = task.layers[0]
     # A lagged preconditioner is set up once a call: probe it in calls of the training batch.
@@ -203,63 +184,73 @@ def run(scene: Scene, mode: str, k: int | None = None, settings: RunSettings | N
         k_eps_value: int | None = None, converged_caps: ConvergedCaps | None = None, **changes) -> RunResult:
     """Train ``scene`` in ``mode`` ("fixed" with ``k``, "converged" or "prdp") under ``settings``
     (:class:`~fempdl.app.runs.settings.RunSettings`; keyword ``changes`` replace its fields, e.g.
-    ``run(scene, "prdp", out_dir=path)``).
+    ``run(scene, "prdp", out_dir=path)``): :func:`train` on the scene's plan, made and checked here.
 
     ``k_eps_value`` and, on a Newton scene, ``converged_caps`` (an earlier run's
     ``RunResult.converged_caps``) are taken instead of measured. With ``settings.save`` the
     validation fields are written after training (:func:`save_fields`; rank 0, or every rank of a
     distributed mesh)."""
     settings = dataclasses.replace(settings or RunSettings(), **changes)
+    plan = ScenePlan.of(scene, parallel=settings.parallel, caps=[(mode, k)])
+    return train(plan.measured(k_eps_value, converged_caps), plan.caps(mode, k), settings)
+
+
+def train(plan: ScenePlan, caps: RunCaps, settings: RunSettings | None = None, **changes) -> RunResult:
+    """Train the scene of ``plan`` with ``caps`` (one of its runs, :meth:`ScenePlan.caps
+    <fempdl.app.runs.plan.ScenePlan.caps>`) under ``settings`` (keyword ``changes`` replace its fields).
+
+    The plan was checked when it was made: nothing is looked up or checked again here but the
+    settings. K_eps (and a Newton scene's converged caps) are the plan's when it knows them
+    (:meth:`~fempdl.app.runs.plan.ScenePlan.measured`), else measured."""
+    settings = dataclasses.replace(settings or RunSettings(), **changes) if changes else settings or RunSettings()
     settings.check_outputs()
-    if mode not in MODES:
-        raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
-    out_dir, parallel, comm = settings.out_dir, settings.parallel, settings.comm
-    if settings.save and (out_dir is None or not spec_of(scene.task).writes_fields):
+    scene, out_dir, parallel, comm = plan.scene, settings.out_dir, plan.parallel, settings.comm
+    if settings.parallel != parallel:      # the Trainer's ranks come from the settings, the task's from the plan
+        raise ValueError(f"settings.parallel={settings.parallel!r} but the plan trains with parallel={parallel!r}: "
+                         "make the plan in that mode (ScenePlan.in_parallel)")
+    if settings.save and (out_dir is None or not plan.spec.writes_fields):
         raise ValueError(f"save=True writes validation fields of {field_tasks()} scenes into out_dir; got task "
                          f"{scene.task!r}, out_dir={out_dir!r}")
-    if (mode == "fixed") != (k is not None):
-        raise ValueError("give k exactly when mode='fixed'")
-    check_caps(scene, mode, k)
-    task = build_task(scene, layer_options(scene, k or 1), parallel, comm, settings.seed)
+    task = plan.build_task(caps.options, comm, settings.seed)
+    newton = newton_caps(task)
     try:
-        keps, prdp = _set_caps(task, scene, mode, k, k_eps_value, converged_caps,
-                               comm if parallel == "data" else MPI.COMM_SELF)
+        keps, prdp = _set_caps(task, newton, plan, caps, comm if parallel == "data" else MPI.COMM_SELF)
         loop = dataclasses.replace(settings, epochs=settings.epochs or scene.optimizer.epochs,
                                    seed=scene.data.seed if settings.seed is None else settings.seed)
         trainer = Trainer(task, batch=_batch(scene), settings=loop, prdp=prdp, stop_at=scene.optimizer.stop_at,
-                          run_fingerprint=run_settings(scene, mode=mode, k=k, seed=settings.seed))
+                          run_fingerprint=run_settings(scene, mode=caps.mode, k=caps.k, seed=settings.seed))
         rows = trainer.run()
         if settings.save and (parallel == "mesh" or comm.rank == 0):    # a distributed mesh: every rank writes
-            save_fields(task, out_dir, title=f"{scene.name}, {mode}" + (f" K={k}" if k else ""))
+            save_fields(task, out_dir, title=f"{scene.name}, {caps.mode}" + (f" K={caps.k}" if caps.k else ""))
     finally:
         task.close()
-    caps = getattr(task, "caps", None)
-    return RunResult(scene=scene.name, mode=mode, k_eps=keps, rows=rows,
+    return RunResult(scene=scene.name, mode=caps.mode, k_eps=keps, rows=rows,
                      out_dir=None if out_dir is None else str(out_dir),
-                     converged_caps=caps.converged if isinstance(caps, NewtonCaps) else None)
+                     converged_caps=None if newton is None else newton.converged)
 
 
-def _set_caps(task, scene: Scene, mode: str, k: int | None, k_eps_value: int | None,
-              converged: ConvergedCaps | None, shard_over: MPI.Comm) -> tuple[int, PRDP | None]:
-    """K_eps (measured unless given) and the caps of ``mode``: K (fixed), K_eps (converged) or the
+def _set_caps(task, newton: NewtonCaps | None, plan: ScenePlan, caps: RunCaps,
+              shard_over: MPI.Comm) -> tuple[int, PRDP | None]:
+    """K_eps (the plan's, else measured) and the caps of the run: K (fixed), K_eps (converged) or the
     PRDP controller that moves them, all through the task's :func:`cap_target`. A Newton task's
-    converged caps are measured (with K_eps) unless given, or unless its rule needs none of them."""
-    newton = isinstance(getattr(task, "caps", None), NewtonCaps)
-    if newton:
-        if converged is not None:
-            task.caps.converged = converged
-        elif k_eps_value is None or task.caps.refine != "newton":
+    (``newton``, its :func:`newton_caps`) converged caps are the plan's, else measured (with K_eps)
+    unless its rule needs none of them."""
+    scene, known = plan.scene, plan.k_eps
+    if newton is not None:
+        if plan.converged is not None:
+            newton.converged = plan.converged
+        elif known is None or newton.refine != "newton":
             measure_k_eps(task, scene, shard_over)
-        keps = task.caps.k_eps if k_eps_value is None else k_eps_value
+        keps = newton.k_eps if known is None else known
     else:
-        keps = measure_k_eps(task, scene, shard_over) if k_eps_value is None else k_eps_value
-    if newton and task.caps.refine == "inner":     # K caps the inner solve; Newton takes the converged steps
+        keps = measure_k_eps(task, scene, shard_over) if known is None else known
+    if newton is not None and newton.refine == "inner":     # K caps the inner solve; Newton takes the converged steps
         for layer in task.layers:
-            layer.max_it = task.caps.converged.newton_steps
+            layer.max_it = newton.converged.newton_steps
     target = cap_target(task)
-    if mode == "prdp":
+    if caps.mode == "prdp":
         return keps, PRDP(target, dataclasses.replace(scene.prdp, k_cap=scene.prdp.k_cap or keps))
-    set_cap(target, k if mode == "fixed" else keps)
+    target.set_k(caps.k if caps.mode == "fixed" else keps)
     return keps, None
 
 
@@ -272,14 +263,20 @@ def run_method(scene: Scene, method: str, settings: RunSettings | None = None, *
     """Train a sip or hig scene with ``method`` (its own, or "backprop") under ``settings`` (keyword
     ``changes`` replace its fields); metrics and checkpoints in ``settings.out_dir``. A resumed run
     can be extended to equal training time with ``stop_at_time``. Method runs train on one process
-    from the scene's seed and write no fields."""
-    settings = dataclasses.replace(settings or RunSettings(), **changes)
+    from the scene's seed and write no fields. :func:`train_method` on the scene's plan."""
+    return train_method(ScenePlan.of(scene), method, settings, **changes)
+
+
+def train_method(plan: ScenePlan, method: str, settings: RunSettings | None = None, **changes) -> RunResult:
+    """:func:`run_method` on a scene already planned (:class:`~fempdl.app.runs.plan.ScenePlan`)."""
+    settings = dataclasses.replace(settings or RunSettings(), **changes) if changes else settings or RunSettings()
     settings.check_outputs()
     refused = [name for name in ("seed", "parallel", "save") if getattr(settings, name) not in (None, False)]
     if refused:
         raise ValueError(f"run_method trains on one process from the scene's seed and writes no fields; "
                          f"got {', '.join(f'{n}={getattr(settings, n)!r}' for n in refused)}")
-    task = task_class(scene.task, scene.pde.type)(scene, method)
+    scene = plan.scene
+    task = plan.task_class(scene, method)
     try:
         loop = dataclasses.replace(settings, epochs=settings.epochs or scene.optimizer.epochs, seed=scene.data.seed)
         trainer = Trainer(task, batch=scene.optimizer.batch, settings=loop, stop_at=scene.optimizer.stop_at,

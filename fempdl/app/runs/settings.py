@@ -13,11 +13,10 @@ from pathlib import Path
 
 from mpi4py import MPI
 
-from fempdl.app.schema import SEED_MAX
+from fempdl.app.schema import PARALLEL_MODES, SEED_MAX
 
 __all__ = ["RunSettings", "PARALLEL_MODES", "CHECKPOINT_EVERY"]
 
-PARALLEL_MODES = ("data", "mesh")
 # Seconds of a run between writes of its files: a checkpoint costs milliseconds (a network's and
 # its optimizer's state), which after every epoch of a fast scene would be a share of the run.
 CHECKPOINT_EVERY = 1.0

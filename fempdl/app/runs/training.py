@@ -45,7 +45,7 @@ from fempdl.app.runs.checkpoints import CHECKPOINT, PREVIOUS, CheckpointError
 from fempdl.app.runs.files import write_atomically, write_recorded
 from fempdl.app.runs.settings import RunSettings
 from fempdl.app.runs.timesplit import TIME_FIELDS, TIME_PARTS, TimeSplit
-from fempdl.app.tasks.base import cap_target, set_cap
+from fempdl.app.tasks.base import cap_target
 from fempdl.core import parallel
 from fempdl.methods.prdp import PRDP
 
@@ -112,10 +112,7 @@ class Trainer:
     @property
     def k(self) -> int | None:
         """The cap K in force (:func:`cap_target`)."""
-        target = cap_target(self.task)
-        if isinstance(target, (list, tuple)):
-            return target[0].max_it if target else None
-        return target.max_it
+        return cap_target(self.task).k
 
     def run(self) -> list[dict]:
         """Train; returns the metric rows (one per epoch, including resumed ones).
@@ -368,7 +365,7 @@ class Trainer:
             with fitting(path, "PRDP state"):
                 self.prdp.load_state_dict(state["prdp"])
         elif state["k"] is not None:
-            set_cap(cap_target(self.task), state["k"])
+            cap_target(self.task).set_k(state["k"])
         by_rank = state["layer_stats_by_rank"]
         if len(by_rank) != self.comm.size:
             raise ValueError(f"{path} was written by a run on {len(by_rank)} rank(s); "

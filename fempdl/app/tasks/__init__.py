@@ -55,8 +55,9 @@ def spec_of(task: str) -> TaskSpec:
 
 
 def task_class(task: str, pde: str) -> type:
-    """The class that trains ``task`` on PDE type ``pde``."""
-    spec = spec_of(task)
-    if (task, pde) not in _BY_TASK_AND_PDE:
-        raise ValueError(f"task {task!r} takes [pde] type {list(spec.pdes)}, got {pde!r}")
-    return _BY_TASK_AND_PDE[task, pde]
+    """The class that trains ``task`` on PDE type ``pde``; ValueError naming the known tasks, or the
+    task's PDEs, otherwise."""
+    cls = _BY_TASK_AND_PDE.get((task, pde))
+    if cls is None:     # the spec only says why: an unknown task, or a PDE the task does not take
+        raise ValueError(f"task {task!r} takes [pde] type {list(spec_of(task).pdes)}, got {pde!r}")
+    return cls

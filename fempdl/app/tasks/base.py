@@ -5,13 +5,14 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from fempdl.layer.cap_target import CapTarget, as_target
 from fempdl.layer.reference import counters_kept
 from fempdl.solve.assembly import assemble_scipy
 
 if TYPE_CHECKING:
     import scipy.sparse as sp
 
-__all__ = ["Task", "make_optimizer", "optimisation_step", "operator_pattern", "cap_target", "set_cap", "uncounted"]
+__all__ = ["Task", "make_optimizer", "optimisation_step", "operator_pattern", "cap_target", "uncounted"]
 
 
 def optimisation_step(optimizer, loss: torch.Tensor) -> float:
@@ -103,15 +104,9 @@ def make_optimizer(params, kind: str, lr: float, decay: float):
     return optimizer, scheduler
 
 
-def cap_target(task):
-    """What the cap K of ``task`` is set on: its ``caps`` (e.g. a
+def cap_target(task) -> CapTarget:
+    """What the cap K of ``task`` moves (:mod:`fempdl.layer.cap_target`): its ``caps`` (a
     :class:`~fempdl.methods.newton_caps.NewtonCaps`, one number for a Newton layer's two
-    caps) when it has them, else its capped layers (each layer's ``max_it``)."""
+    caps) when it declares them, else its capped layers (each layer's ``max_it``)."""
     caps = getattr(task, "caps", None)
-    return task.layers if caps is None else caps
-
-
-def set_cap(target, k: int) -> None:
-    """Set the cap K of a :func:`cap_target`."""
-    for t in (target if isinstance(target, (list, tuple)) else [target]):
-        t.max_it = k
+    return as_target(task.layers if caps is None else caps)
