@@ -27,7 +27,7 @@ from fempdl.app.reports.tradeoff import write_figure
 from fempdl.app.runs import rundir, runner
 from fempdl.app.runs.files import write_recorded
 from fempdl.app.runs.plan import ScenePlan
-from fempdl.app.runs.runner import RunResult
+from fempdl.app.runs.result import RunResult
 from fempdl.app.runs.settings import RunSettings
 from fempdl.app.schema import Scene
 

@@ -35,7 +35,7 @@ from pathlib import Path
 from fempdl.app.runs import runner
 from fempdl.app.runs.files import write_recorded
 from fempdl.app.runs.plan import ScenePlan
-from fempdl.app.runs.runner import RunResult
+from fempdl.app.runs.result import RunResult
 from fempdl.app.runs.settings import RunSettings
 from fempdl.app.runs.training import TIME_PARTS
 from fempdl.app.schema import Scene

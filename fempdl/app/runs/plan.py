@@ -20,12 +20,13 @@ from mpi4py import MPI
 from fempdl.app.schema import NONLINEAR_PDES, PARALLEL_MODES, Scene, TaskSpec
 from fempdl.app.tasks import spec_of, task_class
 from fempdl.app.tasks.solver_options import layer_options, solver_options
+from fempdl.core import mesh
 from fempdl.core.checks import check_int
 from fempdl.methods.newton_caps import ConvergedCaps
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.options import MAX_PETSC_INT, KSPOptions
 
-__all__ = ["ScenePlan", "RunCaps", "MODES", "check_caps"]
+__all__ = ["ScenePlan", "RunCaps", "MODES", "check_caps", "batch_of"]
 
 #: The run modes of a solver-cap scene: a fixed K, the converged cap K_eps, or PRDP moving K.
 MODES = ("fixed", "converged", "prdp")
@@ -84,6 +85,19 @@ class ScenePlan:
     @property
     def name(self) -> str:
         return self.scene.name
+
+    @property
+    def batch(self) -> int:
+        """The scene's mini-batch size (:func:`batch_of`)."""
+        return batch_of(self.scene)
+
+    def fingerprint(self, **settings) -> dict:
+        """What defines a run of the scene, for the checkpoint's fingerprint: the parsed scene (not its
+        file's location or description), the SHA-256 of its mesh file, and ``settings`` (mode, K, ...)."""
+        scene = self.scene
+        parsed = {key: value for key, value in scene.as_dict().items() if key not in ("source", "description")}
+        # The mesh file's content, not only its name: a resume refuses a file that changed at the same path.
+        return {"scene": parsed, "mesh_sha256": mesh.source_digest(scene.mesh.name, scene.mesh.h), **settings}
 
     @property
     def trains_methods(self) -> bool:
@@ -174,6 +188,11 @@ def check_caps(scene: Scene, mode: str, k: int | None = None, name: str = "k") -
                 solver_options(scene, cap)
         except (TypeError, ValueError) as err:
             raise ValueError(f"{shown} cannot cap the solver of scene {scene.name!r}: {err}") from None
+
+
+def batch_of(scene: Scene) -> int:
+    """The scene's mini-batch size; the inverse task has none (its one sample is its batch)."""
+    return 1 if scene.optimizer.batch is None else scene.optimizer.batch
 
 
 def _choices(*values) -> str:

@@ -32,14 +32,15 @@ from mpi4py import MPI
 import torch
 
 from fempdl.app.runs import files
-from fempdl.app.runs.plan import MODES, RunCaps, ScenePlan, check_caps
+from fempdl.app.runs.plan import MODES, RunCaps, ScenePlan, batch_of, check_caps
+from fempdl.app.runs.result import RunResult
 from fempdl.app.runs.settings import RunSettings
 from fempdl.app.runs.training import Trainer
 from fempdl.app.schema import Scene
 from fempdl.app.tasks import SPECS
 from fempdl.app.tasks.base import cap_target
 from fempdl.app.tasks.solver_options import layer_options, solver_options
-from fempdl.core import io, mesh
+from fempdl.core import io
 from fempdl.methods.k_eps import k_eps, newton_k_eps
 from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps
 from fempdl.methods.prdp import PRDP
@@ -47,53 +48,10 @@ from fempdl.solve.options import KSPOptions
 
 # check_caps, MODES and the [solver] options (layer_options, solver_options) are re-exported: scripts
 # and tests reach them as runner's, from before the plan held them.
-__all__ = ["build_task", "check_caps", "check_parallel", "measure_k_eps", "newton_caps", "run", "train",
-           "run_method", "train_method", "run_settings", "save_fields", "RunResult", "MODES", "ScenePlan",
+__all__ = ["build_task", "check_caps", "check_parallel", "measure_k_eps", "run", "train",
+           "run_method", "train_method", "save_fields", "RunResult", "MODES", "ScenePlan",
            "layer_options", "solver_options"]
 _log = logging.getLogger(__name__)
-
-
-@dataclasses.dataclass
-class RunResult:
-    """What a run produced; ``rows`` are the per-epoch metrics of :class:`Trainer`.
-
-    ``mode`` is a run mode of :data:`MODES`, or the training method of a sip or
-    hig scene (:mod:`fempdl.app.tasks.learned_inverse`), whose runs have no ``k_eps``.
-    ``converged_caps``: on a Newton scene, what converged solves need (the measurement
-    behind ``k_eps``; pass it to :func:`run` with ``k_eps_value``), else None."""
-
-    scene: str
-    mode: str
-    k_eps: int | None
-    rows: list
-    out_dir: str | None
-    converged_caps: ConvergedCaps | None = None
-
-    @property
-    def final_metric(self) -> float:
-        return self.rows[-1]["val_metric"]
-
-    @property
-    def total_iterations(self) -> int:
-        return self.rows[-1]["total_iterations"]
-
-    @property
-    def wall_time(self) -> float:
-        return self.rows[-1]["wall_time"]
-
-    @property
-    def newton_steps(self) -> int | None:
-        """Newton steps, forward and unrolled backward (None for a run without Newton layers)."""
-        return self.rows[-1].get("newton_steps")
-
-    @property
-    def k_schedule(self) -> list[tuple[int, int]]:
-        """(first epoch, K) for every K used."""
-        out = []
-        for row in self.rows:
-            if not out or out[-1][1] != row["k"]:
-                out.append((row["epoch"], row["k"]))
-        return out
 
 
 def build_task(scene: Scene, options: KSPOptions, parallel: str | None = None,
@@ -121,20 +79,13 @@ def field_tasks() -> list[str]:
     return [name for name, spec in SPECS.items() if spec.writes_fields]
 
 
-def newton_caps(task) -> NewtonCaps | None:
-    """The Newton caps rule a Newton task declares as its ``caps``, else None (the cap is its layers'
-    ``max_it``). The one place the runner tells the two apart: K_eps, the caps' rule and the converged
-    caps a run returns all follow from it."""
-    return getattr(task, "caps", None)
-
-
 def measure_k_eps(task, scene: Scene, shard_over: MPI.Comm = MPI.COMM_SELF) -> int:
     """K_eps of ``task`` on its reference inputs (``task.k_eps_rhs()``) to the scene's ``k_eps_rtol``:
     :func:`~fempdl.methods.prdp.k_eps` of its first layer, or for a Newton task
     :func:`~fempdl.methods.newton_caps.newton_k_eps` under its caps' rule (which records the
     converged caps as ``task.caps.converged``). ``shard_over`` spreads the samples over its ranks."""
     rtol = scene.data.k_eps_rtol
-    newton = newton_caps(task)
+    newton = task.caps                   # a Newton task's caps rule (None: K is the layers' max_it)
     if newton is not None:
         most = newton_k_eps(newton, rtol=rtol, shard_over=shard_over, **task.k_eps_rhs())
         _log.info("K_eps = %d (Newton, refine=%s, to rtol %s; what converged solves take at most: Newton steps "
@@ -143,7 +94,7 @@ def measure_k_eps(task, scene: Scene, shard_over: MPI.Comm = MPI.COMM_SELF) -> i
         return most
     layer = task.layers[0]
     # A lagged preconditioner is set up once a call: probe it in calls of the training batch.
-    batch = _batch(scene) if layer.options.lag_preconditioner else 1
+    batch = batch_of(scene) if layer.options.lag_preconditioner else 1
     most = k_eps(layer, rtol=rtol, shard_over=shard_over, batch=batch, **task.k_eps_rhs())
     _log.info("K_eps = %d (%s + %s to rtol %s)", most, layer.options.ksp_type, layer.options.pc_type, rtol)
     return most
@@ -169,15 +120,6 @@ def save_fields(task, out_dir: Path, samples: int = 4, title: str | None = None)
                                     {label: (n, v[0]) for label, (n, v) in fields.items()}, title=title,
                                     same_scale=("prediction", "reference")))
     return paths
-
-
-def run_settings(scene: Scene, **settings) -> dict:
-    """What defines a run of ``scene``, for the checkpoint's fingerprint: the parsed
-    scene (not its file's location or description), the SHA-256 of its mesh file,
-    and ``settings`` (mode, K, ...)."""
-    parsed = {key: value for key, value in scene.as_dict().items() if key not in ("source", "description")}
-    # The mesh file's content, not only its name: a resume refuses a file that changed at the same path.
-    return {"scene": parsed, "mesh_sha256": mesh.source_digest(scene.mesh.name, scene.mesh.h), **settings}
 
 
 def run(scene: Scene, mode: str, k: int | None = None, settings: RunSettings | None = None, *,
@@ -212,13 +154,13 @@ def train(plan: ScenePlan, caps: RunCaps, settings: RunSettings | None = None, *
         raise ValueError(f"save=True writes validation fields of {field_tasks()} scenes into out_dir; got task "
                          f"{scene.task!r}, out_dir={out_dir!r}")
     task = plan.build_task(caps.options, comm, settings.seed)
-    newton = newton_caps(task)
+    newton = task.caps                   # K_eps, the caps' rule and the converged caps follow from it
     try:
         keps, prdp = _set_caps(task, newton, plan, caps, comm if parallel == "data" else MPI.COMM_SELF)
         loop = dataclasses.replace(settings, epochs=settings.epochs or scene.optimizer.epochs,
                                    seed=scene.data.seed if settings.seed is None else settings.seed)
-        trainer = Trainer(task, batch=_batch(scene), settings=loop, prdp=prdp, stop_at=scene.optimizer.stop_at,
-                          run_fingerprint=run_settings(scene, mode=caps.mode, k=caps.k, seed=settings.seed))
+        trainer = Trainer(task, batch=plan.batch, settings=loop, prdp=prdp, stop_at=scene.optimizer.stop_at,
+                          run_fingerprint=plan.fingerprint(mode=caps.mode, k=caps.k, seed=settings.seed))
         rows = trainer.run()
         if settings.save and (parallel == "mesh" or comm.rank == 0):    # a distributed mesh: every rank writes
             save_fields(task, out_dir, title=f"{scene.name}, {caps.mode}" + (f" K={caps.k}" if caps.k else ""))
@@ -233,7 +175,7 @@ def _set_caps(task, newton: NewtonCaps | None, plan: ScenePlan, caps: RunCaps,
               shard_over: MPI.Comm) -> tuple[int, PRDP | None]:
     """K_eps (the plan's, else measured) and the caps of the run: K (fixed), K_eps (converged) or the
     PRDP controller that moves them, all through the task's :func:`cap_target`. A Newton task's
-    (``newton``, its :func:`newton_caps`) converged caps are the plan's, else measured (with K_eps)
+    (``newton``, its caps rule ``task.caps``) converged caps are the plan's, else measured (with K_eps)
     unless its rule needs none of them."""
     scene, known = plan.scene, plan.k_eps
     if newton is not None:
@@ -252,11 +194,6 @@ def _set_caps(task, newton: NewtonCaps | None, plan: ScenePlan, caps: RunCaps,
         return keps, PRDP(target, dataclasses.replace(scene.prdp, k_cap=scene.prdp.k_cap or keps))
     target.set_k(caps.k if caps.mode == "fixed" else keps)
     return keps, None
-
-
-def _batch(scene: Scene) -> int:
-    """The scene's mini-batch size; the inverse task has none (its one sample is its batch)."""
-    return 1 if scene.optimizer.batch is None else scene.optimizer.batch
 
 
 def run_method(scene: Scene, method: str, settings: RunSettings | None = None, **changes) -> RunResult:
@@ -280,7 +217,7 @@ def train_method(plan: ScenePlan, method: str, settings: RunSettings | None = No
     try:
         loop = dataclasses.replace(settings, epochs=settings.epochs or scene.optimizer.epochs, seed=scene.data.seed)
         trainer = Trainer(task, batch=scene.optimizer.batch, settings=loop, stop_at=scene.optimizer.stop_at,
-                          run_fingerprint=run_settings(scene, method=method))
+                          run_fingerprint=plan.fingerprint(method=method))
         rows = trainer.run()
     finally:
         task.close()

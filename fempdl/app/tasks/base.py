@@ -48,6 +48,9 @@ class Task:
     """
 
     val_size = 1
+    #: A Newton task's caps rule (:class:`~fempdl.methods.newton_caps.NewtonCaps`); None: K is each layer's
+    #: ``max_it``.
+    caps = None
 
     def state_dict(self) -> dict:
         """This rank's state outside the model and optimizer (tensors and plain values); none by default."""
@@ -108,5 +111,4 @@ def cap_target(task) -> CapTarget:
     """What the cap K of ``task`` moves (:mod:`fempdl.layer.cap_target`): its ``caps`` (a
     :class:`~fempdl.methods.newton_caps.NewtonCaps`, one number for a Newton layer's two
     caps) when it declares them, else its capped layers (each layer's ``max_it``)."""
-    caps = getattr(task, "caps", None)
-    return as_target(task.layers if caps is None else caps)
+    return as_target(task.layers if task.caps is None else task.caps)
