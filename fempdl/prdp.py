@@ -6,9 +6,9 @@
 from fempdl.layer.reference import reference_physics
 from fempdl.methods.k_eps import k_eps, newton_k_eps
 from fempdl.methods.k_start import k_start
-from fempdl.methods.prdp import PRDP, PRDPValidationWarning
-from fempdl.methods.prdp_settings import PRDPRecord, PRDPSettings
+from fempdl.methods.prdp import PRDP, PRDPGapWarning, PRDPValidationWarning
+from fempdl.methods.prdp_settings import PRDPFinish, PRDPRecord, PRDPSettings
 from fempdl.methods.preflight import Preflight, preflight
 
-__all__ = ["PRDP", "PRDPRecord", "PRDPSettings", "PRDPValidationWarning", "Preflight", "k_eps", "k_start",
-           "newton_k_eps", "preflight", "reference_physics"]
+__all__ = ["PRDP", "PRDPFinish", "PRDPGapWarning", "PRDPRecord", "PRDPSettings", "PRDPValidationWarning",
+           "Preflight", "k_eps", "k_start", "newton_k_eps", "preflight", "reference_physics"]

@@ -37,17 +37,20 @@ def test_custom_problem_in_a_module_trained_with_adam(tmp_path):
 
 def test_prdp_loop_raises_k_up_to_k_eps(tmp_path):
     stdout = run_example("prdp_loop.py", cwd=tmp_path)
-    m = re.fullmatch(r"K_eps (\d+); K per epoch \[([\d, ]+)\]; capped validations at K \[([\d, ]*)\]\n"
+    m = re.fullmatch(r"K_eps (\d+); K per epoch \[([\d, ]+)\]; capped validations at K \[([\d, ]*)\]; finished at "
+                     r"K (\d+) from (\d+) \(gap (\S+), probes \[([\d, ]*)\]\)\n"
                      r"validation nMSE (\S+); solver iterations (\d+); converged validations (\d+)\n", stdout)
     assert m, stdout
-    keps, schedule, iterations = int(m[1]), [int(k) for k in m[2].split(",")], int(m[5])
-    gaps = [int(k) for k in m[3].split(",") if k.strip()]
+    keps, schedule, iterations = int(m[1]), [int(k) for k in m[2].split(",")], int(m[9])
+    capped = [int(k) for k in m[3].split(",") if k.strip()]
+    probes = [int(k) for k in m[7].split(",") if k.strip()]
     assert len(schedule) == 30 and schedule[0] == 1 and schedule[-1] > 1
-    assert all(0 <= b - a <= 1 for a, b in zip(schedule, schedule[1:])) and max(schedule) <= keps
+    assert all(a <= b for a, b in zip(schedule, schedule[1:])) and max(schedule) <= keps
+    assert float(m[6]) <= 0.05 and int(m[5]) <= int(m[4]) <= keps          # finished with the gap closed
     # per epoch: 32 training samples forward and backward at K; the validation's 8 samples at converged
-    # physics (counted apart), and again at K where the rule would hold (the gap)
-    assert iterations == (32 + 32) * sum(schedule) + 8 * sum(gaps)
-    assert int(m[6]) == 8 * 30
+    # physics (counted apart), and at the caps: at K every step, and at each probe of a search; finish once more
+    assert iterations == (32 + 32) * sum(schedule) + 8 * (sum(capped) + int(m[5]) + sum(probes))
+    assert int(m[10]) == 8 * 31
 
 
 def test_write_fields_writes_prediction_reference_and_flow(tmp_path):

@@ -25,7 +25,7 @@ from helpers import tiny_scene
 
 BURGERS = tiny_scene(name="tiny-burgers", mesh={"h": 0.25}, pde={"type": "burgers", "nu": 0.01, "dt": 0.5},
                      data={"train": 8, "rollout": 2}, optimizer={"lr": 3e-3, "epochs": 12, "batch": 4},
-                     solver={"preset": "gmres"}, prdp={"dk": 3, "tau_step": None})
+                     solver={"preset": "gmres"}, prdp={"dk": 3, "tau_step": None, "adjoint_health": 1.0})
 
 HYBRID = tiny_scene("hybrid")
 

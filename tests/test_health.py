@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from fempdl import PRDP, KSPOptions, NewtonOptions, NonlinearSolveLayer, PRDPSettings, SolveLayer, forms, mesh
-from fempdl.layer.system_layer import HEALTH_EVERY
+from fempdl.layer.healthy_calls import HEALTH_EVERY
 from fempdl.methods.newton_caps import NewtonCaps
 from fempdl.solve.health import CallHealth, HealthCheck
 from fempdl.solve.stats import SolverWarning
@@ -116,10 +116,14 @@ def test_a_diverging_linear_solve_refines_once_then_warns(poisson, engine, diff)
     problem, f = poisson
     options = KSPOptions.preset("jacobi", max_it=5, engine=engine, **DIVERGING)
     layer = SolveLayer(problem, options, diff=diff)
-    ctrl = PRDP(layer, k0=5, k_cap=50)
-    with pytest.warns(SolverWarning, match=r"refining did not lower it .*the iteration diverges"):
+    ctrl = PRDP(layer, k0=5, k_cap=50, growth=1.0)
+    with pytest.warns(SolverWarning, match=r"refining did not lower it .*the iteration diverges") as caught:
         layer(f=f.clone().requires_grad_()).sum().backward()
-    assert ctrl.k == 6 and [(e["k"], e["to"]) for e in ctrl.health_refinements] == [(5, 6)]
+    # The forward refines once and warns; an implicit backward's adjoint, the same iteration transposed,
+    # diverges too: once more, and a warning of its own. An unrolled backward solves nothing.
+    adjoint = [(6, 7)] if diff == "implicit" else []
+    assert [(e["k"], e["to"]) for e in ctrl.health_refinements] == [(5, 6)] + adjoint and ctrl.k == 6 + len(adjoint)
+    assert sum("capped adjoint solve" in str(w.message) for w in caught) == len(adjoint)
     # rho from the solutions themselves: the worst sample's ||b - A u_5|| / ||b||
     A = layer.system.constant_matrix()
     b_base, rhs = layer.system.affine_rhs(frozenset({"f"}))

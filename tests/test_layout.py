@@ -42,7 +42,7 @@ FLOORS = [
                ["fempdl.solve"]]),
     ("iterative", [["fempdl.iterative"]]),
     ("layer", [["fempdl.layer.cap_target", "fempdl.layer.implicit_diff", "fempdl.layer.unrolled_diff",
-                "fempdl.layer.observation"],
+                "fempdl.layer.observation", "fempdl.layer.healthy_calls"],
                ["fempdl.layer.system_layer", "fempdl.layer.newton_unrolled"],
                ["fempdl.layer.newton_layer", "fempdl.layer.revolve", "fempdl.layer.rollout_checkpoint",
                 "fempdl.layer.rollout_inputs"],

@@ -156,11 +156,13 @@ def test_state_without_guard_and_growth_loads_as_plain_algorithm():
         del state["settings"][key]
     for rec in state["history"]:
         del rec["cause"]
-    fresh = PRDP(ema_window=1)
+    fresh = PRDP(ema_window=1, growth=1.0)         # what a state saved before growth existed ran
     fresh.load_state_dict(state)
     assert fresh.k == ctrl.k and [r.refined for r in fresh.history] == [r.refined for r in ctrl.history]
     with pytest.raises(ValueError, match="guard"):
-        PRDP(ema_window=1, guard=2.0).load_state_dict(state)
+        PRDP(ema_window=1, growth=1.0, guard=2.0).load_state_dict(state)
+    with pytest.raises(ValueError, match=r"'growth': \(1.0, 1.5\)"):
+        PRDP(ema_window=1).load_state_dict(state)    # the default now grows by half
 
 
 def test_refinements_are_logged(caplog):

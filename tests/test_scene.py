@@ -159,8 +159,8 @@ def test_parse_fills_the_schema_defaults():
     assert sc.as_dict()["solver"] == {"preset": "jacobi", "diff": "implicit", "warm_start": False,
                                       "lag_preconditioner": False}
     assert sc.as_dict()["prdp"] == {"k0": 1, "dk": 1, "tau_step": 0.95, "tau_stop": 0.9, "delta": 3, "ema_window": 6,
-                       "k_cap": None, "guard": None, "growth": 1.0, "judge": "reference", "gap": 0.05,
-                                     "remeasure": True, "k_eps_rtol": 1e-8, "health": 1.0}
+                       "k_cap": None, "guard": None, "growth": 1.5, "judge": "reference", "gap": 0.05,
+                                     "remeasure": True, "k_eps_rtol": 1e-8, "health": 1.0, "adjoint_health": 0.01}
     assert sc.inverse is None
     # ... and they are the schema's.
     for section in schema.SECTIONS:

@@ -20,7 +20,8 @@ import math
 import torch
 import torch.distributed as dist
 
-__all__ = ["Ranks", "training_ranks", "torch_group_initialised", "different_metrics_message"]
+__all__ = ["Ranks", "training_ranks", "torch_group_initialised", "different_metrics_message",
+           "refuse_different_metrics"]
 
 
 def torch_group_initialised() -> bool:
@@ -114,3 +115,17 @@ def different_metrics_message(every: list, ranks: Ranks) -> str:
     return (f"PRDP.step got different metrics on the {ranks.size} ranks ({every}) of its {ranks.kind}; every rank "
             "must step with the same metric, or one rank refines K alone (the collective solves of a distributed "
             f"mesh hang; data-parallel ranks train on different physics): reduce it first, e.g. {reduce}")
+
+
+def refuse_different_metrics(ranks: Ranks | None, metric: float) -> None:
+    """Raise on every rank of an MPI communicator whose ranks step PRDP with different metrics.
+
+    Over a torch.distributed group nothing is checked here: validating and stepping on rank 0 alone is a
+    common DDP pattern, and a collective here would wait for ranks that never come while they wait in
+    DDP's all-reduce (a hang); the layers check at their next training call, collective under DDP anyway.
+    """
+    if ranks is None or ranks.size == 1 or ranks.torch_group or ranks.agree((metric,)):
+        return
+    every = ranks.allgather(metric)
+    if any(m != metric for m in every):
+        raise ValueError(different_metrics_message(every, ranks))

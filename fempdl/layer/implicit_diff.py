@@ -2,7 +2,8 @@
 
 Forward: A(m) u = b(m) by the layer's capped solver (K = ``max_it``). Backward:
 A(m)^T lam = dJ/du (BC entries zeroed, same solver and cap, and the Constants,
-fixed Functions and cap that the forward read: :class:`~fempdl.solve.call_state.CallState`), then
+fixed Functions and cap that the forward read: :class:`~fempdl.solve.call_state.CallState`; solved
+again at a refined cap where PRDP's health check finds it garbage, :mod:`fempdl.layer.healthy_calls`), then
 dJ/dm = -lam^T dF/dm for every control that requires grad, and, for a warm
 start x0, the adjoint residual dJ/du - A^T lam (:meth:`LinearSystem.adjoint`).
 
@@ -110,9 +111,16 @@ def implicit_adjoint(handle: int, names: str, wanted: str, tensors: list[Tensor]
     shared = frozenset(n for n, t in zip(names, tensors) if t.dim() == 1)
     arrays = _batched(_float64_values(names, tensors), batch)
     arrays.pop(INITIAL_GUESS, None)
-    with layer.call_state.restored(layer.system, state.numpy()):
-        grads = layer.system.adjoint(arrays, _to_numpy(u), G, [n for n in wanted if n != INITIAL_GUESS],
-                                     shared, initial_guess=INITIAL_GUESS in wanted)
+    packed, runs = state.numpy(), itertools.count()
+
+    def adjoint(health):
+        # The forward's record; where the health check refined the caps since (a garbage adjoint), those.
+        record = packed if next(runs) == 0 else layer.call_state.with_caps(packed, layer.system.caps)
+        measure = {"health": health} if layer.measures_adjoint_health else {}
+        with layer.call_state.restored(layer.system, record):
+            return layer.system.adjoint(arrays, _to_numpy(u), G, [n for n in wanted if n != INITIAL_GUESS],
+                                        shared, initial_guess=INITIAL_GUESS in wanted, **measure)
+    grads = layer.solve_healthy(adjoint, training=layer.measures_adjoint_health, direction="adjoint")
     layer.stats.layer_time += time.perf_counter() - t0
     return [torch.from_numpy(np.ascontiguousarray(grads[n], dtype=np.float64)) for n in wanted]
 

@@ -54,6 +54,8 @@ class SolveLayer(SystemLayer):
         stats: :class:`~fempdl.solve.stats.CumulativeStats` over all samples.
     """
 
+    measures_adjoint_health = True         # a capped adjoint whose residual grew is garbage too
+
     def __init__(self, problem: Problem, options: KSPOptions | str | None = None, *,
                  diff: str = "implicit", max_unrolled_values: int | None = None,
                  memory_budget: int | None = None):

@@ -13,7 +13,6 @@ Shapes: each control tensor is (B, n_m) or (n_m,) with n_m = ``problem.control_s
 from __future__ import annotations
 
 import dataclasses
-import math
 import weakref
 from collections.abc import Callable
 
@@ -22,12 +21,13 @@ import torch
 
 from fempdl.core.ranks import different_metrics_message, torch_group_initialised, training_ranks
 from fempdl.layer.cap_target import LayerCaps
+from fempdl.layer.healthy_calls import HealthyCalls
 from fempdl.layer.implicit_diff import ImplicitSolve, count_on_all_ranks, nonfinite_control_message, register_layer
 from fempdl.solve.call_state import CallState
 from fempdl.solve.caps import Caps
 from fempdl.solve.health import CallHealth, HealthCheck
 from fempdl.solve.linear_system import INITIAL_GUESS
-from fempdl.solve.stats import CumulativeStats, SolverWarning, warn_at_caller
+from fempdl.solve.stats import CumulativeStats, warn_at_caller
 
 __all__ = ["SystemLayer", "INITIAL_GUESS", "DIFF_MODES", "check_diff"]
 
@@ -36,12 +36,6 @@ __all__ = ["SystemLayer", "INITIAL_GUESS", "DIFF_MODES", "check_diff"]
 DIFF_MODES = ("implicit", "unrolled")
 
 _FLOAT_DTYPES = (torch.float32, torch.float64)
-#: Refinements one call may ask for (each raises the cap; a refinement that does not lower the ratio ends them).
-MAX_HEALTH_REFINES = 100
-#: A health check measures the first training call at new caps and then every HEALTH_EVERY-th: garbage comes
-#: from a cap too small for the inputs, which a new cap's first call shows and inputs drifting over training
-#: show within a few calls; measuring every call would cost a loop whose solves are cheap several percent.
-HEALTH_EVERY = 8
 
 
 def check_diff(diff) -> None:
@@ -66,10 +60,7 @@ class SystemLayer(torch.nn.Module):
         self._sizes = {**{n: problem.control_size(n) for n in problem.control_names},
                        INITIAL_GUESS: problem.output_size}
         self._handle = register_layer(self)
-        self._health: HealthCheck | None = None
-        self._health_due = (None, 0)             # (caps of the last measured call, training calls since)
-        #: The largest residual ratio of the last training call the health check measured (None: none yet).
-        self.last_health_ratio: float | None = None
+        self._healthy = HealthyCalls(type(self).__name__, lambda: self.caps, self._distributed)
         # Plain attributes, not submodules: a twin is no part of the model's state_dict (__setattr__).
         #: ``route``: the layer that answers this layer's calls instead of it (:mod:`fempdl.layer.reference`);
         #: ``reference_twin``: the converged twin that answers them at reference physics (built on first use).
@@ -112,68 +103,28 @@ class SystemLayer(torch.nn.Module):
     def health(self) -> HealthCheck | None:
         """The rule for garbage capped solves (:mod:`fempdl.solve.health`), ``None`` for none. PRDP installs
         one on the layers it moves (``PRDPSettings.health``); setting it makes the system measure the
-        residual ratio of its capped forward solves."""
-        return self._health
+        residual ratio of its capped forward solves and of their adjoint solves."""
+        return self._healthy.check
 
     @health.setter
     def health(self, check: HealthCheck | None) -> None:
-        if check is not None and not isinstance(check, HealthCheck):
-            raise TypeError(f"health must be a fempdl.solve.health.HealthCheck or None, got {type(check).__name__}")
-        self._health, self._health_due = check, (None, 0)
+        self._healthy.install(check)
 
-    def solve_healthy(self, solve: Callable[[CallHealth | None], object], training: bool):
-        """``solve(health)``, one call's solves on the system, which measure their residual ratios into
-        ``health`` (a fresh :class:`CallHealth`, or ``None``: measure nothing), run again at a refined cap
-        while a training call's capped solves are garbage (their largest residual ratio above the health
-        limit, agreed over the ranks that train together). A no-grad call (validation) is never refined: it
-        trains nothing, and a validation that one rank runs alone must not enter a collective. Refinement
-        ends when the ratio is within the limit, when the caps cannot rise, or when a refinement did not
-        lower the ratio (a diverging iteration: more of it does not help); the last two warn and keep the
-        solve. Measured are the first training call at new caps and every ``HEALTH_EVERY``-th after (the
-        same calls on every rank: the caps agree and training calls run in step)."""
-        check = self._health
-        if check is None or not training or not self._health_is_due():
-            return solve(None)
-        previous = math.inf
-        for _ in range(MAX_HEALTH_REFINES):
-            measured = CallHealth(check.limit)
-            result = solve(measured)
-            ratio = self.last_health_ratio = self._agreed_health(measured.ratio)
-            self._health_due = (self.caps, 1)
-            if ratio is None or ratio <= check.limit:
-                return result
-            if ratio >= previous:
-                why = (f"refining did not lower it (from {previous:.3g}): the iteration diverges at these inputs; "
-                       "use a convergent solver or preconditioner")
-                break
-            if not check.refine(ratio):
-                why = "the cap cannot rise further (k_cap): raise k_cap or use a stronger solver"
-                break
-            previous = ratio
-        else:
-            why = f"{MAX_HEALTH_REFINES} refinements did not cure it"
-        warn_at_caller(f"a capped solve of this {type(self).__name__} ends with its residual at {ratio:.3g} times "
-                       f"its start (health limit {check.limit:g}) at {self.caps}, and {why}; the network "
-                       "trains on that solve", SolverWarning)
-        return result
+    @property
+    def last_health_ratio(self) -> float | None:
+        """The largest residual ratio of the last training call the health check measured (None: none yet)."""
+        return self._healthy.last_ratio["forward"]
 
-    def _health_is_due(self) -> bool:
-        caps, since = self._health_due
-        if caps == self.caps and since % HEALTH_EVERY:
-            self._health_due = (caps, since + 1)
-            return False
-        return True
+    @property
+    def last_adjoint_health_ratio(self) -> float | None:
+        """The same for the adjoint solves of the last backward measured."""
+        return self._healthy.last_ratio["adjoint"]
 
-    def _agreed_health(self, ratio: float | None) -> float | None:
-        """The largest ratio over the ranks of a torch.distributed group (each holds its own data shard, so
-        they decide together); a distributed mesh's norms are global already."""
-        if self._distributed or not torch_group_initialised():
-            return ratio
-        ranks = training_ranks()
-        if ranks is None:
-            return ratio
-        largest = ranks.max(-1.0 if ratio is None else ratio)      # -1: no capped solve measured
-        return None if largest < 0.0 else largest
+    def solve_healthy(self, solve: Callable[[CallHealth | None], object], training: bool,
+                      direction: str = "forward"):
+        """``solve(health)``, one call's capped solves (a forward, or its backward's adjoint solves), run
+        again at a refined cap while garbage (:class:`~fempdl.layer.healthy_calls.HealthyCalls`)."""
+        return self._healthy.run(solve, training, direction, exact=self.exact_capped_gradient)
 
     @property
     def options(self):
@@ -189,6 +140,19 @@ class SystemLayer(torch.nn.Module):
 
     #: Whether this layer's own cap (``caps.max_it``) counts Newton steps rather than Krylov iterations.
     counts_newton_steps = False
+    #: Whether the health check measures the adjoint solves of this layer's backward too (a linear system's).
+    measures_adjoint_health = False
+
+    @property
+    def exact_capped_gradient(self) -> bool:
+        """Whether the backward is the exact derivative of the capped map that ran (unrolled, or Richardson +
+        Jacobi with right-hand-side controls only), rather than the implicit-function approximation at an
+        unconverged state, wrong by about the state's and the adjoint's error."""
+        if self.diff == "unrolled":
+            return True
+        options = self.options
+        return (not self.counts_newton_steps and options.ksp_type == "richardson" and options.pc_type == "jacobi"
+                and not self.problem.matrix_controls)
 
     @property
     def caps(self) -> Caps:

@@ -50,13 +50,7 @@ IMPLICIT_TOLERANCE = 0.01
 def default_tolerance(layers) -> float:
     """k0's default relative error for ``layers`` (module docstring): the looser one only when every layer's
     capped gradient is the derivative of the capped map."""
-    def consistent(layer) -> bool:
-        if layer.diff == "unrolled":
-            return True
-        options = layer.options
-        return (not layer.counts_newton_steps and options.ksp_type == "richardson"
-                and options.pc_type == "jacobi" and not layer.problem.matrix_controls)
-    return CONSISTENT_TOLERANCE if all(consistent(layer) for layer in layers) else IMPLICIT_TOLERANCE
+    return CONSISTENT_TOLERANCE if all(layer.exact_capped_gradient for layer in layers) else IMPLICIT_TOLERANCE
 
 
 def k_start(target, *, tolerance: float | None = None, k_max: int = 100_000, rtol: float = 1e-8,

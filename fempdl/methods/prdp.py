@@ -1,33 +1,32 @@
-"""PRDP: raise a solver's iteration cap K only when the validation metric plateaus.
+"""PRDP: raise a solver's iteration cap K when the validation metric plateaus, and at once while the cap
+changes how the model is judged.
 
-The controller of "Progressively Refined Differentiable Physics" (Algorithm 4).
-After every validation, :meth:`PRDP.step` takes the metric (lower is better):
-it smooths the history with an EMA, and when the progress over the last
-``delta`` entries stalls (ratio above ``tau_step``) it refines K by ``dk``
-(never above ``k_cap``) unless the previous refinement bought less than
-1 - ``tau_stop`` (then it holds, until the metric moves again). The interface
-follows ``ReduceLROnPlateau``: ``step(metric) -> bool``, ``state_dict()``.
+The controller of "Progressively Refined Differentiable Physics" (Algorithm 4),
+judged with the physics the model is deployed with: a network trained through
+capped solves can learn the cap's bias, which a metric computed with the same
+capped solves cannot see. ``step(validate)`` runs the validation function at
+reference physics (converged solves, :mod:`fempdl.layer.reference`) and at the
+caps, at every step:
 
-The metric judges the model with the physics it is deployed with. A network
-trained through capped solves can learn the cap's bias, which a metric computed
-with the same capped solves cannot see; so ``step`` takes the validation as a
-function and runs it at reference physics (converged solves,
-:mod:`fempdl.layer.reference`; ``judge="capped"`` for a model deployed capped).
-Where the rule would hold, or K sits at ``k_cap``, on a plateau, it also runs the
-validation at the caps: while the two metrics differ by more than ``gap`` (the
-network leans on the cap, or the cap still moves what the model is judged at)
-K is refined (cause ``"gap"``); at ``k_cap`` K_eps is measured again at the
-current model (``remeasure``) and ``k_cap`` raised to it (cause ``"k_eps"``).
-A metric given as a number is taken as it is; if the layers were called capped
-without gradients since the last step (a capped validation), PRDP warns once.
+* while the two metrics differ by more than ``gap``, K moves at once to the
+  cap that closes the gap, found by a doubling search bounded by ``k_cap``
+  (cause ``"gap"``, :mod:`fempdl.methods.prdp_gap`); at ``k_cap`` K_eps is
+  measured again at the current model and ``k_cap`` raised to it
+  (``"k_eps"``);
+* otherwise the paper's plateau rule refines K to max(K + dk, ceil(growth K))
+  (``"plateau"``; ``"rise"`` for the optional guard).
+
+``finish(validate)``, after the last epoch, closes the gap and returns the
+judged metric; it warns where the gap stays open. A metric given as a number is
+taken as it is (``capped=`` gives its value at the caps); if the layers were
+called capped without gradients since the last step (a capped validation),
+PRDP warns once. ``judge="capped"``: a model deployed with the capped solver.
 
 Between validations, the layers it moves refine at once when a training call's
 capped solves are garbage rather than coarse: their residual grew, or did not
 shrink below ``health`` times its start (:mod:`fempdl.solve.health`). The layer
 solves that call again at the refined cap, so the network never trains on it;
 :attr:`PRDP.health_refinements` lists these refinements.
-
-:func:`~fempdl.methods.k_eps.k_eps` measures the converged cap K_eps, the usual ``k_cap``.
 """
 from __future__ import annotations
 
@@ -41,14 +40,22 @@ from collections.abc import Callable
 
 import torch
 
-from fempdl.core.ranks import Ranks, different_metrics_message, training_ranks
+from fempdl.core.ranks import Ranks, refuse_different_metrics, training_ranks
 from fempdl.layer.cap_target import CapTarget, as_target
 from fempdl.layer.reference import reference_physics
 from fempdl.methods.k_eps import k_eps
-from fempdl.methods.prdp_settings import SETTING_NAMES, PRDPRecord, PRDPSettings
+from fempdl.methods.prdp_gap import GapSearch, closing_cap, grown_cap, open_gap_message, relative_gap
+from fempdl.methods.prdp_settings import (
+    SETTING_NAMES,
+    PRDPFinish,
+    PRDPRecord,
+    PRDPSettings,
+    check_saved_settings,
+    refined_cap,
+)
 from fempdl.solve.health import HealthCheck
 
-__all__ = ["PRDP", "PRDPRecord", "PRDPSettings", "PRDPValidationWarning", "k_eps"]
+__all__ = ["PRDP", "PRDPFinish", "PRDPGapWarning", "PRDPRecord", "PRDPSettings", "PRDPValidationWarning", "k_eps"]
 _log = logging.getLogger(__name__)
 
 
@@ -56,47 +63,21 @@ class PRDPValidationWarning(UserWarning):
     """PRDP was stepped with a metric computed with capped solves (module docstring)."""
 
 
-class PRDP:
-    """Progressive refinement of an iteration cap K.
+class PRDPGapWarning(UserWarning):
+    """PRDP finished with the capped and the reference metric further apart than ``gap``."""
 
-    At every :meth:`step`: ema is the EMA of the metrics (alpha =
-    2 / (ema_window + 1), ema[0] = m[0]); with more than ``delta`` entries,
-    r = ema[-1] / ema[-delta]. If r > tau_step (a plateau), rc = ema[-1] / c
-    compares it with the checkpoint c of the previous plateau (c starts at the
-    first metric): if rc < tau_stop (the last refinement still helped) or
-    rc > 1 (the metric got worse), c = ema[-1] and K is refined; otherwise K
-    holds. ``guard`` and ``growth`` are optional departures, off by default.
-    Where the rule holds, or K is at ``k_cap``, on a plateau, a metric given as a
-    function is also run at the caps, and K refined while the two differ by more
-    than ``gap`` (|capped - reference| / the smaller; module docstring).
+
+class PRDP:
+    """Progressive refinement of an iteration cap K (module docstring; the rule in docs/api/prdp.md).
 
     Args:
         target: what K moves (:func:`fempdl.layer.cap_target.as_target`): a solve layer, a
             :class:`~fempdl.methods.newton_caps.NewtonCaps`, a Rollout, an object with a ``max_it``
             attribute, a list of them, a callable ``f(k)``, or ``None`` (read :attr:`k` yourself).
             Its cap is set to ``k0`` at construction.
-        settings: a :class:`PRDPSettings`, or none to give its fields as keywords:
-        k0: the starting cap (>= 1).
-        dk: increment per refinement (>= 1).
-        tau_step: plateau threshold on r in (0, 1].
-        tau_stop: stagnation threshold on rc in (0, 1].
-        delta: grace interval (>= 2): r compares with delta - 1 steps earlier.
-        ema_window: EMA window (alpha = 2 / (ema_window + 1)); >= 1.
-        k_cap: upper bound for K (``None``: unbounded).
-        guard: refine at once when the metric exceeds ``guard`` (> 1) times the
-            best metric so far and the previous one (``None``: off).
-        growth: a refinement sets K = max(K + dk, ceil(growth * K)) (>= 1; 1: K + dk).
-        judge: ``"reference"`` (a metric given as a function runs at converged physics) or
-            ``"capped"`` (at the caps: a model deployed with the capped solver; no gap rule).
-        gap: the largest relative difference |capped - reference| / min(capped, reference) at which the rule may
-            hold or stop at ``k_cap`` (``None``: never checked).
-        remeasure: at ``k_cap`` with the gap open, measure K_eps at the current model (to
-            ``k_eps_rtol``) and raise ``k_cap`` to it.
-        health: the largest residual ratio ||r_K|| / ||r_0|| of a training call's capped solves
-            (:mod:`fempdl.solve.health`) before the target layers refine K at once and solve that call
-            again (1, the default: a residual that did not shrink; ``None``: off). Measured on the first
-            training call at new caps and every 8th after, at one matrix-vector product per capped linear
-            sample (two from a warm start) and nothing for Newton.
+        settings: a :class:`PRDPSettings` (k0, dk, tau_step, tau_stop, delta, ema_window, k_cap, guard,
+            growth, judge, gap, remeasure, k_eps_rtol, health: their meaning is documented there), or none
+            to give its fields as keywords.
         comm: the ranks that train together: an ``mpi4py`` communicator or a
             torch.distributed ``ProcessGroup``. Default: the communicator of the
             target layers' mesh when it is distributed, else torch.distributed's
@@ -168,9 +149,10 @@ class PRDP:
 
         Args:
             metric: a function computing the validation metric through the layers PRDP moves (run without
-                gradients at reference physics, or at the caps under ``judge="capped"``), or its value.
+                gradients at reference physics, and at the caps for the gap; at the caps alone under
+                ``judge="capped"``), or its value.
             capped: with a metric given as a number computed at reference physics, the same metric at the
-                caps (for the gap rule); a function's is measured when needed.
+                caps (for the gap rule); a function's is measured at every step.
         """
         validate = metric if callable(metric) else None
         if validate is not None:
@@ -182,9 +164,8 @@ class PRDP:
         if self.checkpoint is None:
             self.checkpoint = metric
         k_used = self.k
-        r = rc = gap = None
+        r = rc = None
         cause = None
-        plateau = False
         if self.guard is not None and self.history and metric > self.history[-1].metric \
                 and metric > self.guard * min(rec.metric for rec in self.history):
             cause = "rise"
@@ -192,38 +173,107 @@ class PRDP:
         elif len(self.history) + 1 > self.delta:
             emas = self.ema + [ema]
             r = emas[-1] / emas[-self.delta]
-            plateau = r > self.tau_step
-            if plateau:
+            if r > self.tau_step:
                 rc = emas[-1] / self.checkpoint
                 if rc < self.tau_stop or rc > 1.0:
                     self.checkpoint = emas[-1]
                     cause = "plateau"
-        # At k_cap a gap found closed stays closed until k_cap moves: no capped validation at every plateau.
-        closed = not self._can_refine() and self._gap_closed_at == (self.k, self.k_cap)
-        if plateau and (cause is None or not self._can_refine()) and self.gap is not None and not closed \
-                and self.judge == "reference" and (capped is not None or validate is not None):
-            capped = self._checked(self._run(validate, at_reference=False) if capped is None else capped,
-                                   "capped")
-            gap = abs(capped - metric) / min(capped, metric)
-            if gap <= self.gap and not self._can_refine():
-                self._gap_closed_at = (self.k, self.k_cap)
-            if gap > self.gap:
-                if self._can_refine():
-                    cause = "gap"
-                elif self.remeasure and validate is not None and self._raise_k_cap(validate):
-                    cause = "k_eps"
-                if cause in ("gap", "k_eps"):
+        capped = self._capped_metric(validate, capped)
+        gap, k_next, probes = None, None, ()
+        if capped is not None:
+            gap = relative_gap(capped, metric)
+            if gap > self.gap:                      # the gap acts first, whatever the plateau rule says
+                k_next, probes, gap_cause = self._closing(validate, metric)
+                if gap_cause is not None:
+                    cause = gap_cause
                     self.checkpoint = ema
-        refine = cause is not None and self._can_refine()
+            elif not self._can_refine():            # closed at k_cap: not checked again until k_cap moves
+                self._gap_closed_at = (self.k, self.k_cap)
+        if k_next is None and cause is not None and self._can_refine():
+            k_next = self._refined_k()
+        refine = k_next is not None and k_next > k_used
         self.history.append(PRDPRecord(step=len(self.history), k=k_used, metric=metric, ema=ema, r=r, rc=rc,
-                                       refined=refine, cause=cause if refine else None,
-                                       capped_metric=None if gap is None else capped, gap=gap, k_cap=self.k_cap))
+                                       refined=refine, cause=cause if refine else None, capped_metric=capped,
+                                       gap=gap, k_cap=self.k_cap, probes=probes))
         if refine:
-            self._refine()
+            self._set_k(k_next)
             _log.info("PRDP: K %d -> %d (%s) at step %d, metric %.3e", k_used, self.k, cause,
                       len(self.history) - 1, metric)
         self._eval_calls = self._capped_eval_calls()
         return refine
+
+    def finish(self, metric, *, capped: float | None = None) -> PRDPFinish:
+        """The closing call, after the last epoch: the model as it will be judged, and the gap closed.
+
+        Runs the validation at reference physics and at the caps; where the gap is open, raises K to the
+        cap that closes it (as :meth:`step` does; at ``k_cap`` K_eps is measured again at this model). Warns
+        (:class:`PRDPGapWarning`, naming both metrics) where the gap stays open. Nothing is added to
+        :attr:`history`.
+
+        Args:
+            metric: the validation as a function (as for :meth:`step`), or its value at reference physics.
+            capped: with a number, the same metric at the caps (a number cannot be searched: an open gap
+                warns).
+        """
+        validate = metric if callable(metric) else None
+        value = self._checked(self._run(validate, at_reference=self.judge == "reference")
+                              if validate is not None else metric, "metric")
+        self._gap_closed_at = None                  # measured once more, whatever an earlier step found
+        capped = self._capped_metric(validate, capped)
+        if capped is None:
+            return PRDPFinish(metric=value, capped_metric=None, gap=None, k=self.k, k_cap=self.k_cap, closed=True)
+        gap, probes = relative_gap(capped, value), ()
+        if gap > self.gap and validate is not None:
+            k_next, probes, _ = self._closing(validate, value)
+            if k_next is not None and k_next > self.k:
+                self._set_k(k_next)
+                capped = dict(probes).get(k_next) or self._capped_at(validate, k_next)
+                gap = relative_gap(capped, value)
+        closed = gap <= self.gap
+        if not closed:
+            warnings.warn(open_gap_message(self.k, capped, value, self.gap, self.k_cap), PRDPGapWarning, stacklevel=2)
+        _log.info("PRDP: finished at K %d, metric %.3e (capped %.3e, gap %.3g)", self.k, value, capped, gap)
+        return PRDPFinish(metric=value, capped_metric=capped, gap=gap, k=self.k, k_cap=self.k_cap, closed=closed,
+                          probes=probes)
+
+    def _capped_metric(self, validate: Callable | None, capped) -> float | None:
+        """The metric at the caps where the gap is known: given, or measured by running ``validate`` capped
+        (not where K sits at ``k_cap`` with the gap found closed there)."""
+        if self.judge != "reference" or self.gap is None:
+            return None
+        if capped is not None:
+            return self._checked(capped, "capped")
+        if validate is None or not self._can_refine() and self._gap_closed_at == (self.k, self.k_cap):
+            return None
+        return self._checked(self._run(validate, at_reference=False), "capped")
+
+    def _capped_at(self, validate: Callable, k: int) -> float:
+        """The capped metric with the target's caps at ``k`` (put back to K afterwards)."""
+        try:
+            self._target.set_k(k)
+            return self._checked(self._run(validate, at_reference=False), "capped")
+        finally:
+            self._target.set_k(self.k)
+
+    def _closing(self, validate: Callable | None, metric: float) -> tuple[int | None, tuple, str | None]:
+        """Where the gap is open: the cap that closes it, the search's probes and the cause (``"gap"``, or
+        ``"k_eps"`` where ``k_cap`` was raised first); ``(None, (), None)`` where K cannot move."""
+        cause = "gap"
+        if not self._can_refine():
+            if not (self.remeasure and validate is not None and self._raise_k_cap(validate)):
+                return None, (), None
+            cause = "k_eps"
+        if validate is None:
+            return grown_cap(self.k, self.dk, self.k_cap), (), cause
+        bound = self.k_cap if self.k_cap is not None else \
+            max(self.k + self.dk, k_eps(self._target, call=validate, rtol=self.k_eps_rtol))
+        search = closing_cap(lambda k: self._capped_at(validate, k), metric, self.k, bound, self.gap, self.dk)
+        if not search.closed and cause == "gap" and self.k_cap is not None and self.remeasure \
+                and self._raise_k_cap(validate):            # open at k_cap: K_eps at this model lies above it
+            more = closing_cap(lambda k: self._capped_at(validate, k), metric, search.k, self.k_cap, self.gap,
+                               self.dk)
+            search, cause = GapSearch(more.k, more.closed, search.probes + more.probes), "k_eps"
+        return search.k, search.probes, cause
 
     @property
     def steps_record(self) -> tuple:
@@ -242,7 +292,7 @@ class PRDP:
         if isinstance(metric, bool) or not isinstance(metric, (int, float)) and not hasattr(metric, "__float__"):
             raise TypeError(f"{what} must be a number (or a function returning one), got {type(metric).__name__}")
         metric = float(metric)
-        self._check_ranks_agree(metric)
+        refuse_different_metrics(self.ranks, metric)    # over a torch group: at the next training call
         if not math.isfinite(metric) or metric <= 0.0:
             raise ValueError(f"{what} must be finite and > 0 (a validation error), got {metric!r}")
         return metric
@@ -281,10 +331,12 @@ class PRDP:
     def _can_refine(self) -> bool:
         return self.k_cap is None or self.k < self.k_cap
 
-    def _refine(self) -> None:
-        k = max(self.k + self.dk, math.ceil(self.growth * self.k - 1e-9))
-        self.k = k if self.k_cap is None else min(k, self.k_cap)
-        self._target.set_k(self.k)
+    def _refined_k(self) -> int:
+        return refined_cap(self.k, self.settings, self.k_cap)
+
+    def _set_k(self, k: int) -> None:
+        self.k = k
+        self._target.set_k(k)
 
     def refine_for_health(self, ratio: float) -> bool:
         """Refine K now, for a training call whose capped solves ended with residual ratio ``ratio``
@@ -292,7 +344,7 @@ class PRDP:
         if not self._can_refine():
             return False
         k_used = self.k
-        self._refine()
+        self._set_k(self._refined_k())
         self.health_refinements.append({"step": len(self.history), "k": k_used, "to": self.k, "ratio": float(ratio)})
         _log.info("PRDP: K %d -> %d (a capped solve's residual ended at %.3g x its start) before step %d",
                   k_used, self.k, ratio, len(self.history))
@@ -310,7 +362,8 @@ class PRDP:
                 layer.health = None
             return
         refine = weakref.WeakMethod(self.refine_for_health)    # the layers do not keep the controller alive
-        check = HealthCheck(self.health, lambda ratio: (refine() or _cannot_refine)(ratio))
+        check = HealthCheck(self.health, lambda ratio: (refine() or _cannot_refine)(ratio),
+                            adjoint_limit=self.adjoint_health)
         for layer in layers:
             layer.health = check
 
@@ -319,19 +372,6 @@ class PRDP:
         """The ranks whose metrics must agree (looked up at each step: a torch.distributed group may
         be initialised after the controller was built)."""
         return training_ranks(self._given_comm, self.comm)
-
-    def _check_ranks_agree(self, metric: float) -> None:
-        """Over an MPI communicator, now (its ranks step in lockstep). Over a torch.distributed group, at the
-        layers' next training call (:attr:`steps_record`):
-        validating and stepping on rank 0 alone is a common DDP pattern, and a collective here would wait
-        for ranks that never come while they wait in DDP's all-reduce (a hang); a training call is
-        collective under DDP anyway, so every rank gets the refusal there."""
-        ranks = self.ranks
-        if ranks is None or ranks.size == 1 or ranks.torch_group or ranks.agree((metric,)):
-            return
-        every = ranks.allgather(metric)
-        if any(m != metric for m in every):
-            raise ValueError(different_metrics_message(every, ranks))
 
     def state_dict(self) -> dict:
         """Everything needed to continue: K, the checkpoint, the history and the settings."""
@@ -344,19 +384,12 @@ class PRDP:
 
     def load_state_dict(self, state: dict) -> None:
         """Restore from :meth:`state_dict` (and set the target's cap to the saved K)."""
-        # States saved before guard and growth existed ran plain Algorithm 4; health acts between
-        # validations and leaves the saved history valid, so a state saved before it resumes with either.
-        # The judge, gap and remeasure settings act at the steps to come: a state saved before them resumes too.
-        mine = self.state_dict()["settings"]
-        later = {key: mine[key] for key in ("judge", "gap", "remeasure", "k_eps_rtol")}
-        settings = {"guard": None, "growth": 1.0, "health": self.health, **later, **state["settings"]}
-        if settings != mine:
-            changed = {k: (settings.get(k), v) for k, v in mine.items() if settings.get(k) != v}
-            raise ValueError(f"saved PRDP settings differ from this controller's (saved, current): {changed}")
+        check_saved_settings(state["settings"], self.settings)
         self.k = int(state["k"])
         self._k_cap = state.get("k_cap", self.settings.k_cap)
         self.checkpoint = state["checkpoint"]
-        self.history = [PRDPRecord(**rec) for rec in state["history"]]
+        self.history = [PRDPRecord(**{**rec, "probes": tuple(tuple(p) for p in rec.get("probes", ()))})
+                        for rec in state["history"]]
         self.health_refinements = [dict(event) for event in state.get("health_refinements", [])]
         self._target.set_k(self.k)
 

@@ -11,7 +11,7 @@ import math
 
 from fempdl.core.checks import check_int
 
-__all__ = ["PRDPRecord", "PRDPSettings", "JUDGES", "SETTING_NAMES"]
+__all__ = ["PRDPFinish", "PRDPRecord", "PRDPSettings", "check_saved_settings", "refined_cap", "JUDGES", "SETTING_NAMES"]
 
 #: The physics a metric given as a function is computed with (``PRDPSettings.judge``).
 JUDGES = ("reference", "capped")
@@ -22,7 +22,9 @@ class PRDPRecord:
     """One call of :meth:`PRDP.step`: the K in force while ``metric`` was
     measured, the smoothed metric, the ratios (None before a decision is
     possible or when not computed), whether K was raised afterwards and why,
-    and, where the rule would have held, the capped metric and the gap."""
+    and, where the gap is known (every step of a validation given as a
+    function), the capped metric, the gap and the probes of a search that
+    closed it."""
 
     step: int
     k: int
@@ -32,9 +34,25 @@ class PRDPRecord:
     rc: float | None
     refined: bool
     cause: str | None = None      # when refined: "plateau", "rise" (the guard), "gap" or "k_eps" (module docstring)
-    capped_metric: float | None = None     # the metric at the caps, where the gap was checked
-    gap: float | None = None               # |capped - reference| / min(capped, reference), where checked
+    capped_metric: float | None = None     # the metric at the caps at k, where the gap is known
+    gap: float | None = None               # |capped - reference| / min(capped, reference), where known
     k_cap: int | None = None               # the cap's upper bound after this step (raised by "k_eps")
+    probes: tuple = ()                     # (K, capped metric) of the search that closed an open gap
+
+
+@dataclasses.dataclass(frozen=True)
+class PRDPFinish:
+    """What :meth:`PRDP.finish` found: the validation metric at reference physics (the model as judged),
+    at the caps, their gap, the cap K and ``k_cap`` after closing it, whether it is closed (within
+    ``gap``), and the probes of the search that closed it."""
+
+    metric: float
+    capped_metric: float | None
+    gap: float | None
+    k: int
+    k_cap: int | None
+    closed: bool
+    probes: tuple = ()
 
 
 def _setting(default, doc: str, kind: type, **bounds):
@@ -62,13 +80,14 @@ class PRDPSettings:
     k_cap: int | None = _setting(None, "largest cap (none: K_eps in a scene, unbounded in PRDP)", int, minimum=1)
     guard: float | None = _setting(None, "refine at once when the metric rises above guard x its best "
                                          "(none: never)", float, minimum=1.0 + 1e-12)
-    growth: float = _setting(1.0, "a refinement sets K to max(K + dk, ceil(growth K))", float, minimum=1.0)
+    growth: float = _setting(1.5, "a refinement of the plateau rule sets K to max(K + dk, ceil(growth K)) (1: the "
+                                  "paper's K + dk)", float, minimum=1.0)
     judge: str = _setting("reference", "the physics a metric given as a function is computed with: reference "
                                        "(converged, the model as deployed) or capped (a model deployed with the "
                                        "capped solver)", str, choices=JUDGES)
-    gap: float | None = _setting(0.05, "where the rule would hold or K is at k_cap, refine while the capped and "
-                                       "the reference metric differ by more than this fraction (none: never)",
-                                 float, minimum=_POSITIVE)
+    gap: float | None = _setting(0.05, "at every step of a validation given as a function, raise K to the cap "
+                                       "at which the capped and the reference metric differ by at most this "
+                                       "fraction (none: never)", float, minimum=_POSITIVE)
     remeasure: bool = _setting(True, "where the gap stays open at k_cap, measure K_eps again at the current "
                                      "model and raise k_cap to it", bool)
     k_eps_rtol: float = _setting(1e-8, "the tolerance of converged solves when K_eps is measured again", float,
@@ -76,6 +95,10 @@ class PRDPSettings:
     health: float | None = _setting(1.0, "refine at once when a training call's capped solve ends with its residual "
                                          "above health x its start, and solve it again (none: never)", float,
                                     minimum=_POSITIVE)
+    adjoint_health: float | None = _setting(0.01, "where a layer's gradient is the implicit approximation (capped "
+                                                 "Krylov, matrix controls), refine at once when a training "
+                                                 "call's capped adjoint ends above this fraction of its start "
+                                                 "residual (none: the health limit)", float, minimum=_POSITIVE)
 
     def __post_init__(self):
         check_int("k0", self.k0, minimum=1)
@@ -107,13 +130,38 @@ class PRDPSettings:
         if not (_is_number(self.k_eps_rtol) and 0.0 < self.k_eps_rtol < 1.0):
             raise ValueError(f"k_eps_rtol must be a number in (0, 1), got {self.k_eps_rtol!r}")
         object.__setattr__(self, "k_eps_rtol", float(self.k_eps_rtol))
-        if self.health is not None:
-            if not (_is_number(self.health) and 0.0 < self.health < math.inf):
-                raise ValueError(f"health must be a finite residual ratio > 0 (or None: off), got {self.health!r}")
-            object.__setattr__(self, "health", float(self.health))
+        for name in ("health", "adjoint_health"):
+            value = getattr(self, name)
+            if value is not None:
+                if not (_is_number(value) and 0.0 < value < math.inf):
+                    raise ValueError(f"{name} must be a finite residual ratio > 0 (or None: off), got {value!r}")
+                object.__setattr__(self, name, float(value))
 
 
 SETTING_NAMES = frozenset(f.name for f in dataclasses.fields(PRDPSettings))
+
+
+def refined_cap(k: int, settings: PRDPSettings, k_cap: int | None) -> int:
+    """The cap after a refinement of the rule (or of the health check): max(K + dk, ceil(growth K)), at most
+    ``k_cap``."""
+    k = max(k + settings.dk, math.ceil(settings.growth * k - 1e-9))
+    return k if k_cap is None else min(k, k_cap)
+
+
+def check_saved_settings(saved: dict, settings: PRDPSettings) -> None:
+    """Refuse a saved controller's settings that differ from ``settings``, naming them.
+
+    States saved before guard and growth existed ran plain Algorithm 4 (growth 1); health acts between
+    validations and leaves the saved history valid, so a state saved before it resumes with either. The
+    judge, gap, remeasure and adjoint_health settings act at the steps to come: a state saved before them
+    resumes too.
+    """
+    mine = dataclasses.asdict(settings)
+    later = {key: mine[key] for key in ("judge", "gap", "remeasure", "k_eps_rtol", "adjoint_health")}
+    merged = {"guard": None, "growth": 1.0, "health": settings.health, **later, **saved}
+    if merged != mine:
+        changed = {k: (merged.get(k), v) for k, v in mine.items() if merged.get(k) != v}
+        raise ValueError(f"saved PRDP settings differ from this controller's (saved, current): {changed}")
 
 
 def _is_number(value) -> bool:

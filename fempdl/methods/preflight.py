@@ -6,7 +6,9 @@ inputs and starts (its ``initial_guess`` too):
 
 * K_eps, the cap converged solves need (``k_cap``): :func:`~fempdl.methods.prdp.k_eps`,
   or :func:`~fempdl.methods.newton_caps.newton_k_eps` for a Newton layer;
-* k0, the first cap whose solves are not garbage: :func:`~fempdl.methods.k_start.k_start`;
+* k0, the first cap whose solves are not garbage: :func:`~fempdl.methods.k_start.k_start`, then
+  raised as PRDP's health check would raise it on the loop's first training step at k0 (its forward and
+  its adjoint solves: a cap whose forward state is within 1% can leave the adjoint garbage);
 * the time split of a few of the loop's own steps run at K_eps (real training
   steps): the parts that shrink with the cap (the iterations; where K moves the
   Newton cap, also each Newton step's assembly and set-up) hold a share s of
@@ -19,12 +21,15 @@ inputs and starts (its ``initial_guess`` too):
 PRDP never runs below k0, and everything else costs what it did, so it can
 save at most s (1 - c) of the wall time (:attr:`Preflight.max_saving`).
 Where that is below ``worthwhile``, PRDP cannot pay in this loop and the
-report says so: train at K_eps.
+report says so: train at K_eps. :meth:`Preflight.summary` prints the
+controller to build, with every setting it relies on; :meth:`Preflight.prdp`
+builds it (k0 = k_cap = K_eps where PRDP cannot pay: converged caps).
 """
 from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from collections.abc import Callable
 
 import torch
@@ -33,6 +38,10 @@ from fempdl.core.checks import check_int
 from fempdl.layer.cap_target import CapTarget, layers_target
 from fempdl.methods.k_eps import k_eps, left_as_is, measure_call
 from fempdl.methods.k_start import k_start
+from fempdl.methods.prdp import PRDP
+from fempdl.methods.prdp_settings import PRDPSettings, refined_cap
+from fempdl.solve.health import HealthCheck
+from fempdl.solve.stats import SolverWarning
 
 __all__ = ["Preflight", "preflight"]
 
@@ -47,6 +56,7 @@ class Preflight:
     capped_time: float
     capped_parts: tuple
     cost_ratio: float
+    forward_k0: int | None = None       # k_start's k0, before the first training step's health check
 
     @property
     def solver_share(self) -> float:
@@ -61,15 +71,34 @@ class Preflight:
     def pays(self, worthwhile: float = 0.1) -> bool:
         return self.max_saving >= worthwhile
 
+    def advice(self, worthwhile: float = 0.1) -> dict:
+        """The caps to give PRDP: ``k0`` and ``k_cap`` as measured where PRDP pays; where it cannot,
+        ``k0 = k_cap`` = K_eps, so a controller built from them keeps the loop at converged caps."""
+        return {"k0": self.k0 if self.pays(worthwhile) else self.k_cap, "k_cap": self.k_cap}
+
+    def prdp(self, target, worthwhile: float = 0.1, **settings) -> PRDP:
+        """The controller :meth:`summary` advises: ``PRDP(target, **advice())``, PRDP's defaults for the rest
+        (``settings`` override them)."""
+        return PRDP(target, **{**self.advice(worthwhile), **settings})
+
     def summary(self, worthwhile: float = 0.1) -> str:
-        head = (f"K_eps {self.k_cap}, k0 {self.k0} (its solves cost {self.cost_ratio:.2f}x those at K_eps); at K_eps "
+        raised = "" if self.forward_k0 in (None, self.k0) else \
+            f" (k_start's {self.forward_k0}, raised by the health check of a first training step)"
+        head = (f"K_eps {self.k_cap}, k0 {self.k0}{raised} (its solves cost {self.cost_ratio:.2f}x those at K_eps); "
+                "at K_eps "
                 f"the solver ({'+'.join(self.capped_parts)}) holds {100 * self.solver_share:.0f}% of a "
                 f"{self.step_time * 1e3:.1f} ms step: PRDP can save at most {100 * self.max_saving:.0f}% of the "
                 "wall time")
+        call = "PRDP(target, " + ", ".join(f"{key}={value}" for key, value in self.advice(worthwhile).items()) + ")"
+        defaults = PRDPSettings()
+        relies = (f"its other settings PRDP's defaults, among them growth={defaults.growth:g}, gap={defaults.gap:g}, "
+                  f"judge={defaults.judge!r}; call ctrl.step(validate) after every epoch, validate() computing the "
+                  "validation metric through the target, and ctrl.finish(validate) after the last")
         if self.pays(worthwhile):
-            return f"{head}; use PRDP(..., k0={self.k0}, k_cap={self.k_cap})"
+            return f"{head}; use ctrl = {call} (report.prdp(target)), {relies}"
         return (f"{head}, below {100 * worthwhile:.0f}%: PRDP cannot pay in this loop; train at K_eps "
-                f"(max_it={self.k_cap}) or with converged solves")
+                f"(max_it={self.k_cap}) or with converged solves: ctrl = {call} (report.prdp(target)) keeps the "
+                "loop there")
 
 
 def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: float | None = None,
@@ -79,8 +108,8 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
 
     Args:
         step: runs one training step of the loop (forward, backward, optimizer step) through the
-            target's layers; called ``steps + 1`` times at K_eps (the first call warms caches up and is
-            not timed). These are real steps: the model trains.
+            target's layers; called once at k0 under PRDP's health check, then ``steps + 1`` times at K_eps
+            (the first call warms caches up and is not timed). These are real steps: the model trains.
         target: what PRDP will move: a :class:`~fempdl.layer.solve_layer.SolveLayer`, a
             :class:`~fempdl.layer.newton_layer.NonlinearSolveLayer` (its Newton cap), a
             :class:`~fempdl.methods.newton_caps.NewtonCaps`, a :class:`~fempdl.layer.rollout.Rollout`,
@@ -100,9 +129,9 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
     run = measure_call(target, call, inputs, "K_eps")
     parts = ("iterations", "setup", "assembly") if target.counts_newton_steps else ("iterations",)
     k_cap = k_eps(target, rtol=rtol, call=run)
-    k0 = min(k_start(target, tolerance=tolerance, rtol=rtol, k_max=k_cap, call=run), k_cap)
-    cost_ratio = _solve_cost(target, run, k0, parts) / max(_solve_cost(target, run, k_cap, parts), 1)
+    forward_k0 = min(k_start(target, tolerance=tolerance, rtol=rtol, k_max=k_cap, call=run), k_cap)
     with target.kept():                         # the steps are real training: their counters stay
+        k0 = _healthy_start(step, target, forward_k0, k_cap)
         target.set_k(k_cap)
         step()
         before = [_capped_seconds(layer.stats, parts) for layer in layers]
@@ -111,8 +140,37 @@ def preflight(step: Callable[[], object], target, *, steps: int = 3, tolerance: 
             step()
         elapsed = time.perf_counter() - t0
         capped = sum(_capped_seconds(layer.stats, parts) - b for layer, b in zip(layers, before))
+    cost_ratio = _solve_cost(target, run, k0, parts) / max(_solve_cost(target, run, k_cap, parts), 1)
     return Preflight(k0=k0, k_cap=k_cap, step_time=elapsed / steps, capped_time=capped / steps, capped_parts=parts,
-                     cost_ratio=cost_ratio)
+                     cost_ratio=cost_ratio, forward_k0=forward_k0)
+
+
+def _healthy_start(step: Callable[[], object], target: CapTarget, k0: int, k_cap: int) -> int:
+    """k0 as PRDP's health check (its defaults) leaves it after the loop's first training step at k0: raised
+    while that step's capped forward or adjoint solves are garbage. The step is a real one (the first of
+    the untimed steps); the layers' own health checks are put back."""
+    defaults, current = PRDPSettings(), [k0]
+
+    def refine(ratio: float) -> bool:
+        if current[0] >= k_cap:
+            return False
+        current[0] = refined_cap(current[0], defaults, k_cap)
+        target.set_k(current[0])
+        return True
+    layers = target.layers
+    kept = [layer.health for layer in layers]
+    check = HealthCheck(defaults.health, refine, adjoint_limit=defaults.adjoint_health)
+    try:
+        for layer in layers:
+            layer.health = check
+        target.set_k(k0)
+        with warnings.catch_warnings():             # a solve the check cannot cure is PRDP's to report
+            warnings.simplefilter("ignore", SolverWarning)
+            step()
+    finally:
+        for layer, health in zip(layers, kept):
+            layer.health = health
+    return current[0]
 
 
 def _solve_cost(target: CapTarget, run, k: int, parts: tuple) -> int:

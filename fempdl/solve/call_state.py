@@ -60,6 +60,13 @@ class CallState:
         return np.concatenate([np.asarray(caps, dtype=np.float64),
                                *(np.asarray(value_of(obj), dtype=np.float64).ravel() for obj in self._inputs)])
 
+    @staticmethod
+    def with_caps(packed: np.ndarray, caps: Caps) -> np.ndarray:
+        """``packed`` with its caps replaced by ``caps`` (an adjoint solved again at a refined cap)."""
+        packed = np.array(packed, dtype=np.float64)
+        packed[:_CAP_FIELDS] = [_NO_CAP if c is None else float(c) for c in (caps.max_it, caps.inner_max_it)]
+        return packed
+
     @contextmanager
     def restored(self, system, packed: np.ndarray):
         """Within the block, ``system`` and the problem hold the values ``packed`` (from :meth:`pack`); the

@@ -40,17 +40,27 @@ class HealthCheck:
         limit: a capped training solve with rho > ``limit`` is garbage (1: its residual did not shrink).
         refine: called with rho; raises the caps of every layer it moves and returns True, or returns
             False when they cannot rise (then the layer warns and keeps the solve).
+        adjoint_limit: the limit of an adjoint solve whose gradient is the implicit-function approximation
+            (its error is about the adjoint's: a solve that merely shrank is not enough); ``None``: ``limit``.
     """
 
     limit: float
     refine: Callable[[float], bool]
+    adjoint_limit: float | None = None
 
     def __post_init__(self):
-        if isinstance(self.limit, bool) or not isinstance(self.limit, (int, float)) \
-                or not 0.0 < self.limit < math.inf:
-            raise ValueError(f"a health limit must be a finite number > 0 (a residual ratio), got {self.limit!r}")
+        for limit in (self.limit, 1.0 if self.adjoint_limit is None else self.adjoint_limit):
+            if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not 0.0 < limit < math.inf:
+                raise ValueError(f"a health limit must be a finite number > 0 (a residual ratio), got {limit!r}")
         if not callable(self.refine):
             raise TypeError(f"refine must be callable, got {type(self.refine).__name__}")
+
+    def limit_for(self, direction: str, exact: bool) -> float:
+        """The limit of a ``direction`` ("forward" or "adjoint") solve of a layer whose capped gradient is
+        (``exact``) or is not the derivative of the capped map."""
+        if direction == "forward" or exact or self.adjoint_limit is None:
+            return self.limit
+        return self.adjoint_limit
 
 
 class CallHealth:

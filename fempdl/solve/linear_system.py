@@ -77,6 +77,7 @@ class LinearSystem:
         self._destroyed = False
         self._b = _dolfinx.create_vector(problem.L_form)       # ghosted: assembly target
         self._x, self._rhs = self._A.createVecs()              # solution / transposed RHS
+        self._work = None                                       # a residual's work vector, made when needed
         self._nullspace = assembly.attach_nullspace(self._A, problem.nullspace)
         self._near_nullspace = assembly.attach_nullspace(self._A, problem.near_nullspace, near=True)
         self._solver = CappedSolver(self._A, options, fields=problem.fields or None)
@@ -184,6 +185,14 @@ class LinearSystem:
         self._rhs.aypx(-1.0, self._b)
         return self._rhs.norm()
 
+    def _transposed_residual_norm(self) -> float:
+        """||g - A^T lam|| of the transposed RHS g and the current lam (x), in a work vector."""
+        if self._work is None:
+            self._work = self._rhs.duplicate()
+        self._A.multTranspose(self._x, self._work)
+        self._work.aypx(-1.0, self._rhs)
+        return self._work.norm()
+
     def _batched_forward(self, R: np.ndarray, initial_guess: np.ndarray | None, health: CallHealth | None):
         """The forward solves of R's rows on the batched engine, their residual ratios measured into ``health``."""
         X = self._batched_solve(R, "forward", initial_guess)
@@ -199,9 +208,11 @@ class LinearSystem:
                 and not len(self.problem.nullspace))
 
     def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
-                wanted, shared=frozenset(), initial_guess: bool = False) -> dict[str, np.ndarray]:
+                wanted, shared=frozenset(), initial_guess: bool = False,
+                health: CallHealth | None = None) -> dict[str, np.ndarray]:
         """Control gradients dJ/dm (batch, n_m) for m in ``wanted``, given the
-        forward solutions U and incoming gradients G = dJ/du, both (batch, n).
+        forward solutions U and incoming gradients G = dJ/du, both (batch, n);
+        ``health``: measure each capped adjoint's residual ratio ||G - A^T lam|| / ||G|| into it.
 
         With ``initial_guess`` the result also holds ``"initial_guess"`` (batch, n):
         the adjoint residual G - A^T lam, which is the exact derivative of the
@@ -218,6 +229,7 @@ class LinearSystem:
         by_form = [n for n in wanted if n not in p.affine_rhs_controls]
         grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
         residual = initial_guess and not self.options.adjoint_options.direct
+        health = health if self.options.adjoint_options.capped else None     # a converged adjoint is healthy
         if initial_guess:
             grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
         G = assembly.without_bc_entries(G, p)
@@ -227,6 +239,9 @@ class LinearSystem:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             rhs_mats = {name: self._forms.rhs_matrix(name) for name in by_matrix}
             Lam = self._batched_solve(G, "backward") if use_batched else None
+            if use_batched and health is not None:
+                norms = [np.linalg.norm(M, axis=1) for M in (G - self._batched.matmul(Lam, transpose=True), G, Lam, G)]
+                health.add_rows(*norms, lambda: self._A.norm(PETSc.NormType.INFINITY))
             if use_batched and residual:
                 grads[INITIAL_GUESS] = G - self._batched.matmul(Lam, transpose=True)
             if (Lam is None and self._direct_many(batch, per_sample_matrix)
@@ -256,6 +271,10 @@ class LinearSystem:
                     self._lag_preconditioner(per_sample_matrix and i > 0)
                     self._rhs.setArray(G[i])
                     self._solver.solve_transpose(self._rhs, self._x)
+                    if health is not None:         # G_i, its null-space part removed by the solve, against A^T lam
+                        start = self._rhs.norm()
+                        health.add(self._transposed_residual_norm(), start,
+                                   lambda start=start: round_off_floor(self._A, self._x.norm(), start))
                     if residual:
                         self._A.multTranspose(self._x, self._rhs)
                         grads[INITIAL_GUESS][i] = G[i] - self._rhs.getArray(readonly=True)
@@ -341,7 +360,8 @@ class LinearSystem:
             return
         self._destroyed = True
         self._solver.destroy()
-        objs = [self._A, self._b, self._x, self._rhs] + [n for n in (self._nullspace, self._near_nullspace) if n]
+        objs = [self._A, self._b, self._x, self._rhs] + [n for n in (self._nullspace, self._near_nullspace,
+                                                                       self._work) if n]
         for obj in objs:
             obj.destroy()
         self._kept_matrices.clear()

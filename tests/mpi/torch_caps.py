@@ -41,7 +41,7 @@ heat = forms.nonlinear_diffusion.problem(msh, controls=("u0",), alpha=20.0, f=0.
 x = torch.from_numpy(heat.dof_coordinates())
 u0 = (2.0 if rank == 0 else 0.01) * torch.sin(3 * x[:, 0]) * torch.cos(2 * x[:, 1])
 stepper = NonlinearSolveLayer(heat, NewtonOptions(max_it=1, ksp="lu"))
-ctrl = PRDP(NewtonCaps(stepper, "newton"), k0=1, k_cap=20)
+ctrl = PRDP(NewtonCaps(stepper, "newton"), k0=1, k_cap=20, growth=1.0)    # one Newton step a refinement
 stepper(u0=u0.requires_grad_()).sum().backward()
 seen["health_k"] = ctrl.k
 seen["health_refinements"] = len(ctrl.health_refinements)
