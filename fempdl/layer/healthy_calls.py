@@ -51,12 +51,11 @@ class HealthyCalls:
 
     Args:
         name: the layer's kind, for warnings.
-        caps: the layer's caps now.
         distributed: whether the layer's mesh is distributed (its norms are global already).
     """
 
-    def __init__(self, name: str, caps: Callable[[], Caps], distributed: bool):
-        self.name, self._caps, self._distributed = name, caps, distributed
+    def __init__(self, name: str, distributed: bool):
+        self.name, self._distributed = name, distributed
         self.check: HealthCheck | None = None
         self._due = dict.fromkeys(DIRECTIONS, (None, 0))     # (caps of the last measured call, calls since)
         #: The largest residual ratio of the last measured call, by direction (None: none yet).
@@ -67,18 +66,19 @@ class HealthyCalls:
             raise TypeError(f"health must be a fempdl.solve.health.HealthCheck or None, got {type(check).__name__}")
         self.check, self._due = check, dict.fromkeys(DIRECTIONS, (None, 0))
 
-    def run(self, solve: Callable[[CallHealth | None], object], training: bool, direction: str = "forward",
-            exact: bool = True):
+    def run(self, solve: Callable[[CallHealth | None], object], caps: Callable[[], Caps], training: bool,
+            direction: str = "forward", exact: bool = True):
         """``solve(health)``, one call's solves, which measure their residual ratios into ``health`` (a fresh
         :class:`CallHealth`, or ``None``: measure nothing), run again at a refined cap while a training
         call's capped solves are garbage (their largest ratio above the limit, agreed over the ranks that
         train together). A no-grad call (validation) is never refined: it trains nothing, and a validation
         that one rank runs alone must not enter a collective. Refinement ends when the ratio is within the
         limit, when the caps cannot rise, or when a refinement did not lower the ratio (a diverging
-        iteration: more of it does not help); the last two warn and keep the solve. ``exact``: the layer's
-        capped gradient is the derivative of the capped map (else an adjoint has the check's adjoint limit)."""
+        iteration: more of it does not help); the last two warn and keep the solve. ``caps()``: the layer's
+        caps now; ``exact``: its capped gradient is the derivative of the capped map (else an adjoint has the
+        check's adjoint limit)."""
         check = self.check
-        if check is None or not training or not self._is_due(direction):
+        if check is None or not training or not self._is_due(direction, caps()):
             return solve(None)
         limit = check.limit_for(direction, exact)
         previous = math.inf
@@ -86,7 +86,7 @@ class HealthyCalls:
             measured = CallHealth(limit)
             result = solve(measured)
             ratio = self.last_ratio[direction] = self._agreed(measured.ratio)
-            self._due[direction] = (self._caps(), 1)
+            self._due[direction] = (caps(), 1)
             if ratio is None or ratio <= limit:
                 return result
             if ratio >= previous:
@@ -101,13 +101,13 @@ class HealthyCalls:
             why = f"{MAX_HEALTH_REFINES} refinements did not cure it"
         what = "solve" if direction == "forward" else "adjoint solve"
         warn_at_caller(f"a capped {what} of this {self.name} ends with its residual at {ratio:.3g} times its start "
-                       f"(health limit {limit:g}) at {self._caps()}, and {why}; the network trains on that "
+                       f"(health limit {limit:g}) at {caps()}, and {why}; the network trains on that "
                        "solve", SolverWarning)
         return result
 
-    def _is_due(self, direction: str) -> bool:
+    def _is_due(self, direction: str, now: Caps) -> bool:
         caps, since = self._due[direction]
-        if caps == self._caps() and since % HEALTH_EVERY:
+        if caps == now and since % HEALTH_EVERY:
             self._due[direction] = (caps, since + 1)
             return False
         return True

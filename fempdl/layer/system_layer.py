@@ -60,7 +60,7 @@ class SystemLayer(torch.nn.Module):
         self._sizes = {**{n: problem.control_size(n) for n in problem.control_names},
                        INITIAL_GUESS: problem.output_size}
         self._handle = register_layer(self)
-        self._healthy = HealthyCalls(type(self).__name__, lambda: self.caps, self._distributed)
+        self._healthy = HealthyCalls(type(self).__name__, self._distributed)
         # Plain attributes, not submodules: a twin is no part of the model's state_dict (__setattr__).
         #: ``route``: the layer that answers this layer's calls instead of it (:mod:`fempdl.layer.reference`);
         #: ``reference_twin``: the converged twin that answers them at reference physics (built on first use).
@@ -124,7 +124,7 @@ class SystemLayer(torch.nn.Module):
                       direction: str = "forward"):
         """``solve(health)``, one call's capped solves (a forward, or its backward's adjoint solves), run
         again at a refined cap while garbage (:class:`~fempdl.layer.healthy_calls.HealthyCalls`)."""
-        return self._healthy.run(solve, training, direction, exact=self.exact_capped_gradient)
+        return self._healthy.run(solve, lambda: self.caps, training, direction, exact=self.exact_capped_gradient)
 
     @property
     def options(self):

@@ -22,14 +22,14 @@ heat = forms.nonlinear_diffusion.problem(msh, controls=("u0",), alpha=20.0, f=0.
 x = heat.dof_coordinates()
 u0 = torch.tensor(2.0 * np.sin(3 * x[:, 0]) * np.cos(2 * x[:, 1]), requires_grad=True)
 stepper = NonlinearSolveLayer(heat, NewtonOptions(max_it=1, ksp="lu"))
-newton = PRDP(NewtonCaps(stepper, "newton"), k0=1, k_cap=20)
+newton = PRDP(NewtonCaps(stepper, "newton"), k0=1, k_cap=20, growth=1.0)
 stepper(u0=u0).sum().backward()
 out["newton"] = newton.health_refinements
 poisson = forms.poisson.problem(msh, controls=("f",))
 y = poisson.dof_coordinates("f")
 f = torch.tensor(1.0 + y[:, 0], requires_grad=True)
 layer = SolveLayer(poisson, KSPOptions.preset("jacobi", max_it=8, petsc_options={"ksp_richardson_scale": 1.9}))
-linear = PRDP(layer, k0=8, k_cap=50)        # the residual grows from the seventh step on
+linear = PRDP(layer, k0=8, k_cap=50, growth=1.0)        # the residual grows from the seventh step on
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
     layer(f=f).sum().backward()
