@@ -35,7 +35,6 @@ KEY_ORDER_EXEMPT: dict[str, str] = {}
 #: Records whose ``load["end"]`` is null: measured before the harness recorded the load at the end.
 NO_END_LOAD = {
     "bench_pc_transpose_current.json": "measured 2026-11-23, before the harness",
-    "bench_prdp_loops.json": "measured 2026-11-28, before the harness",
     "bench_sip.json": "measured 2026-11-23, before the harness",
     "bench_stacks.json": "measured 2026-11-23, before the harness",
 }

@@ -44,7 +44,8 @@ class PRDPRecord:
 class PRDPFinish:
     """What :meth:`PRDP.finish` found: the validation metric at reference physics (the model as judged),
     at the caps, their gap, the cap K and ``k_cap`` after closing it, whether it is closed (within
-    ``gap``), and the probes of the search that closed it."""
+    ``gap``; True where no gap is known: ``judge="capped"``, ``gap=None``, or a number without its capped
+    value), and the probes of the search that closed it."""
 
     metric: float
     capped_metric: float | None
