@@ -239,11 +239,13 @@ class LinearSystem:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             rhs_mats = {name: self._forms.rhs_matrix(name) for name in by_matrix}
             Lam = self._batched_solve(G, "backward") if use_batched else None
-            if use_batched and health is not None:
-                norms = [np.linalg.norm(M, axis=1) for M in (G - self._batched.matmul(Lam, transpose=True), G, Lam, G)]
-                health.add_rows(*norms, lambda: self._A.norm(PETSc.NormType.INFINITY))
-            if use_batched and residual:
-                grads[INITIAL_GUESS] = G - self._batched.matmul(Lam, transpose=True)
+            if use_batched and (residual or health is not None):
+                R = G - self._batched.matmul(Lam, transpose=True)      # the adjoint residual, for both
+                if health is not None:
+                    norms = [np.linalg.norm(M, axis=1) for M in (R, G, Lam, G)]
+                    health.add_rows(*norms, lambda: self._A.norm(PETSc.NormType.INFINITY))
+                if residual:
+                    grads[INITIAL_GUESS] = R
             if (Lam is None and self._direct_many(batch, per_sample_matrix)
                     and self._solver.can_solve_many_transpose(p.symmetric)):
                 # Every sample's transposed solve by the forward's factors at once (a time step's LU).
