@@ -77,7 +77,8 @@ from bench_common import comma_list
 SETTINGS = ("readme-as-written", "readme", "warm-linear", "hole-emulator", "newton-cold", "newton-warm",
             "nonlinear-heat", "newton-rollout", "ddp", "plate-40", "plate-200", "stokes-inverse")
 # Settings that also train with PRDP built only from preflight's printed advice ("defaults").
-DEFAULTS = ("plate-40", "plate-200", "readme-as-written", "newton-cold", "stokes-inverse", "newton-rollout")
+DEFAULTS = ("plate-40", "plate-200", "readme-as-written", "newton-cold", "stokes-inverse", "newton-rollout",
+            "warm-linear", "hole-emulator", "ddp")
 STRICT = ()
 REPEATED = ("warm-linear", "ddp")         # loops of a few seconds: run --repeats times
 K0_TOLERANCE = {"prdp": None, "prdp-strict": 0.01}    # None: k_start's default (by what the capped gradient is)

@@ -75,6 +75,7 @@ def test_a_checkpoint_that_would_run_code_is_refused_and_nothing_runs(tmp_path):
     (tmp_path / "cli" / "converged").mkdir(parents=True)
     torch.save({"model": _Payload(marker)}, tmp_path / "cli" / "converged" / "checkpoint.pt")
     files.record(tmp_path / "cli" / "converged", "checkpoint.pt")     # as if fempdl had written it
+    files.record_command(tmp_path / "cli", {"command": "run", "mode": "fixed", "k": 4, "baseline": True})
     code, err = call(["run", path, "--k", 4, "--out", tmp_path / "cli", "--resume", "--no-progress"])
     assert code == 2 and "holds objects other than tensors" in err
     assert not marker.exists()

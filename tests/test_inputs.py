@@ -720,7 +720,8 @@ def test_problem_constants_are_declared_and_a_change_reaches_the_next_solve(msh)
     """A heat step declares dt through Problem(constants=...); halving dt changes u1 = (M + dt K)^-1 M u0
     exactly as a problem built with the halved dt does."""
     prob = forms.heat.problem(msh, controls=("u0",), dt=0.02)
-    assert set(prob.constants) == {"dt"} and float(prob.constants["dt"].value) == 0.02
+    # The fixed number kappa is a Constant of the problem too.
+    assert set(prob.constants) == {"dt", "kappa"} and float(prob.constants["dt"].value) == 0.02
     with pytest.raises(TypeError):
         prob.constants["dt"] = None                         # a read-only view: declared once, by the form
     u0 = torch.as_tensor(prob.interpolate(lambda x: np.sin(np.pi * x[0]) * np.cos(np.pi * x[1])))

@@ -49,13 +49,15 @@ def sign_changing(prob, name: str = "kappa") -> torch.Tensor:
 # ------------------------------------------------------------------ positive controls
 @pytest.mark.parametrize("module, controls, positive", [
     (forms.poisson, ("f", "kappa"), {"kappa"}),
-    (forms.poisson, ("f",), set()),
+    (forms.poisson, ("f",), {"kappa"}),                 # the fixed number: a positive Constant
     (forms.heat, ("u0", "kappa"), {"kappa", "dt"}),
+    (forms.elasticity, ("f",), {"E"}),
     (forms.elasticity, ("f", "E"), {"E"}),
     (forms.nonlinear_diffusion, ("f", "kappa", "alpha"), {"kappa"}),
     (forms.hyperelasticity, ("E",), {"E"}),
     (forms.navier_stokes, ("f", "nu"), {"nu"}),
-], ids=["poisson", "poisson-f", "heat", "elasticity", "nonlinear-diffusion", "hyperelasticity", "navier-stokes"])
+], ids=["poisson", "poisson-f", "heat", "elasticity-f", "elasticity", "nonlinear-diffusion", "hyperelasticity",
+        "navier-stokes"])
 def test_the_bundled_forms_declare_their_positive_controls(square, module, controls, positive):
     assert module.problem(square, controls=controls).positive == frozenset(positive)
 

@@ -51,6 +51,6 @@ def test_k_eps_errors(heat):
         k_eps(layer)
     with pytest.raises(ValueError, match=r"layer solves directly \(ksp_type='preonly'\): it has no iteration cap"):
         k_eps(SolveLayer(heat, KSPOptions.preset("lu")), u0=torch.zeros(heat.output_size, dtype=torch.float64))
-    with pytest.raises(TypeError, match="target must be a SolveLayer, a NonlinearSolveLayer, a NewtonCaps, a Rollout "
-                                        "or a list of them, got str"):
+    with pytest.raises(TypeError, match=r"target must be a SolveLayer, a NonlinearSolveLayer, a NewtonCaps, a Rollout "
+                                        r"or a list of them \(or a torch module holding them\), got str"):
         k_eps("layer", u0=None)

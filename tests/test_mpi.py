@@ -213,8 +213,9 @@ def test_ranks_that_disagree_get_an_error_not_a_hang(tmp_path):
         assert "(dtypes: [('float64',), ('float32',)], by rank)" in rank["dtype"]
         assert "(requires_grad: [(True,), (False,)], by rank)" in rank["grad"]
         assert "NonlinearSolveLayer differently (dtypes: [('float64',), ('float32',)], by rank)" in rank["newton_dtype"]
-        assert "SolveLayer differently (Constants: [(('dt', (0.01,)),), (('dt', (0.02,)),)], by rank)" \
-            in rank["constants"]
+        # The heat form's fixed kappa is one of its Constants too (equal on both ranks).
+        assert ("SolveLayer differently (Constants: [(('dt', (0.01,)), ('kappa', (1.0,))), (('dt', (0.02,)), "
+                "('kappa', (1.0,)))], by rank)") in rank["constants"]
         assert "called this distributed-mesh Rollout differently (steps: [3, 5]; outputs:" in rank["rollout_steps"]
         assert "Rollout differently (batch: [1, 2]; shared (n,) or batched (B, n)" in rank["rollout_batch"]
         assert "Rollout differently (per-step Constants: [{'dt': [0.01, 0.02, 0.01]}, {'dt': [0.01, 0.02, 0.02]}]" \

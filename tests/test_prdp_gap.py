@@ -118,13 +118,14 @@ def test_finish_closes_the_gap_or_warns_naming_both_metrics(heat):
 
 def test_a_garbage_adjoint_refines_and_is_solved_again_at_the_refined_cap(heat):
     # A warm start at the solution makes the forward healthy (its residual is round-off); the adjoint starts
-    # from zero, and two Jacobi sweeps do not shrink its residual 10-fold: the backward refines and solves again.
+    # from zero, and two Jacobi sweeps do not shrink its residual 10-fold: the backward refines and solves again
+    # (to the health limit alone: no adjoint limit, which a detached start is held to otherwise).
     u0, f = fields(heat, 2), fields(heat, 2, seed=5)
     with torch.no_grad():
         u = SolveLayer(heat, "lu")(u0=u0, f=f)
     weights = fields(heat, 2, seed=7)
     layer = jacobi(heat, 2)
-    ctrl = PRDP(layer, k0=2, k_cap=200, health=0.1, growth=1.0)
+    ctrl = PRDP(layer, k0=2, k_cap=200, health=0.1, growth=1.0, adjoint_health=None)
     f_in = f.clone().requires_grad_()
     (layer(u0=u0, f=f_in, initial_guess=u) * weights).sum().backward()
     assert layer.last_health_ratio == 0.0 and ctrl.k > 2
@@ -158,3 +159,28 @@ def test_an_implicit_gradients_adjoint_must_shrink_to_the_adjoint_limit(heat):
     PRDP(off, k0=2, k_cap=200, adjoint_health=None)            # the health limit alone: a shrinking adjoint passes
     (off(u0=u0.clone().requires_grad_()) * weights).sum().backward()
     assert off.max_it == 2 and off.last_adjoint_health_ratio <= 1.0
+
+
+def test_a_detached_warm_starts_adjoint_must_shrink_to_the_adjoint_limit(heat):
+    # From a start at the solution the forward is exact at any cap, but a start that carries no gradient
+    # leaves Jacobi's K-step derivative ((I - M^K) A^-1) short of the physics' A^-1 by the adjoint's
+    # residual: held to 1% it refines; with the start differentiated the derivative is the map's, kept at 2.
+    u0, f, weights = fields(heat, 2), fields(heat, 2, seed=5), fields(heat, 2, seed=7)
+    with torch.no_grad():
+        u = SolveLayer(heat, "lu")(u0=u0, f=f)
+    f_exact = f.clone().requires_grad_()
+    (SolveLayer(heat, "lu")(u0=u0, f=f_exact) * weights).sum().backward()
+    for detached in (True, False):
+        layer = jacobi(heat, 2)
+        ctrl = PRDP(layer, k0=2, k_cap=200, growth=1.0)
+        f_in, start = f.clone().requires_grad_(), u.clone().requires_grad_(not detached)
+        (layer(u0=u0, f=f_in, initial_guess=start) * weights).sum().backward()
+        assert layer.last_health_ratio <= 1.0                  # the forward (round-off from its start) passes
+        if detached:
+            assert layer.last_adjoint_health_ratio <= 0.01 < ctrl.health_refinements[-1]["ratio"]
+            assert [e["k"] for e in ctrl.health_refinements] == list(range(2, ctrl.k))
+            # The control's gradient is then the physics' to about the adjoint's residual.
+            assert torch.linalg.norm(f_in.grad - f_exact.grad) <= 0.02 * torch.linalg.norm(f_exact.grad)
+        else:
+            assert ctrl.k == 2 and not ctrl.health_refinements
+            assert 0.01 < layer.last_adjoint_health_ratio <= 1.0

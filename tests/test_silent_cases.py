@@ -80,11 +80,13 @@ def test_a_zero_coefficient_on_part_of_the_domain_is_refused(prob):
 
 
 def test_a_fixed_zero_coefficient_names_the_problem(coarse_lshape):
-    """A singular matrix that no control passed in the call made is named as the problem's own."""
+    """A fixed coefficient a user set to zero is refused as the problem's own, before it makes the matrix
+    singular."""
     prob = forms.poisson.problem(coarse_lshape, controls=("f",))
     kappa, = prob.a.constants()                 # a fixed number: a Constant
+    assert prob.constants["kappa"] is kappa
     kappa.value = 0.0                           # a user's edit of the fixed coefficient
-    with pytest.raises(ValueError, match="the problem's coefficients"):
+    with pytest.raises(ValueError, match=r"Constant 'kappa' must be > 0 \(problem.positive\), got 0"):
         SolveLayer(prob, "lu")(f=torch.ones(prob.control_size("f"), dtype=F64))
 
 

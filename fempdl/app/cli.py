@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import sys
 from pathlib import Path
 
@@ -156,10 +157,24 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     """Parse ``argv`` (default: the command line) and run the command; returns the exit code."""
     args = build_parser().parse_args(argv)
+    _start_mpi_under_a_file_size_limit()
     # Imported once the arguments are parsed, so that --help and argument errors answer without
     # loading MPI, DOLFINx and torch (seconds): commands.py, in cli's room, imports them all.
     from fempdl.app.commands import execute
     return execute(args)
+
+
+def _start_mpi_under_a_file_size_limit() -> None:
+    """Let MPI start on one process (no mpirun) under a file size limit (``ulimit -f``): Open MPI's
+    PMIx keeps its data in a shared-memory file of about 4 MiB, and beyond the limit its start fails
+    ("PMIX ERROR ... gds_ds21_lock_pthread.c") before fempdl can say anything. Its hash store keeps
+    the data in memory. A file of the run beyond the limit then fails to be written (Python ignores
+    SIGXFSZ, so the write fails with EFBIG) and the command says which one. Under mpirun, the
+    launcher has chosen already."""
+    limited = resource.getrlimit(resource.RLIMIT_FSIZE)[0] != resource.RLIM_INFINITY
+    launched = any(name in os.environ for name in ("OMPI_COMM_WORLD_SIZE", "PMIX_RANK", "PMI_RANK"))
+    if limited and not launched:
+        os.environ.setdefault("PMIX_MCA_gds", "hash")
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import logging
 import sys
 from pathlib import Path
@@ -59,11 +60,20 @@ USER_ERRORS = (ValueError, TypeError, OSError, MemoryError, SolverFailedError, r
                CheckpointError)
 
 
+# A full disk, a full quota, a file beyond the file size limit (ulimit -f; Python ignores SIGXFSZ, so the
+# write fails with EFBIG instead of killing the process).
+_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
 def _refuse(err: BaseException) -> int:
     """Print ``err`` as one line and return the exit code 2; under mpirun end every rank (the others may
     wait in a collective call), without a traceback."""
     message = " ".join(str(err).split()) or type(err).__name__
-    if isinstance(err, OSError) and not isinstance(err, FileNotFoundError) and err.strerror:
+    if isinstance(err, OSError) and err.errno in _FULL:
+        where = repr(str(err.filename)) if err.filename is not None else "the command's files"
+        message = (f"cannot write {where} ({err.strerror}); "
+                   f"{files.size_limit_advice(err) or 'free some space on its file system or choose another --out'}")
+    elif isinstance(err, OSError) and not isinstance(err, FileNotFoundError) and err.strerror:
         message = f"{err.strerror}: {err.filename or message}" if err.filename else message
     comm = MPI.COMM_WORLD
     print(f"fempdl: {f'[rank {comm.rank}] ' if comm.size > 1 else ''}{message}", file=sys.stderr, flush=True)
@@ -208,8 +218,9 @@ def _output_directory(args, plan: ScenePlan) -> Path:
     if resume and args.overwrite:
         raise rundir.RunDirectoryError("--resume and --overwrite contradict each other: give one")
     rundir.check_output_directory(out, resume=resume, overwrite=args.overwrite)
-    earlier = files.command_of(out) if resume and rundir.holds_run(out) else None
-    refusal = None if earlier is None else _resume_refusal(out, earlier, _command_record(args, plan))
+    refusal = None
+    if resume and rundir.holds_run(out):
+        refusal = _resume_refusal(out, _recorded_command(out), _command_record(args, plan))
     if refusal is not None:
         raise rundir.RunDirectoryError(refusal)
     return out
@@ -226,10 +237,29 @@ def _command_record(args, plan: ScenePlan) -> dict:
     return {"command": "run", "mode": mode, "k": args.k, "baseline": baseline}
 
 
-def _resume_refusal(out: Path, earlier: dict, now: dict) -> str | None:
+def _recorded_command(out: Path) -> dict | None:
+    """What the record of ``out`` says the command trained there, or None when it says nothing that
+    :func:`_command_record` gives (the record was edited or damaged, or the runs were trained through
+    the Python API, which records no command)."""
+    record = files.command_of(out)
+    if record is None or record.get("command") not in ("run", "tradeoff", "compare"):
+        return None
+    if record["command"] != "run":
+        return record
+    mode, k = record.get("mode"), record.get("k")
+    cap = (mode == "fixed" and type(k) is int and k >= 1) or (mode in ("prdp", "converged", None) and k is None)
+    return record if isinstance(record.get("baseline"), bool) and cap else None
+
+
+def _resume_refusal(out: Path, earlier: dict | None, now: dict) -> str | None:
     """Why --resume refuses (None: it does not): the runs in ``out`` were started by another command or
-    with another mode, K or baseline, so resuming would start new runs beside them."""
-    if earlier.get("command") != now["command"]:
+    with another mode, K or baseline, so resuming would start new runs beside them; or its record does
+    not say how they were started (``earlier`` None), so resuming could do the same."""
+    if earlier is None:
+        # Treated as the record of another command: nothing can be continued as it was started.
+        changes = [f"its record {str(Path(out) / files.RECORD)!r} does not say which command started them "
+                   "(it was edited or damaged, or they were trained through the Python API)"]
+    elif earlier.get("command") != now["command"]:
         changes = [f"they are of `fempdl {earlier.get('command')}`, not `fempdl {now['command']}`"]
     else:
         changes = []
@@ -239,12 +269,13 @@ def _resume_refusal(out: Path, earlier: dict, now: dict) -> str | None:
             changes.append(f"k was {earlier.get('k')}, now {now.get('k')}")
         if earlier.get("baseline") != now.get("baseline"):
             trained = {True: "trained", False: "skipped (--no-baseline)"}
-            changes.append(f"the baseline was {trained.get(earlier.get('baseline'), 'not recorded')}, now "
-                           f"{trained[now['baseline']]}")
+            changes.append(f"the baseline was {trained[earlier['baseline']]}, now {trained[now['baseline']]}")
     if not changes:
         return None
-    # `fempdl tradeoff` has no --resume: its runs are not continued by any command line.
-    again = f"continue them with `{_command_line(earlier)}`, or " if earlier.get("command") != "tradeoff" else ""
+    # `fempdl tradeoff` has no --resume: its runs, like those of a record that names no command, are
+    # not continued by any command line.
+    again = ("" if earlier is None or earlier["command"] == "tradeoff" else
+             f"continue them with `{_command_line(earlier)}`, or ")
     return (f"--resume continues the runs in {str(out)!r} as they were started, and {'; '.join(changes)}: "
             f"{again}start the new runs in another --out (or replace those with --overwrite instead of --resume)")
 

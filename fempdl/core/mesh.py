@@ -46,6 +46,7 @@ import numpy as np
 
 from fempdl.core import _dolfinx, meshgen
 from fempdl.core._dolfinx import gmsh  # imported there with Python's SIGINT handler kept
+from fempdl.core.checks import is_int
 from fempdl.core.resources import DEFAULT_MAX_CELLS, GEOMETRIES, bundled_meshes, estimated_cells
 
 __all__ = ["TaggedMesh", "as_tagged", "available", "load"]
@@ -163,7 +164,7 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
         FileNotFoundError: the path does not exist.
         IsADirectoryError: the path is a directory.
     """
-    _check_int_choice("rank", rank, range(comm.size))
+    rank = _check_int_choice("rank", rank, range(comm.size))
     h = meshgen.check_h(h)
     if isinstance(name_or_path, str) and name_or_path in available():
         tagged = _load_bundled(name_or_path, comm, h, rank, gdim, max_cells)
@@ -173,7 +174,7 @@ def load(name_or_path, comm: MPI.Comm = MPI.COMM_WORLD, *, h: float | None = Non
             raise ValueError(f"h applies to bundled meshes only, got h={h!r} with the file {str(path)!r}; "
                              "mesh the file's geometry at that size with gmsh, or load a bundled name")
         if gdim is not None:
-            _check_int_choice("gdim", gdim, (1, 2, 3))
+            gdim = _check_int_choice("gdim", gdim, (1, 2, 3))
         tagged = _read_msh(path, comm, rank, gdim)
     check_unfolded(tagged.mesh, str(name_or_path))
     return tagged
@@ -252,7 +253,7 @@ def _load_bundled(name: str, comm, h, rank, gdim, max_cells: int = DEFAULT_MAX_C
 def check_size(name: str, h: float, max_cells: int = DEFAULT_MAX_CELLS) -> float:
     """The estimated cell count of bundled mesh ``name`` at size ``h``; ValueError when ``h`` exceeds the
     geometry's shortest feature or the estimate exceeds ``max_cells``."""
-    if isinstance(max_cells, bool) or not isinstance(max_cells, int) or max_cells < 1:
+    if not is_int(max_cells) or max_cells < 1:
         raise ValueError(f"max_cells must be an int >= 1, got {max_cells!r}")
     geometry = GEOMETRIES[name]
     if h > geometry.max_h:
@@ -299,11 +300,13 @@ _SPECIAL_FILES = ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"), (stat.
                   (stat.S_ISBLK, "a block device"))
 
 
-def _check_int_choice(arg: str, value, allowed) -> None:
-    if isinstance(value, bool) or not isinstance(value, int):
+def _check_int_choice(arg: str, value, allowed) -> int:
+    """``value`` as a python int (MPI and gmsh are handed it), TypeError or ValueError unless one of ``allowed``."""
+    if not is_int(value):
         raise TypeError(f"{arg} must be an int, got {type(value).__name__} {value!r}")
     if value not in allowed:
         raise ValueError(f"{arg} must be one of {list(allowed)}, got {value!r}")
+    return int(value)
 
 
 def _read_msh(path: Path, comm, rank: int, gdim: int | None) -> TaggedMesh:

@@ -38,6 +38,8 @@ from mpi4py import MPI
 import numpy as np
 import torch
 
+from fempdl.core.checks import is_int, is_real
+
 __all__ = ["abort_on_error", "allreduce_sum", "check_identical", "check_same_parameters", "fit_threads",
            "parameter_fingerprint", "shard", "sum_gradients"]
 
@@ -54,8 +56,9 @@ def fit_threads(threads: int | None = None, comm: MPI.Comm = MPI.COMM_WORLD) -> 
         node.Free()
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         threads = max(1, cores // local_ranks) if local_ranks > 1 else torch.get_num_threads()
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+    if not is_int(threads) or threads < 1:
         raise ValueError(f"threads must be an int >= 1, got {threads!r}")
+    threads = int(threads)
     torch.set_num_threads(threads)
     return threads
 
@@ -193,7 +196,7 @@ def check_same_parameters(model, comm: MPI.Comm = MPI.COMM_WORLD, *, rtol: float
     Args:
         model: a ``torch.nn.Module`` (its parameters are named in the error) or an iterable of tensors.
     """
-    if isinstance(rtol, bool) or not isinstance(rtol, (int, float)) or not 0.0 <= rtol < 1.0:
+    if not is_real(rtol) or not 0.0 <= rtol < 1.0:
         raise ValueError(f"rtol must be a number in [0, 1), got {rtol!r}")
     if isinstance(model, torch.nn.Module):
         named = list(model.named_parameters())

@@ -29,11 +29,24 @@ __all__ = ["ProblemBase", "validated_controls", "validated_constants", "owned_si
            "count_nonpositive", "nonpositive_control_message"]
 
 
+#: What a problem is built from: its compiled forms, matrix layout and boundary DOFs follow from these, so a
+#: value assigned later would be ignored (or drop matrix entries outside the compiled pattern).
+FIXED_AT_BUILD = frozenset({"a", "L", "F", "J", "bcs", "V"})
+
+
 class ProblemBase:
     """Spaces, controls, fields and DOF order of a problem (see the module docstring).
 
     Subclasses call :meth:`_init_spaces` from their constructor.
     """
+
+    def __setattr__(self, name: str, value) -> None:
+        if name in FIXED_AT_BUILD and name in self.__dict__:
+            raise AttributeError(f"problem.{name} is fixed when the problem is built (its forms are compiled and its "
+                                 f"matrices laid out from it); build a new {type(self).__name__} with the new {name}, "
+                                 "and a layer on it. Values change through the controls, problem.constants and the "
+                                 "Functions the forms hold")
+        super().__setattr__(name, value)
 
     def _init_spaces(self, V, bcs, controls: dict, *, fields, nullspace, near_nullspace, constants,
                      positive=(), nonnegative=()) -> None:

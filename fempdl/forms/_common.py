@@ -8,6 +8,7 @@ import dolfinx.fem
 import numpy as np
 
 from fempdl.core import _dolfinx
+from fempdl.core.checks import is_int, is_real
 from fempdl.core.mesh import TaggedMesh
 
 # Spaces a coefficient (kappa) may live in.
@@ -28,9 +29,9 @@ def check_controls(requested, allowed: tuple, pde: str) -> tuple:
 
 
 def check_degree(degree) -> int:
-    if isinstance(degree, bool) or not isinstance(degree, int) or degree < 1:
+    if not is_int(degree) or degree < 1:
         raise ValueError(f"degree must be an int >= 1, got {degree!r}")
-    return degree
+    return int(degree)
 
 
 def coefficient_space(msh, kind: str):
@@ -48,7 +49,7 @@ def make_function(space, value, name: str, *, positive: bool = False) -> dolfinx
     fn = dolfinx.fem.Function(space, name=name)
     if callable(value):
         fn.interpolate(value)
-    elif isinstance(value, (int, float, np.floating, np.integer)) and not isinstance(value, bool):
+    elif is_real(value):
         if not math.isfinite(value):
             raise ValueError(f"{name} must be finite, got {value!r}")
         fn.x.array[:] = float(value)
@@ -75,7 +76,7 @@ def make_coefficient(space, value, name: str, *, control: bool, positive: bool =
     and pack its DOFs at every assembly (a Jacobian of nonlinear heat with kappa and alpha as P1
     Functions takes 1.4x the time of one with Constants); as a Constant it is one value, and the
     same mathematics."""
-    if control or callable(value) or isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+    if control or callable(value) or not is_real(value):
         return make_function(space, value, name, positive=positive)
     if not math.isfinite(value):
         raise ValueError(f"{name} must be finite, got {value!r}")
@@ -84,15 +85,22 @@ def make_coefficient(space, value, name: str, *, control: bool, positive: bool =
     return dolfinx.fem.Constant(space.mesh, float(value))
 
 
+def fixed_constants(fns: dict, names) -> dict:
+    """The coefficients among ``names`` that are fixed numbers (``fem.Constant``): registered as the
+    problem's Constants, so their documented bounds are checked at every call, as a control's are, however
+    a loop changes them (``problem.constants["kappa"].value = ...``)."""
+    return {name: fns[name] for name in names if isinstance(fns[name], dolfinx.fem.Constant)}
+
+
 def positive_constant(msh, value, name: str) -> dolfinx.fem.Constant:
     """A ``fem.Constant`` (so the value can change without recompiling) that must be > 0."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+    if not is_real(value) or not math.isfinite(value) or value <= 0:
         raise ValueError(f"{name} must be a positive finite number, got {value!r}")
     return dolfinx.fem.Constant(msh, float(value))
 
 
 def nonnegative_constant(msh, value, name: str):
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+    if not is_real(value) or not math.isfinite(value) or value < 0:
         raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
     return dolfinx.fem.Constant(msh, float(value))
 
@@ -107,7 +115,7 @@ def dirichlet_bcs(tagged: TaggedMesh, V, g, dirichlet) -> tuple:
     if dirichlet is None:
         facets = _dolfinx.boundary_facets(tagged.mesh)
     else:
-        parts = (dirichlet,) if isinstance(dirichlet, (str, int)) else tuple(dirichlet)
+        parts = (dirichlet,) if isinstance(dirichlet, (str, int, np.integer)) else tuple(dirichlet)
         if not parts:
             return ()
         facets = tagged_facets(tagged, parts)

@@ -13,6 +13,7 @@ import numpy as np
 import ufl
 
 from fempdl.core import _dolfinx
+from fempdl.core.checks import is_int
 from fempdl.core.mesh import TaggedMesh
 from fempdl.core.problem import Problem
 from fempdl.forms._common import make_function, positive_constant, tagged_facets
@@ -120,9 +121,9 @@ def warn_if_convection_dominated(msh, w_fn, nu: float, supg: bool) -> None:
 def taylor_hood(tagged: TaggedMesh, degree, nu, velocity):
     """(W, V, nu Constant, bcs, enclosed): the Taylor-Hood space, its collapsed velocity
     space, the viscosity and the velocity Dirichlet conditions."""
-    if isinstance(degree, bool) or not isinstance(degree, int) or degree < 2:
+    if not is_int(degree) or degree < 2:
         raise ValueError(f"degree must be an int >= 2 (Taylor-Hood P_k-P_(k-1)), got {degree!r}")
-    W = _dolfinx.taylor_hood_space(tagged.mesh, degree)
+    W = _dolfinx.taylor_hood_space(tagged.mesh, int(degree))
     V, _ = _dolfinx.collapsed_subspace(W, 0)
     nu_c = positive_constant(tagged.mesh, nu, "nu")
     bcs, enclosed = velocity_bcs(tagged, W, 0, velocity, V)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import ufl
 
 from fempdl.core import _dolfinx
+from fempdl.core.checks import is_real
 from fempdl.core.mesh import as_tagged
 from fempdl.core.nullspaces import rigid_body_modes
 from fempdl.core.problem import Problem
@@ -27,6 +28,7 @@ from fempdl.forms._common import (
     check_degree,
     coefficient_space,
     dirichlet_bcs,
+    fixed_constants,
     make_coefficient,
     nonnegative_constant,
 )
@@ -54,12 +56,12 @@ def problem(msh, controls=("f",), *, degree: int = 1, E=1.0, nu: float = 0.3, E_
         A :class:`fempdl.Problem`; ``problem.constants`` holds ``nu``.
     """
     controls = check_controls(controls, CONTROLS, "elasticity")
-    if isinstance(nu, bool) or not isinstance(nu, (int, float)) or not 0.0 <= nu < 0.5:
+    if not is_real(nu) or not 0.0 <= nu < 0.5:
         raise ValueError(f"nu must be a Poisson's ratio in [0, 0.5), got {nu!r}")
     if E_space not in COEFFICIENT_SPACES:
         raise ValueError(f"E_space must be one of {list(COEFFICIENT_SPACES)}, got {E_space!r}")
     tagged = as_tagged(msh)
-    check_degree(degree)
+    degree = check_degree(degree)
     gdim = tagged.mesh.geometry.dim
     V = _dolfinx.function_space(tagged.mesh, "Lagrange", degree, shape=(gdim,))
     f_fn = vector_function(V, f, "f")
@@ -81,7 +83,8 @@ def problem(msh, controls=("f",), *, degree: int = 1, E=1.0, nu: float = 0.3, E_
     a = ufl.inner(sigma(u), eps(v)) * ufl.dx
     L = ufl.inner(f_fn, v) * ufl.dx
     fns = {"f": f_fn, "E": E_fn}
-    return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, constants={"nu": nu_c},
+    fixed = fixed_constants(fns, ("E",))
+    return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, constants={"nu": nu_c, **fixed},
                    nonnegative=("nu",),
                    near_nullspace=rigid_body_modes(V) if near_nullspace else (), symmetric=True,
-                   positive={"E"} & set(controls))
+                   positive={"E"} & set(controls) | set(fixed))

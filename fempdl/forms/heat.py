@@ -25,6 +25,7 @@ import math
 import ufl
 
 from fempdl.core import _dolfinx
+from fempdl.core.checks import is_real
 from fempdl.core.mesh import as_tagged
 from fempdl.core.problem import Problem
 from fempdl.forms._common import (
@@ -32,6 +33,7 @@ from fempdl.forms._common import (
     check_degree,
     coefficient_space,
     dirichlet_bcs,
+    fixed_constants,
     make_coefficient,
     make_function,
     positive_constant,
@@ -60,10 +62,10 @@ def problem(msh, controls=("u0",), *, dt: float = 0.01, theta: float = 1.0, degr
     """
     controls = check_controls(controls, CONTROLS, "heat")
     tagged = as_tagged(msh)
-    if isinstance(theta, bool) or not isinstance(theta, (int, float)) or not (0.0 <= theta <= 1.0) \
-            or not math.isfinite(theta):
+    if not is_real(theta) or not (0.0 <= theta <= 1.0) or not math.isfinite(theta):
         raise ValueError(f"theta must be in [0, 1], got {theta!r}")
-    check_degree(degree)
+    theta = float(theta)        # a numpy scalar times a UFL form would be numpy's product, not UFL's
+    degree = check_degree(degree)
     msh_ = tagged.mesh
     V = _dolfinx.function_space(msh_, "Lagrange", degree)
     dt_c = positive_constant(msh_, dt, "dt")
@@ -83,5 +85,6 @@ def problem(msh, controls=("u0",), *, dt: float = 0.01, theta: float = 1.0, degr
     if theta < 1:
         L = L - (1.0 - theta) * dt_c * kappa_fn * ufl.inner(ufl.grad(u0_fn), ufl.grad(v)) * ufl.dx
     fns = {"u0": u0_fn, "f": f_fn, "kappa": kappa_fn}
-    return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, constants={"dt": dt_c},
-                   symmetric=True, positive={"kappa"} & set(controls) | {"dt"})
+    fixed = fixed_constants(fns, ("kappa",))
+    return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, constants={"dt": dt_c, **fixed},
+                   symmetric=True, positive={"kappa"} & set(controls) | {"dt"} | set(fixed))

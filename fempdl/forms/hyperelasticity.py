@@ -47,6 +47,7 @@ import numpy as np
 import ufl
 
 from fempdl.core import _dolfinx
+from fempdl.core.checks import is_real
 from fempdl.core.mesh import TaggedMesh, as_tagged
 from fempdl.core.nonlinear_problem import NonlinearProblem
 from fempdl.core.nullspaces import rigid_body_modes
@@ -55,6 +56,7 @@ from fempdl.forms._common import (
     check_controls,
     check_degree,
     coefficient_space,
+    fixed_constants,
     make_coefficient,
     nonnegative_constant,
     tagged_facets,
@@ -90,7 +92,7 @@ def problem(msh, controls=("T",), *, degree: int = 1, E=1.0, nu: float = 0.3, E_
         per node); ``problem.constants`` holds ``nu``.
     """
     controls = check_controls(controls, CONTROLS, "hyperelasticity")
-    if isinstance(nu, bool) or not isinstance(nu, (int, float)) or not 0.0 <= nu < 0.5:
+    if not is_real(nu) or not 0.0 <= nu < 0.5:
         raise ValueError(f"nu must be a Poisson's ratio in [0, 0.5) (0.5 is incompressible: lmbda = inf), "
                          f"got {nu!r}")
     if E_space not in COEFFICIENT_SPACES:
@@ -98,7 +100,7 @@ def problem(msh, controls=("T",), *, degree: int = 1, E=1.0, nu: float = 0.3, E_
     if T_space not in TRACTION_SPACES:
         raise ValueError(f"T_space must be 'P1' (vector P1) or 'V' (the displacement space), got {T_space!r}")
     tagged = as_tagged(msh)
-    check_degree(degree)
+    degree = check_degree(degree)
     gdim, tdim = tagged.gdim, tagged.tdim
     if gdim not in (2, 3) or tdim != gdim:
         raise ValueError(f"hyperelasticity needs a 2D or 3D body (a mesh whose cells fill the space), got "
@@ -136,10 +138,11 @@ def problem(msh, controls=("T",), *, degree: int = 1, E=1.0, nu: float = 0.3, E_
     ds_loaded = ufl.Measure("ds", domain=tagged.mesh, subdomain_data=tags)(_LOADED)
     F = (ufl.inner(P, ufl.grad(v)) * dx_stress - ufl.inner(fns["B"], v) * ufl.dx
          - ufl.inner(fns["T"], v) * ds_loaded)
-    return NonlinearProblem(F, u, bcs, controls={name: fns[name] for name in controls}, constants={"nu": nu_c},
-                            nonnegative=("nu",),
+    fixed = fixed_constants(fns, ("E",))
+    return NonlinearProblem(F, u, bcs, controls={name: fns[name] for name in controls},
+                            constants={"nu": nu_c, **fixed}, nonnegative=("nu",),
                             near_nullspace=rigid_body_modes(V) if near_nullspace else (),
-                            positive={"E"} & set(controls))
+                            positive={"E"} & set(controls) | set(fixed))
 
 
 def _facets(tagged: TaggedMesh, part, argname: str, end: int) -> np.ndarray:

@@ -27,6 +27,7 @@ from fempdl.forms._common import (
     check_degree,
     coefficient_space,
     dirichlet_bcs,
+    fixed_constants,
     make_coefficient,
     make_function,
     positive_constant,
@@ -66,7 +67,7 @@ def problem(msh, controls=("f",), *, degree: int = 1, q=None, kappa=1.0, kappa_s
     if q is not None and not callable(q):
         raise TypeError(f"q must be a function of the unknown (u -> UFL expression), got {type(q).__name__}")
     tagged = as_tagged(msh)
-    check_degree(degree)
+    degree = check_degree(degree)
     V = _dolfinx.function_space(tagged.mesh, "Lagrange", degree)
     fns = {"f": make_function(V, f, "f"),
            "kappa": make_coefficient(coefficient_space(tagged.mesh, kappa_space), kappa, "kappa",
@@ -81,7 +82,7 @@ def problem(msh, controls=("f",), *, degree: int = 1, q=None, kappa=1.0, kappa_s
     v = ufl.TestFunction(V)
     conductivity = (1 + fns["alpha"] * u ** 2) if q is None else q(u)
     F = fns["kappa"] * conductivity * ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx - fns["f"] * v * ufl.dx
-    constants = {}
+    constants = fixed_constants(fns, ("kappa",))
     if dt is not None:
         dt_c = positive_constant(tagged.mesh, dt, "dt")
         fns["u0"] = make_function(V, u0, "u0")

@@ -24,6 +24,7 @@ from fempdl.forms._common import (
     check_degree,
     coefficient_space,
     dirichlet_bcs,
+    fixed_constants,
     make_coefficient,
     make_function,
 )
@@ -49,7 +50,7 @@ def problem(msh, controls=("f",), *, degree: int = 1, kappa_space: str = "P1",
     """
     controls = check_controls(controls, CONTROLS, "poisson")
     tagged = as_tagged(msh)
-    check_degree(degree)
+    degree = check_degree(degree)
     V = _dolfinx.function_space(tagged.mesh, "Lagrange", degree)
     f_fn = make_function(V, f, "f")
     kappa_fn = make_coefficient(coefficient_space(tagged.mesh, kappa_space), kappa, "kappa",
@@ -62,5 +63,6 @@ def problem(msh, controls=("f",), *, degree: int = 1, kappa_space: str = "P1",
     a = kappa_fn * ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx
     L = f_fn * v * ufl.dx
     fns = {"f": f_fn, "kappa": kappa_fn}
-    return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, symmetric=True,
-                   positive={"kappa"} & set(controls))
+    fixed = fixed_constants(fns, ("kappa",))
+    return Problem(a, L, bcs, controls={name: fns[name] for name in controls}, symmetric=True, constants=fixed,
+                   positive={"kappa"} & set(controls) | set(fixed))

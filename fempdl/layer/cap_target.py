@@ -22,13 +22,15 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import Protocol
+
+import torch
 
 from fempdl.core.checks import check_int
 
 __all__ = ["CapTarget", "LayerCaps", "CapFunction", "MaxItAttribute", "CapTargets", "as_target", "layers_target",
-           "k_eps_of_counts"]
+           "solve_layers_in", "k_eps_of_counts"]
 
 
 class CapTarget(Protocol):
@@ -51,13 +53,19 @@ class CapTarget(Protocol):
 
 def as_target(target) -> CapTarget:
     """``target`` as a :class:`CapTarget`: its own ``as_target()`` (layers, rollouts, NewtonCaps), its
-    ``max_it`` attribute, a list's targets together, a function ``f(k)`` or ``None`` (nothing moves)."""
+    ``max_it`` attribute, the solve layers inside a torch module, a list's targets together, a function
+    ``f(k)`` or ``None`` (nothing moves)."""
     if hasattr(target, "as_target"):
         return target.as_target()
     if target is None:
         return CapTargets(())
     if hasattr(target, "max_it"):
         return MaxItAttribute(target)
+    if isinstance(target, torch.nn.Module):          # a model holding its layers (callable and iterable too)
+        return CapTargets(tuple(as_target(t) for t in solve_layers_in(target)))
+    if isinstance(target, Mapping):
+        raise TypeError(f"a PRDP target is not a mapping; pass its values: PRDP(list(targets.values()), ...) "
+                        f"(got a {type(target).__name__} with keys {list(target)[:5]})")
     if isinstance(target, Iterable) and not isinstance(target, (str, bytes)):
         return CapTargets(tuple(as_target(t) for t in target))
     if callable(target):
@@ -67,16 +75,44 @@ def as_target(target) -> CapTarget:
                     "has no max_it attribute")
 
 
-def layers_target(target) -> CapTarget:
-    """``target`` as a :class:`CapTarget` that moves solve layers (what K_eps, k0 and preflight measure)."""
+def solve_layers_in(module) -> list:
+    """The outermost modules inside ``module`` that know their caps (solve layers, rollouts: a rollout's
+    step layer is its own), in registration order; a TypeError naming what to pass where there is none."""
+    found, inside = [], set()
+    for name, sub in module.named_modules():
+        if any(name.startswith(prefix) for prefix in inside):
+            continue
+        if hasattr(sub, "as_target"):
+            found.append(sub)
+            inside.add(f"{name}." if name else "")
+    if not found:
+        raise TypeError(f"the {type(module).__name__} passed as a target holds no solve layer or rollout; pass "
+                        "the layer(s) whose cap K moves, e.g. PRDP(model.layer, ...)")
+    return found
+
+
+def layers_target(target, what: str = "target") -> CapTarget:
+    """``target`` as a :class:`CapTarget` that moves solve layers (what K_eps, k0 and preflight measure);
+    a TypeError naming ``what`` and, in a list, the item that is none."""
     try:
         found = as_target(target)
     except TypeError:
         found = None
     if found is None or not found.layers:
-        raise TypeError(f"target must be a SolveLayer, a NonlinearSolveLayer, a NewtonCaps, a Rollout or a list of "
-                        f"them, got {type(target).__name__}")
+        got = type(target).__name__
+        if isinstance(target, (list, tuple)):
+            bad = [i for i, part in enumerate(target) if not _is_solve_target(part)]
+            got += f" whose item {bad[0]} is a {type(target[bad[0]]).__name__}" if bad else ""
+        raise TypeError(f"{what} must be a SolveLayer, a NonlinearSolveLayer, a NewtonCaps, a Rollout or a list of "
+                        f"them (or a torch module holding them), got {got}")
     return found
+
+
+def _is_solve_target(part) -> bool:
+    try:
+        return bool(as_target(part).layers)
+    except TypeError:
+        return False
 
 
 def k_eps_of_counts(counts: list) -> int:

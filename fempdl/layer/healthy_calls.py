@@ -105,6 +105,19 @@ class HealthyCalls:
                        "solve", SolverWarning)
         return result
 
+    def schedule(self) -> dict:
+        """When the next calls are measured, by direction: [caps of the last measured call (max_it,
+        inner_max_it) or None, calls since]; saved with PRDP's state, so a resumed run measures the calls
+        the uninterrupted one measures."""
+        return {d: [None if caps is None else [caps.max_it, caps.inner_max_it], since]
+                for d, (caps, since) in self._due.items()}
+
+    def load_schedule(self, saved: dict) -> None:
+        """Restore :meth:`schedule`'s value."""
+        if set(saved) != set(DIRECTIONS):
+            raise ValueError(f"a saved health schedule has directions {sorted(saved)}, not {list(DIRECTIONS)}")
+        self._due = {d: (None if caps is None else Caps(*caps), int(since)) for d, (caps, since) in saved.items()}
+
     def _is_due(self, direction: str, now: Caps) -> bool:
         caps, since = self._due[direction]
         if caps == now and since % HEALTH_EVERY:

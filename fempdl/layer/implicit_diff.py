@@ -76,10 +76,12 @@ def implicit_solve(handle: int, names: str, batch: int, training: bool, float32:
     # A training call (its backward follows: the solve keeps per-sample matrices for it) is solved again at a
     # refined cap while its capped solves are garbage; the state is packed after, so the backward runs at the
     # caps that held.
+    call = layer.call_state.new_call()
     U = layer.solve_healthy(lambda health: layer.system.solve(arrays, batch, shared, initial_guess=guess,
-                                                              keep_matrices=training, health=health),
+                                                              keep_for=call if training else None,
+                                                              health=health),
                             training=training)
-    state = layer.call_state.pack(layer.system)
+    state = layer.call_state.pack(layer.system, call)
     if float32 and count_nonfinite(U.astype(np.float32), layer.problem):
         layer._report_overflow(torch.float32)
     layer.stats.layer_time += time.perf_counter() - t0
@@ -119,8 +121,13 @@ def implicit_adjoint(handle: int, names: str, wanted: str, tensors: list[Tensor]
         measure = {"health": health} if layer.measures_adjoint_health else {}
         with layer.call_state.restored(layer.system, record):
             return layer.system.adjoint(arrays, _to_numpy(u), G, [n for n in wanted if n != INITIAL_GUESS],
-                                        shared, initial_guess=INITIAL_GUESS in wanted, **measure)
-    grads = layer.solve_healthy(adjoint, training=layer.measures_adjoint_health, direction="adjoint")
+                                        shared, initial_guess=INITIAL_GUESS in wanted,
+                                        kept_for=layer.call_state.call_of(packed), **measure)
+    # A start that carries no gradient (detached, or a stored solution) leaves the capped map's derivative
+    # short of the physics' by the adjoint's residual, however close the warm-started forward is: such an
+    # adjoint is held to the approximation's limit, not the exact derivative's.
+    exact = layer.exact_capped_gradient and (INITIAL_GUESS not in names or INITIAL_GUESS in wanted)
+    grads = layer.solve_healthy(adjoint, training=layer.measures_adjoint_health, direction="adjoint", exact=exact)
     layer.stats.layer_time += time.perf_counter() - t0
     return [torch.from_numpy(np.ascontiguousarray(grads[n], dtype=np.float64)) for n in wanted]
 

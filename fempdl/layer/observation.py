@@ -130,6 +130,7 @@ class PointObservation(torch.nn.Module):
     def forward(self, u: torch.Tensor) -> torch.Tensor:
         """u (..., n) -> (..., N * bs): P applied to every row of the flattened leading axes."""
         n_obs, n = self.matrix.shape
+        _check_floating("u", u)
         if u.dim() == 0 or u.shape[-1] != n:
             raise ValueError(f"u must have shape (..., {n}): {n} owned DOF values last, e.g. (B, {n}) or a "
                              f"rollout's (B, T, {n}); got {tuple(u.shape)}")
@@ -176,6 +177,7 @@ class MassInner(torch.nn.Module):
     def forward(self, u: torch.Tensor, v: torch.Tensor | None = None) -> torch.Tensor:
         """<u, v>_M over the last axis: u, v (..., n) -> (...), leading axes broadcast; ``v=None``: <u, u>_M."""
         for label, t in (("u", u), ("v", u if v is None else v)):
+            _check_floating(label, t)
             if t.dim() == 0 or t.shape[-1] != self.size:
                 raise ValueError(f"{label} must have shape (..., {self.size}): {self.size} owned DOF values "
                                  f"last, e.g. (B, {self.size}); got {tuple(t.shape)}")
@@ -219,3 +221,9 @@ def _rows(u: torch.Tensor, n: int) -> torch.Tensor:
     """u (..., n) as float64 rows (prod(...), n); explicit, since reshape(-1, 0) is ambiguous on a rank of a
     distributed mesh that owns no DOFs (n = 0)."""
     return u.reshape(math.prod(u.shape[:-1]), n).to(torch.float64)
+
+
+def _check_floating(label: str, t: torch.Tensor) -> None:
+    """Refuse an integer (or complex, bool) tensor, as the layers do: its values would be truncated."""
+    if t.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"{label} has dtype {t.dtype}; use float32 or float64 (e.g. {label}.double())")

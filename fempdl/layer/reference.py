@@ -32,13 +32,14 @@ from contextlib import contextmanager
 
 import torch
 
+from fempdl.layer.cap_target import layers_target
 from fempdl.layer.newton_layer import NonlinearSolveLayer
 from fempdl.layer.solve_layer import SolveLayer
 from fempdl.layer.system_layer import SystemLayer
 from fempdl.solve.options import default_options
 
-__all__ = ["reference_physics", "routed", "converged_counts", "reference_options", "converged_options", "twin_of",
-           "counters_kept", "REFERENCE_NEWTON_RTOL"]
+__all__ = ["reference_physics", "routed", "converged_counts", "refuse_uncalled", "reference_options",
+           "converged_options", "twin_of", "counters_kept", "REFERENCE_NEWTON_RTOL"]
 
 #: The loosest Newton tolerance a reference twin takes (a layer's own, if tighter).
 REFERENCE_NEWTON_RTOL = 1e-8
@@ -100,7 +101,8 @@ def reference_physics(layers):
         >>> with torch.no_grad(), reference_physics(layer):
         ...     metric = nmse(layer(f=net(z_val)), u_val)       # the model as it is deployed
     """
-    layers = [layers] if isinstance(layers, SystemLayer) else list(layers)
+    # A rollout's step layer, the layers inside a module or a list.
+    layers = [layers] if isinstance(layers, SystemLayer) else list(layers_target(layers, "the layers").layers)
     twins = []
     for layer in layers:
         if layer.reference_twin is None:
@@ -118,11 +120,21 @@ def converged_counts(layers: list, run: Callable[[], object], rtol: float) -> li
     try:
         with torch.no_grad(), routed(zip(layers, twins)):
             run()
+        refuse_uncalled(twins)
         return [(getattr(twin.stats, "max_newton_steps", None), twin.stats.max_forward_iterations)
                 for twin in twins]
     finally:
         for twin in twins:
             twin.close()
+
+
+def refuse_uncalled(twins: list) -> None:
+    """Refuse a measurement whose call solved with none of the target's layers (routed to ``twins``): counts
+    or errors of nothing would read as a cap of 1 (the call went to other layer objects, or nowhere)."""
+    if twins and not any(twin.stats.forward_solves for twin in twins):
+        raise ValueError(f"the call did not solve with the target: none of its {len(twins)} layer(s) was called "
+                         "(a call through another layer object, or one that solves nothing); pass a function that "
+                         "calls the target's own layers")
 
 
 @contextmanager

@@ -40,6 +40,8 @@ from math import comb
 
 import checkpoint_schedules as cs
 
+from fempdl.core.checks import is_int
+
 __all__ = ["BinomialRevolve", "recomputed_steps"]
 
 _RAM, _WORK = cs.StorageType.RAM, cs.StorageType.WORK
@@ -61,10 +63,10 @@ class BinomialRevolve(cs.CheckpointSchedule):
 
     def __init__(self, steps: int, snapshots: int):
         for name, value in (("steps", steps), ("snapshots", snapshots)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            if not is_int(value) or value < 1:
                 raise ValueError(f"{name} must be an int >= 1, got {value!r}")
-        super().__init__(steps)
-        self._snapshots = snapshots
+        super().__init__(int(steps))
+        self._snapshots = int(snapshots)
         self._exhausted = False
 
     def _iterator(self):

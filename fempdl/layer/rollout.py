@@ -96,6 +96,8 @@ class Rollout(torch.nn.Module):
             raise TypeError(f"warm_start must be True or False, got {warm_start!r}")
         if schedule is not None and schedule != AUTOGRAD:
             make_schedule(schedule, 1)                       # validates the spec
+            if isinstance(schedule, tuple):                  # numpy counts kept as python ints (the repr)
+                schedule = (schedule[0], *map(int, schedule[1:]))
             if getattr(step, "diff", "implicit") != "implicit":
                 raise ValueError("a checkpoint schedule runs the step's implicit adjoint; this step is "
                                  f"diff={step.diff!r} (use schedule=None: autograd keeps its graph)")

@@ -36,6 +36,7 @@ import tempfile
 import checkpoint_schedules as cs
 import numpy as np
 
+from fempdl.core.checks import is_int
 from fempdl.layer.revolve import BinomialRevolve
 
 __all__ = ["ScheduleStats", "make_schedule", "CheckpointedRollout", "StatelessRollout"]
@@ -67,19 +68,19 @@ def make_schedule(spec, steps: int) -> cs.CheckpointSchedule:
     if isinstance(spec, tuple) and spec and spec[0] == "multistage" and len(spec) == 3:
         in_ram, on_disk = spec[1], spec[2]
         for name, value in (("in memory", in_ram), ("on disk", on_disk)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            if not is_int(value) or value < 0:
                 raise ValueError(f"multistage snapshots {name} must be an int >= 0, got {value!r}")
         if in_ram + on_disk < 1:
             raise ValueError("a multistage schedule needs at least one snapshot")
-        return cs.MultistageCheckpointSchedule(steps, in_ram, on_disk)
+        return cs.MultistageCheckpointSchedule(steps, int(in_ram), int(on_disk))
     raise ValueError(f"schedule must be 'all', ('revolve', s) or ('multistage', s_in_memory, s_on_disk), "
                      f"got {spec!r}")
 
 
 def _count(name: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    if not is_int(value) or value < 1:
         raise ValueError(f"{name} must be an int >= 1, got {value!r}")
-    return value
+    return int(value)
 
 
 class _Store:

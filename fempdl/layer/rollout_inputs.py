@@ -72,7 +72,8 @@ def _constant_values(rollout, constants: Mapping, steps: int) -> dict:
             raise ValueError(f"the step problem has no Constant {name!r}; its Constants are "
                              f"{sorted(problem.constants)}")
         try:
-            array = np.asarray(seq.detach().cpu() if isinstance(seq, torch.Tensor) else seq, dtype=np.float64)
+            # A copy: Constants are taken by value, so an array edited in place after the call changes nothing.
+            array = np.array(seq.detach().cpu().numpy() if isinstance(seq, torch.Tensor) else seq, dtype=np.float64)
         except (TypeError, ValueError):
             raise TypeError(f"constants[{name!r}] must be numbers, one per step, got {seq!r}") from None
         shape = np.shape(problem.constants[name].value)

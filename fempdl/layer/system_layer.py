@@ -111,6 +111,16 @@ class SystemLayer(torch.nn.Module):
         self._healthy.install(check)
 
     @property
+    def health_schedule(self) -> dict:
+        """When the health check measures the next training calls (:meth:`HealthyCalls.schedule
+        <fempdl.layer.healthy_calls.HealthyCalls.schedule>`); assign a saved one to resume it."""
+        return self._healthy.schedule()
+
+    @health_schedule.setter
+    def health_schedule(self, saved: dict) -> None:
+        self._healthy.load_schedule(saved)
+
+    @property
     def last_health_ratio(self) -> float | None:
         """The largest residual ratio of the last training call the health check measured (None: none yet)."""
         return self._healthy.last_ratio["forward"]
@@ -121,10 +131,13 @@ class SystemLayer(torch.nn.Module):
         return self._healthy.last_ratio["adjoint"]
 
     def solve_healthy(self, solve: Callable[[CallHealth | None], object], training: bool,
-                      direction: str = "forward"):
+                      direction: str = "forward", exact: bool | None = None):
         """``solve(health)``, one call's capped solves (a forward, or its backward's adjoint solves), run
-        again at a refined cap while garbage (:class:`~fempdl.layer.healthy_calls.HealthyCalls`)."""
-        return self._healthy.run(solve, lambda: self.caps, training, direction, exact=self.exact_capped_gradient)
+        again at a refined cap while garbage (:class:`~fempdl.layer.healthy_calls.HealthyCalls`); ``exact``:
+        whether this call's gradient is the physics' derivative to the capped map's (default
+        :attr:`exact_capped_gradient`)."""
+        exact = self.exact_capped_gradient if exact is None else exact
+        return self._healthy.run(solve, lambda: self.caps, training, direction, exact=exact)
 
     @property
     def options(self):

@@ -24,8 +24,9 @@ from fempdl.core.parallel import batch_size, shard_inputs
 from fempdl.layer.cap_target import CapTarget, as_target, layers_target
 from fempdl.layer.reference import converged_counts, counters_kept
 from fempdl.methods.newton_caps import ConvergedCaps, NewtonCaps
+from fempdl.solve.stats import SolverFailedError
 
-__all__ = ["k_eps", "newton_k_eps", "converged_caps", "measure_call", "left_as_is"]
+__all__ = ["k_eps", "newton_k_eps", "converged_caps", "measure_call", "left_as_is", "remeasured_k_eps"]
 
 
 @contextmanager
@@ -85,6 +86,18 @@ def k_eps(target, *, rtol: float = 1e-8, shard_over: MPI.Comm = MPI.COMM_SELF, b
     if call is None and all(isinstance(v, torch.Tensor) for v in inputs.values()):
         run = _sharded(run, target, inputs, shard_over, batch)
     return target.k_eps_from(_most_over(converged_counts(list(target.layers), run, rtol), shard_over))
+
+
+def remeasured_k_eps(target, validate: Callable, rtol: float, step: int) -> int:
+    """K_eps of the validation at the current model, as PRDP measures it again at step ``step``; a failed
+    converged solve names the measurement and what to do."""
+    try:
+        return k_eps(target, call=validate, rtol=rtol)
+    except SolverFailedError as error:
+        raise SolverFailedError(
+            f"PRDP measured K_eps again at step {step} (converged solves of the validation at the current model, to "
+            f"k_eps_rtol={rtol:g}) and a solve failed: {error}. Keep k_cap as it is with PRDP(..., "
+            "remeasure=False), or make the layer's solver converge on these inputs", error.stats) from error
 
 
 def _most_over(counts: list, comm: MPI.Comm) -> list:

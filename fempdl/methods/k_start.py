@@ -33,9 +33,9 @@ from collections.abc import Callable
 
 import torch
 
-from fempdl.core.checks import check_int
+from fempdl.core.checks import check_int, is_real
 from fempdl.layer.cap_target import layers_target
-from fempdl.layer.reference import converged_options, routed, twin_of
+from fempdl.layer.reference import converged_options, refuse_uncalled, routed, twin_of
 from fempdl.methods.k_eps import left_as_is, measure_call
 from fempdl.solve.stats import SolverFailedError
 
@@ -79,9 +79,10 @@ def k_start(target, *, tolerance: float | None = None, k_max: int = 100_000, rto
     run = measure_call(target, call, inputs, "k0")
     if tolerance is None:
         tolerance = default_tolerance(layers)
-    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not 0.0 < tolerance <= 1.0:
+    if not is_real(tolerance) or not 0.0 < tolerance <= 1.0:
         raise ValueError(f"tolerance must be a relative error in (0, 1], got {tolerance!r}")
     check_int("k_max", k_max, minimum=1)
+    tolerance, k_max = float(tolerance), int(k_max)     # the K returned is a python int
     for layer in layers:
         if not layer.counts_newton_steps and layer.options.direct:
             raise ValueError(f"the layer solves directly (ksp_type={layer.options.ksp_type!r}): it has no "
@@ -92,6 +93,10 @@ def k_start(target, *, tolerance: float | None = None, k_max: int = 100_000, rto
         with torch.no_grad(), left_as_is(target):
             with routed(zip(layers, twins)):
                 reference = _tensors(run())
+            refuse_uncalled(twins)
+            if not all(isinstance(u, torch.Tensor) for u in reference):
+                raise TypeError("call must return the tensor (or tuple of tensors) to compare, got "
+                                f"{', '.join(type(u).__name__ for u in reference)}")
 
             def error(k: int) -> float:
                 target.set_k(k)

@@ -33,7 +33,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import math
 import warnings
 import weakref
 from collections.abc import Callable
@@ -43,7 +42,7 @@ import torch
 from fempdl.core.ranks import Ranks, refuse_different_metrics, training_ranks
 from fempdl.layer.cap_target import CapTarget, as_target
 from fempdl.layer.reference import reference_physics
-from fempdl.methods.k_eps import k_eps
+from fempdl.methods.k_eps import k_eps, remeasured_k_eps
 from fempdl.methods.prdp_gap import GapSearch, closing_cap, grown_cap, open_gap_message, relative_gap
 from fempdl.methods.prdp_settings import (
     SETTING_NAMES,
@@ -51,7 +50,9 @@ from fempdl.methods.prdp_settings import (
     PRDPRecord,
     PRDPSettings,
     check_saved_settings,
+    checked_metric,
     refined_cap,
+    saved_caps,
 )
 from fempdl.solve.health import HealthCheck
 
@@ -265,8 +266,7 @@ class PRDP:
             cause = "k_eps"
         if validate is None:
             return grown_cap(self.k, self.dk, self.k_cap), (), cause
-        bound = self.k_cap if self.k_cap is not None else \
-            max(self.k + self.dk, k_eps(self._target, call=validate, rtol=self.k_eps_rtol))
+        bound = self.k_cap if self.k_cap is not None else max(self.k + self.dk, self._measured_k_eps(validate))
         search = closing_cap(lambda k: self._capped_at(validate, k), metric, self.k, bound, self.gap, self.dk)
         if not search.closed and cause == "gap" and self.k_cap is not None and self.remeasure \
                 and self._raise_k_cap(validate):            # open at k_cap: K_eps at this model lies above it
@@ -289,13 +289,8 @@ class PRDP:
         return value
 
     def _checked(self, metric, what: str) -> float:
-        if isinstance(metric, bool) or not isinstance(metric, (int, float)) and not hasattr(metric, "__float__"):
-            raise TypeError(f"{what} must be a number (or a function returning one), got {type(metric).__name__}")
-        metric = float(metric)
-        refuse_different_metrics(self.ranks, metric)    # over a torch group: at the next training call
-        if not math.isfinite(metric) or metric <= 0.0:
-            raise ValueError(f"{what} must be finite and > 0 (a validation error), got {metric!r}")
-        return metric
+        # Over a torch group the ranks' metrics are compared at the next training call.
+        return checked_metric(metric, what, lambda value: refuse_different_metrics(self.ranks, value))
 
     def _capped_eval_calls(self) -> int:
         return sum(layer.capped_eval_calls for layer in self.layers)
@@ -312,9 +307,12 @@ class PRDP:
             "inside `with torch.no_grad(), ctrl.reference():`. A model deployed with the capped solver: "
             "PRDP(..., judge='capped')", PRDPValidationWarning, stacklevel=3)
 
+    def _measured_k_eps(self, validate: Callable) -> int:
+        return remeasured_k_eps(self._target, validate, self.k_eps_rtol, len(self.history))
+
     def _raise_k_cap(self, validate: Callable) -> bool:
         """Measure K_eps on the validation at the current model; raise ``k_cap`` if it lies above."""
-        measured = k_eps(self._target, call=validate, rtol=self.k_eps_rtol)
+        measured = self._measured_k_eps(validate)
         ranks = self.ranks
         # The largest over the ranks, which may each validate a shard: a measurement runs the validation
         # function, which every rank calls (a step made on one rank alone passes a number, and never
@@ -379,18 +377,22 @@ class PRDP:
             "k": self.k, "k_cap": self.k_cap, "checkpoint": self.checkpoint,
             "history": [dataclasses.asdict(rec) for rec in self.history],
             "health_refinements": [dict(event) for event in self.health_refinements],
+            "health_schedules": [layer.health_schedule for layer in self._target.layers],
             "settings": dataclasses.asdict(self.settings),
         }
 
     def load_state_dict(self, state: dict) -> None:
         """Restore from :meth:`state_dict` (and set the target's cap to the saved K)."""
         check_saved_settings(state["settings"], self.settings)
-        self.k = int(state["k"])
-        self._k_cap = state.get("k_cap", self.settings.k_cap)
+        self.k, self._k_cap = saved_caps(state, self.settings)
         self.checkpoint = state["checkpoint"]
         self.history = [PRDPRecord(**{**rec, "probes": tuple(tuple(p) for p in rec.get("probes", ()))})
                         for rec in state["history"]]
         self.health_refinements = [dict(event) for event in state.get("health_refinements", [])]
+        schedules = state.get("health_schedules", [])        # none in a state saved before they were
+        if len(schedules) == len(self._target.layers):
+            for layer, schedule in zip(self._target.layers, schedules):
+                layer.health_schedule = schedule
         self._target.set_k(self.k)
 
     def __repr__(self) -> str:

@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
-from fempdl.core.checks import check_int
+from fempdl.core.checks import check_int, is_real
 
 __all__ = ["PRDPFinish", "PRDPRecord", "PRDPSettings", "check_saved_settings", "refined_cap", "JUDGES", "SETTING_NAMES"]
 
@@ -108,33 +109,38 @@ class PRDPSettings:
         check_int("ema_window", self.ema_window, minimum=1)
         if self.k_cap is not None:
             check_int("k_cap", self.k_cap, minimum=self.k0)
+        # Python numbers, not numpy ones: the settings are saved in a PRDP state (a weights_only checkpoint)
+        # and compared with a saved state's.
+        for name in ("k0", "dk", "delta", "ema_window", "k_cap"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, int(getattr(self, name)))
         for name in ("tau_step", "tau_stop"):
             value = getattr(self, name)
-            if not _is_number(value) or not 0.0 < value <= 1.0:
+            if not is_real(value) or not 0.0 < value <= 1.0:
                 raise ValueError(f"{name} must be a number in (0, 1], got {value!r}")
             object.__setattr__(self, name, float(value))
         if self.guard is not None:
-            if not (_is_number(self.guard) and 1.0 < self.guard < math.inf):
+            if not (is_real(self.guard) and 1.0 < self.guard < math.inf):
                 raise ValueError(f"guard must be a finite number > 1 (or None: off), got {self.guard!r}")
             object.__setattr__(self, "guard", float(self.guard))
-        if not (_is_number(self.growth) and 1.0 <= self.growth < math.inf):
+        if not (is_real(self.growth) and 1.0 <= self.growth < math.inf):
             raise ValueError(f"growth must be a finite number >= 1, got {self.growth!r}")
         object.__setattr__(self, "growth", float(self.growth))
         if self.judge not in JUDGES:
             raise ValueError(f"judge must be one of {list(JUDGES)}, got {self.judge!r}")
         if self.gap is not None:
-            if not (_is_number(self.gap) and 0.0 < self.gap < math.inf):
+            if not (is_real(self.gap) and 0.0 < self.gap < math.inf):
                 raise ValueError(f"gap must be a finite relative difference > 0 (or None: off), got {self.gap!r}")
             object.__setattr__(self, "gap", float(self.gap))
         if not isinstance(self.remeasure, bool):
             raise TypeError(f"remeasure must be True or False, got {self.remeasure!r}")
-        if not (_is_number(self.k_eps_rtol) and 0.0 < self.k_eps_rtol < 1.0):
+        if not (is_real(self.k_eps_rtol) and 0.0 < self.k_eps_rtol < 1.0):
             raise ValueError(f"k_eps_rtol must be a number in (0, 1), got {self.k_eps_rtol!r}")
         object.__setattr__(self, "k_eps_rtol", float(self.k_eps_rtol))
         for name in ("health", "adjoint_health"):
             value = getattr(self, name)
             if value is not None:
-                if not (_is_number(value) and 0.0 < value < math.inf):
+                if not (is_real(value) and 0.0 < value < math.inf):
                     raise ValueError(f"{name} must be a finite residual ratio > 0 (or None: off), got {value!r}")
                 object.__setattr__(self, name, float(value))
 
@@ -165,5 +171,34 @@ def check_saved_settings(saved: dict, settings: PRDPSettings) -> None:
         raise ValueError(f"saved PRDP settings differ from this controller's (saved, current): {changed}")
 
 
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+def checked_metric(metric, what: str, agree: Callable[[float], None]) -> float:
+    """``metric`` as a float: one number (a Python or numpy number, a one-element tensor or array), finite
+    and > 0; a TypeError or ValueError naming ``what`` otherwise. ``agree(value)`` runs between the
+    conversion and the range check, on every rank alike (a collective: a NaN on one rank must not skip it)."""
+    if isinstance(metric, bool) or not isinstance(metric, (int, float)) and not hasattr(metric, "__float__"):
+        raise TypeError(f"{what} must be a number (or a function returning one), got {type(metric).__name__}")
+    size = getattr(metric, "numel", getattr(metric, "size", lambda: 1))
+    size = size() if callable(size) else size
+    if size != 1:
+        raise ValueError(f"{what} must be one number, got a {type(metric).__name__} of shape "
+                         f"{tuple(metric.shape)}: reduce it to one (e.g. .mean())")
+    metric = float(metric)
+    agree(metric)
+    if not math.isfinite(metric) or metric <= 0.0:
+        raise ValueError(f"{what} must be finite and > 0 (a validation error), got {metric!r}")
+    return metric
+
+
+def saved_caps(state: dict, settings: PRDPSettings) -> tuple[int, int | None]:
+    """(K, k_cap) of a saved controller's state, checked: K an int >= 1 and within the saved k_cap (a
+    state edited by hand, or another controller's, is refused rather than set on the layer); a state saved
+    before k_cap was has the settings' k_cap, which a re-measured K_eps may have passed."""
+    k_cap = state.get("k_cap", settings.k_cap)
+    if k_cap is not None:
+        check_int("a saved PRDP state's k_cap", k_cap, minimum=1)
+    k = state["k"]
+    check_int("a saved PRDP state's k", k, minimum=1, hint="the state was not saved by PRDP.state_dict()")
+    if "k_cap" in state and k_cap is not None and k > k_cap:     # before k_cap was saved, a re-measure passed it
+        raise ValueError(f"a saved PRDP state's k ({k}) is above its k_cap ({k_cap}): the state was not saved by "
+                         "PRDP.state_dict()")
+    return int(k), (None if k_cap is None else int(k_cap))

@@ -30,28 +30,30 @@ __all__ = ["check_operator", "operator_defect", "check_symmetric_factor", "check
 class KeptMatrices:
     """Copies of the per-sample matrices of recent forward calls, for their adjoints.
 
-    An adjoint finds a call's matrices by the values of its matrix controls;
-    the oldest call is dropped beyond ``calls`` calls or ``max_bytes`` of
-    matrix values (unrolled multi-step chains run several forward calls before
-    their adjoints)."""
+    An adjoint finds its call's matrices by the call's serial number
+    (:meth:`~fempdl.solve.call_state.CallState.new_call`), never by the
+    controls' values: two calls with the same matrix controls may differ in
+    what else the matrix reads (a dt set between them). The oldest call is
+    dropped beyond ``calls`` calls or ``max_bytes`` of matrix values (unrolled
+    multi-step chains run several forward calls before their adjoints); an
+    adjoint whose call was dropped assembles again, with the call's state put
+    back."""
 
-    def __init__(self, matrix_controls, calls: int = 4, max_bytes: int = 256 * 2 ** 20):
-        self._names = frozenset(matrix_controls)
+    def __init__(self, calls: int = 4, max_bytes: int = 256 * 2 ** 20):
         self._calls, self._max_bytes = calls, max_bytes
         self._entries: list[KeptCall] = []
 
-    def start(self, controls: Mapping[str, np.ndarray], batch: int) -> KeptCall | None:
+    def start(self, call: int, batch: int) -> KeptCall | None:
         if self._calls == 0:
             return None
-        key = {n: np.array(v) for n, v in controls.items() if n in self._names}
         spare = self._entries.pop(0).mats if len(self._entries) >= self._calls else []
-        entry = KeptCall(key, batch, spare, self._max_bytes)
+        entry = KeptCall(call, batch, spare, self._max_bytes)
         self._entries.append(entry)
         return entry
 
-    def find(self, controls: Mapping[str, np.ndarray], batch: int) -> KeptCall | None:
-        for entry in reversed(self._entries):
-            if entry.matches(controls, batch):
+    def find(self, call: int | None, batch: int) -> KeptCall | None:
+        for entry in reversed(self._entries):         # the newest: a call solved again keeps its matrices anew
+            if call is not None and entry.matches(call, batch):
                 return entry
         return None
 
@@ -62,8 +64,8 @@ class KeptMatrices:
 
 
 class KeptCall:
-    def __init__(self, key: dict, batch: int, spare: list, max_bytes: int):
-        self.key, self.batch, self.mats, self._spare, self._max_bytes = key, batch, [], spare, max_bytes
+    def __init__(self, call: int, batch: int, spare: list, max_bytes: int):
+        self.call, self.batch, self.mats, self._spare, self._max_bytes = call, batch, [], spare, max_bytes
         self.complete = True
 
     def append(self, A: PETSc.Mat) -> None:
@@ -80,9 +82,8 @@ class KeptCall:
             target = A.duplicate(copy=True)
         self.mats.append(target)
 
-    def matches(self, controls: Mapping[str, np.ndarray], batch: int) -> bool:
-        return (self.complete and batch == self.batch == len(self.mats)
-                and all(n in controls and np.array_equal(controls[n], v) for n, v in self.key.items()))
+    def matches(self, call: int, batch: int) -> bool:
+        return self.complete and call == self.call and batch == self.batch == len(self.mats)
 
     def restore(self, i: int, A: PETSc.Mat) -> None:
         """Copy sample ``i``'s matrix into ``A`` (same pattern)."""

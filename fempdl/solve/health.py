@@ -27,6 +27,7 @@ import dataclasses
 import math
 from collections.abc import Callable
 
+from fempdl.core.checks import is_real, python_number
 from fempdl.solve.round_off import round_off_floor
 
 __all__ = ["HealthCheck", "CallHealth"]
@@ -50,8 +51,10 @@ class HealthCheck:
 
     def __post_init__(self):
         for limit in (self.limit, 1.0 if self.adjoint_limit is None else self.adjoint_limit):
-            if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not 0.0 < limit < math.inf:
+            if not is_real(limit) or not 0.0 < limit < math.inf:
                 raise ValueError(f"a health limit must be a finite number > 0 (a residual ratio), got {limit!r}")
+        object.__setattr__(self, "limit", python_number(self.limit))
+        object.__setattr__(self, "adjoint_limit", python_number(self.adjoint_limit))
         if not callable(self.refine):
             raise TypeError(f"refine must be callable, got {type(self.refine).__name__}")
 

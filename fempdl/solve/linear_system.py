@@ -86,7 +86,7 @@ class LinearSystem:
         # b(0), C_m and gradient vectors; timed by a Timer on the stats, not a method of self (no reference cycle:
         # the system is freed as soon as its last owner drops it)
         self._forms = ControlForms(problem, self._b, functools.partial(Timer, self._solver.stats, "assembly_time"))
-        self._kept_matrices = assembly.KeptMatrices(problem.matrix_controls)
+        self._kept_matrices = assembly.KeptMatrices()
 
     # ------------------------------------------------------------ properties
     @property
@@ -118,15 +118,15 @@ class LinearSystem:
 
     # ----------------------------------------------------------------- solve
     def solve(self, controls: Mapping[str, np.ndarray], batch: int, shared=frozenset(),
-              initial_guess: np.ndarray | None = None, keep_matrices: bool = False,
+              initial_guess: np.ndarray | None = None, keep_for: int | None = None,
               health: CallHealth | None = None) -> np.ndarray:
         """Forward solves for ``batch`` samples; returns U of shape (batch, n).
 
         ``shared`` names controls whose rows are all equal (one tensor for the
         whole batch): a matrix that depends only on those is assembled once.
         ``initial_guess`` (batch, n) warm-starts the iterations (a broadcast view is fine).
-        ``keep_matrices``: keep copies of per-sample matrices for the adjoint of
-        this call (it then copies them instead of assembling again).
+        ``keep_for``: a call's serial number (:class:`~fempdl.solve.call_state.CallState`): keep copies of
+        per-sample matrices for that call's adjoint (it then copies them instead of assembling again).
         ``health``: measure the residual ratio of each capped solve into it (:mod:`fempdl.solve.health`).
         """
         p = self.problem
@@ -136,7 +136,7 @@ class LinearSystem:
         affine = not (names & p.matrix_controls) and names <= p.affine_rhs_controls
         use_batched = self._use_batched(batch, per_sample_matrix)
         U = np.empty((batch, p.output_size))
-        kept = self._kept_matrices.start(controls, batch) if keep_matrices and per_sample_matrix else None
+        kept = self._kept_matrices.start(keep_for, batch) if keep_for and per_sample_matrix else None
         health = health if self.options.capped else None      # a solve to its tolerances is healthy
         with ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
@@ -209,10 +209,12 @@ class LinearSystem:
 
     def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
                 wanted, shared=frozenset(), initial_guess: bool = False,
-                health: CallHealth | None = None) -> dict[str, np.ndarray]:
+                health: CallHealth | None = None, kept_for: int | None = None) -> dict[str, np.ndarray]:
         """Control gradients dJ/dm (batch, n_m) for m in ``wanted``, given the
         forward solutions U and incoming gradients G = dJ/du, both (batch, n);
-        ``health``: measure each capped adjoint's residual ratio ||G - A^T lam|| / ||G|| into it.
+        ``health``: measure each capped adjoint's residual ratio ||G - A^T lam|| / ||G|| into it;
+        ``kept_for``: the serial number of the forward call whose kept per-sample matrices to use (None:
+        assemble them; the caller has put back what the forward read).
 
         With ``initial_guess`` the result also holds ``"initial_guess"`` (batch, n):
         the adjoint residual G - A^T lam, which is the exact derivative of the
@@ -234,7 +236,7 @@ class LinearSystem:
             grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
         G = assembly.without_bc_entries(G, p)
         n_owned = p.output_size
-        kept = self._kept_matrices.find(controls, batch) if per_sample_matrix else None
+        kept = self._kept_matrices.find(kept_for, batch) if per_sample_matrix else None
         with ControlValues(p, controls) as ctl:
             self._prepare_matrix(names, per_sample_matrix, ctl)
             rhs_mats = {name: self._forms.rhs_matrix(name) for name in by_matrix}

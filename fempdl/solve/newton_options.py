@@ -34,7 +34,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from fempdl.core.checks import check_int
+from fempdl.core.checks import check_int, is_real, python_number
 from fempdl.solve.options import MAX_PETSC_INT, KSPOptions
 
 __all__ = ["NewtonOptions", "SNES_TYPES", "LINE_SEARCHES", "DEFAULT_NEWTON_RTOL", "DEFAULT_NEWTON_ATOL"]
@@ -84,8 +84,7 @@ class NewtonOptions:
         check_int("NewtonOptions.converged_max_it", self.converged_max_it, minimum=1, maximum=MAX_PETSC_INT)
         for name in ("rtol", "atol"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < 1 \
-                    or not math.isfinite(value):
+            if not is_real(value) or not 0 <= value < 1 or not math.isfinite(value):
                 raise ValueError(f"NewtonOptions.{name} must be a number in [0, 1), got {value!r}")
         if self.max_it is None and self.rtol == 0 and self.atol == 0:
             raise ValueError("an uncapped Newton solve (max_it=None) needs rtol > 0 or atol > 0")
@@ -97,9 +96,11 @@ class NewtonOptions:
                                  f"got {self.linesearch!r}")
             if self.snes_type != "newtonls":
                 raise ValueError(f"a line search applies to snes_type='newtonls', not {self.snes_type!r}")
-        if isinstance(self.damping, bool) or not isinstance(self.damping, (int, float)) \
-                or not 0 < self.damping <= 1:
+        if not is_real(self.damping) or not 0 < self.damping <= 1:
             raise ValueError(f"NewtonOptions.damping must be in (0, 1], got {self.damping!r}")
+        # Numpy scalars are stored as python numbers: options are compared and printed.
+        for name in ("max_it", "converged_max_it", "rtol", "atol", "damping"):
+            object.__setattr__(self, name, python_number(getattr(self, name)))
         if self.damping != 1 and self.snes_type != "newton":
             raise ValueError("damping applies to plain Newton (snes_type='newton')")
         if isinstance(self.ksp, str):

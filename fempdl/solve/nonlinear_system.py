@@ -170,11 +170,11 @@ class NonlinearSystem:
 
     # ----------------------------------------------------------------- solve
     def solve(self, controls: Mapping[str, np.ndarray], batch: int, shared=frozenset(),
-              initial_guess: np.ndarray | None = None, keep_matrices: bool = False,
+              initial_guess: np.ndarray | None = None, keep_for: int | None = None,
               record: bool = False, health: CallHealth | None = None):
         """Newton solves for ``batch`` samples; returns U (batch, n), and with ``record``
         also the :class:`NewtonPath` of the iterates. ``initial_guess`` (batch, n) starts
-        the iteration (its Dirichlet entries are replaced by the boundary values). ``keep_matrices``
+        the iteration (its Dirichlet entries are replaced by the boundary values). ``keep_for``
         belongs to the linear system's interface (the implicit operator passes it) and is unused: the
         adjoint assembles J at the returned state, not at any iterate's. ``health``: measure
         ||F(u_N)|| / ||F(u_0)|| of each capped solve into it (:mod:`fempdl.solve.health`)."""
@@ -208,9 +208,11 @@ class NonlinearSystem:
 
     # --------------------------------------------------------------- adjoint
     def adjoint(self, controls: Mapping[str, np.ndarray], U: np.ndarray, G: np.ndarray,
-                wanted, shared=frozenset(), initial_guess: bool = False) -> dict[str, np.ndarray]:
+                wanted, shared=frozenset(), initial_guess: bool = False,
+                kept_for: int | None = None) -> dict[str, np.ndarray]:
         """Implicit control gradients dJ/dm (batch, n_m) at the states U (batch, n) for incoming
-        G = dJ/du (batch, n) (:meth:`NewtonReversePass.adjoint`)."""
+        G = dJ/du (batch, n) (:meth:`NewtonReversePass.adjoint`); ``kept_for`` as ``keep_for`` in
+        :meth:`solve`, unused."""
         return self._reverse.adjoint(controls, U, G, wanted, shared, initial_guess=initial_guess)
 
     def unrolled_adjoint(self, controls: Mapping[str, np.ndarray], path: NewtonPath, G: np.ndarray,

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from petsc4py import PETSc
 
-from fempdl.core.checks import check_int
+from fempdl.core.checks import check_int, is_real, python_number
 from fempdl.solve.option_checks import (
     FACTORISING_PC_TYPES,
     OPTION_TYPES,
@@ -188,7 +188,7 @@ class KSPOptions:
             value = getattr(self, name)
             if value is None:
                 continue
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
+            if not is_real(value):
                 raise TypeError(f"{name} must be a float or None, got {value!r}")
             if not math.isfinite(value):
                 raise ValueError(f"{name} must be finite, got {value!r}")
@@ -204,6 +204,9 @@ class KSPOptions:
                 raise ValueError(
                     f"gmres_restart is only meaningful for {sorted(_RESTARTED_KSP_TYPES)}, "
                     f"got ksp_type={self.ksp_type!r}; drop gmres_restart or change ksp_type")
+        # Numpy scalars are stored as python numbers: options are compared, hashed and printed.
+        for name in ("max_it", "rtol", "atol", "divtol", "gmres_restart"):
+            object.__setattr__(self, name, python_number(getattr(self, name)))
         object.__setattr__(self, "petsc_options", frozen_petsc_options(self.petsc_options))
         if self.ksp_type in _DIRECT_KSP_TYPES and not factorises(self.pc_type, self.petsc_options):
             raise ValueError(

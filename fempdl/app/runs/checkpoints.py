@@ -186,12 +186,15 @@ def load(path: Path, row_fields: tuple | None = None, max_bytes: int | None = No
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except FileNotFoundError:
         raise FileNotFoundError(f"no checkpoint {str(path)!r}") from None
+    # fstat of the file opened, so a link swapped meanwhile cannot slip through; before fdopen, which
+    # refuses a directory with a message naming only the descriptor.
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode):
+        os.close(fd)
+        raise CheckpointError(f"checkpoint {str(path)!r} is {files.kind(info.st_mode)}, not a file fempdl "
+                              f"wrote, and is not read; to continue: {remedy}")
     with os.fdopen(fd, "rb") as fh:
-        info = os.fstat(fd)     # of the file opened, so a link swapped meanwhile cannot slip through
         limit = memory_budget() if max_bytes is None else max_bytes
-        if not stat.S_ISREG(info.st_mode):
-            raise CheckpointError(f"checkpoint {str(path)!r} is {files.kind(info.st_mode)}, not a file fempdl "
-                                  f"wrote, and is not read; to continue: {remedy}")
         if info.st_size > limit:
             raise CheckpointError(f"checkpoint {str(path)!r} is {format_bytes(info.st_size)}, more than a "
                                   f"checkpoint of this run can be ({format_bytes(limit)}), and is not read; to "

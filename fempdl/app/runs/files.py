@@ -11,23 +11,30 @@ what is yours). The record also keeps what the command trains there
 The record is read as a regular file of bounded size and never through a
 symbolic link; one that cannot be read records nothing, so the directory's
 files then count as yours (the safe side: a run needs ``overwrite`` to write
-there). Files are written to a temporary file beside the target
-(``.<name>.<8 hex digits>.tmp``, mode 0666 so the umask applies) and moved into
-place with ``os.replace``, which replaces a symbolic link itself, never the
-file it points to.
+there); one that is a directory can be neither read nor replaced, so it is
+refused (:class:`RunDirectoryError`) wherever it is read. Files are written to
+a temporary file beside the target (``.<name>.<8 hex digits>.tmp``, mode 0666
+so the umask applies) and moved into place with ``os.replace``, which replaces
+a symbolic link itself, never the file it points to. A write that fails names
+the file it was writing (not its temporary file), and
+:func:`size_limit_advice` tells a file size limit from a full disk.
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
+import resource
 import secrets
 import stat
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["RECORD", "write_atomically", "write_recorded", "record", "recorded", "record_command", "command_of",
-           "temporary_path", "is_temporary", "kind"]
+from fempdl.core.resources import format_bytes
+
+__all__ = ["RECORD", "RunDirectoryError", "write_atomically", "write_recorded", "record", "recorded", "record_command",
+           "command_of", "temporary_path", "is_temporary", "kind", "file_size_limit", "size_limit_advice"]
 
 RECORD = ".fempdl-record.json"
 # Far more than the names of the files fempdl writes into one directory; a larger file is not its record.
@@ -37,6 +44,12 @@ _TEMP_SUFFIX = ".tmp"
 _TEMPORARY = re.compile(r"\..+\.[0-9a-f]{8}\.tmp")
 _KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISLNK, "a symbolic link"), (stat.S_ISFIFO, "a named pipe"),
           (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+class RunDirectoryError(RuntimeError):
+    """An output directory is in use by another run, or holds a run this one would replace.
+
+    (Defined here, where the record is read, and re-exported by :mod:`fempdl.app.runs.rundir`.)"""
 
 
 def temporary_path(path: Path) -> Path:
@@ -65,20 +78,43 @@ def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
     guards against power loss only, and costs about 7 ms per file here, which
     per epoch of a fast scene is more than the epoch)."""
     path = Path(path)
-    while True:
-        tmp = temporary_path(path)
-        try:
-            fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
-            break
-        except FileExistsError:
-            continue
-    os.close(fd)
+    tmp = None
     try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+        while True:
+            tmp = temporary_path(path)
+            try:
+                fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
+                break
+            except FileExistsError:
+                continue
+        os.close(fd)
+        try:
+            write(tmp)
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+    except OSError as err:
+        # A write error names no file ("[Errno 28] No space left on device") or the temporary one:
+        # name the file the user knows instead.
+        if err.errno is None or (err.filename is not None and str(err.filename) != str(tmp)):
+            raise
+        raise OSError(err.errno, err.strerror, str(path)) from err
+
+
+def file_size_limit() -> int | None:
+    """The most bytes this process may write into one file (``ulimit -f``), or None when unlimited."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+    return None if soft == resource.RLIM_INFINITY else soft
+
+
+def size_limit_advice(err: OSError) -> str | None:
+    """"raise the file size limit (ulimit -f, now 1.0 MiB)" when a write may have failed for ``err``
+    because of that limit (EFBIG, or no errno, which torch's writer reports, while a limit is set)."""
+    limit = file_size_limit()
+    if limit is None or err.errno not in (errno.EFBIG, None):
+        return None
+    return f"raise the file size limit (ulimit -f, now {format_bytes(limit)})"
 
 
 def write_recorded(path: Path, write: Callable[[Path], None]) -> None:
@@ -123,14 +159,21 @@ def _write(directory: Path, data: dict) -> None:
 
 def _read(directory: Path) -> dict:
     """The record's contents, or {} when there is none or it is not one fempdl wrote."""
+    path = Path(directory) / RECORD
     try:
-        fd = os.open(Path(directory) / RECORD, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
     except OSError:          # none, a symbolic link (ELOOP), unreadable
         return {}
+    info = os.fstat(fd)      # before fdopen, which refuses a directory with a message naming only the fd
+    if not stat.S_ISREG(info.st_mode) or info.st_size > _MAX_RECORD_BYTES:
+        os.close(fd)
+        if stat.S_ISDIR(info.st_mode):      # os.replace cannot put a record in its place either
+            raise RunDirectoryError(
+                f"the record file {str(path)!r} is a directory, not a file fempdl wrote, so it is neither read "
+                f"nor replaced; remove it yourself if no run uses {str(directory)!r}, or choose another output "
+                "directory (--out)")
+        return {}
     with os.fdopen(fd, "rb") as fh:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode) or info.st_size > _MAX_RECORD_BYTES:
-            return {}
         raw = fh.read(_MAX_RECORD_BYTES + 1)
     try:
         data = json.loads(raw)

@@ -39,6 +39,7 @@ from pathlib import Path
 
 from fempdl.app.runs import files
 from fempdl.app.runs.checkpoints import CHECKPOINT
+from fempdl.app.runs.files import RunDirectoryError
 from fempdl.app.schema import check_slug
 from fempdl.core.locks import same_file
 
@@ -59,10 +60,6 @@ _NAMES_SHOWN = 3
 # on its first few, and --out at a large tree must not walk all of it.
 _DEPTH = 3
 _MOST_LISTED = 1000
-
-
-class RunDirectoryError(RuntimeError):
-    """An output directory is in use by another run, or holds a run this one would replace."""
 
 
 class ResumeError(ValueError):

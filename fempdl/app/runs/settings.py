@@ -14,6 +14,7 @@ from pathlib import Path
 from mpi4py import MPI
 
 from fempdl.app.schema import PARALLEL_MODES, SEED_MAX
+from fempdl.core.checks import is_int, is_real, python_number
 
 __all__ = ["RunSettings", "PARALLEL_MODES", "CHECKPOINT_EVERY"]
 
@@ -77,24 +78,24 @@ class RunSettings:
         if self.resume and self.overwrite:
             raise ValueError("resume=True and overwrite=True contradict each other: resume continues the run in "
                              "out_dir, overwrite starts it afresh; give one")
-        if self.stop_at_time is not None and not (isinstance(self.stop_at_time, (int, float))
-                                                  and not isinstance(self.stop_at_time, bool)
-                                                  and 0 < self.stop_at_time < math.inf):
+        if self.stop_at_time is not None and not (is_real(self.stop_at_time) and 0 < self.stop_at_time < math.inf):
             raise ValueError(f"stop_at_time must be a finite number of seconds > 0 or None, got "
                              f"{self.stop_at_time!r}")
         if self.parallel not in (None, *PARALLEL_MODES):
             raise ValueError(f"parallel must be None or one of {list(PARALLEL_MODES)}, got {self.parallel!r}")
-        if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, int)
-                                      or not 0 <= self.seed <= SEED_MAX):
+        if self.seed is not None and not (is_int(self.seed) and 0 <= self.seed <= SEED_MAX):
             raise ValueError(f"seed must be an int in [0, 2^63 - 1] (what torch's and numpy's generators take), "
                              f"got {self.seed!r}")
         for name in ("epochs", "stop_after"):
             value = getattr(self, name)
-            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            if value is not None and (not is_int(value) or value < 1):
                 raise ValueError(f"{name} must be a positive int or None, got {value!r}")
-        if not (isinstance(self.checkpoint_every, (int, float)) and 0 <= self.checkpoint_every < math.inf):
+        if not (is_real(self.checkpoint_every) and 0 <= self.checkpoint_every < math.inf):
             raise ValueError(f"checkpoint_every must be a finite number of seconds >= 0, got "
                              f"{self.checkpoint_every!r}")
+        # Numpy scalars are stored as python numbers: the settings are compared with a resumed run's.
+        for name in ("seed", "epochs", "stop_after", "stop_at_time", "checkpoint_every"):
+            object.__setattr__(self, name, python_number(getattr(self, name)))
 
     def check_outputs(self) -> None:
         """Raise ValueError for outputs that need an ``out_dir`` it does not have (checked when a run

@@ -317,16 +317,18 @@ class Trainer:
         only start afresh, so the metrics just written without one go (the directory then holds no
         run) and the advice is to start again; after it, a resume continues from the last one."""
         where = f"cannot write the run's files in {str(self.out_dir)!r} ({err.strerror or err})"
+        fix = "free some space on its file system or make it writable"
+        limit = files.size_limit_advice(err)
+        fix = f"{limit}, {fix}" if limit else fix
         if self._saved_epoch is None:
             for name in self._written:
                 with contextlib.suppress(OSError):
                     (self.out_dir / name).unlink()
             return rundir.RunDirectoryError(
-                f"{where}; no checkpoint was saved, so there is nothing to resume: free some space on its file "
-                "system or make it writable, then start the run again")
+                f"{where}; no checkpoint was saved, so there is nothing to resume: {fix}, then start the run again")
         return rundir.RunDirectoryError(
-            f"{where}; its checkpoint after epoch {self._saved_epoch + 1} is kept: free some space or make the "
-            "directory writable, then continue the run with --resume (Python: resume=True)")
+            f"{where}; its checkpoint after epoch {self._saved_epoch + 1} is kept: {fix}, then continue the run "
+            "with --resume (Python: resume=True)")
 
     def fingerprint(self) -> dict:
         """What defines this run (``run_fingerprint`` and the Trainer's own), flat; stored in the checkpoint."""

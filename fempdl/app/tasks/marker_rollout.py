@@ -36,6 +36,7 @@ import ufl
 
 from fempdl import forms
 from fempdl.core import _dolfinx
+from fempdl.core.checks import is_int, is_real
 from fempdl.core.mesh import as_tagged
 from fempdl.layer.solve_layer import SolveLayer
 from fempdl.solve.assembly import assemble_scipy
@@ -70,12 +71,12 @@ class MarkerFlow(torch.nn.Module):
                  smoothing: float = 0.05, degree: int = 2, marker_degree: int = 1,
                  flow_options: KSPOptions | str = ENCLOSED_LU, transport_options: KSPOptions | str = "lu"):
         super().__init__()
-        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        if not is_int(steps) or steps < 1:
             raise ValueError(f"steps must be an int >= 1, got {steps!r}")
-        if isinstance(smoothing, bool) or not isinstance(smoothing, (int, float)) or not smoothing > 0:
+        if not is_real(smoothing) or not smoothing > 0:
             raise ValueError(f"smoothing must be a positive length (the projection's ell), got {smoothing!r}")
         tagged = as_tagged(msh)
-        self.steps = steps
+        self.steps = int(steps)
         self.projection = forms.oseen.problem(tagged, controls=("u_prev",), nu=float(smoothing) ** 2, dt=1.0,
                                               degree=degree, supg=False)
         self.flow = forms.oseen.problem(tagged, controls=("w", "u_prev"), nu=nu, dt=dt, degree=degree)
