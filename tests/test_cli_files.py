@@ -11,6 +11,7 @@ import shutil
 import subprocess
 import sys
 
+from mpi4py import MPI
 import matplotlib.figure
 import pytest
 
@@ -146,6 +147,10 @@ def test_under_a_file_size_limit_the_command_names_what_it_could_not_write(train
     """Under `ulimit -f 16` the command ended in "PMIX ERROR" (MPI could not start): it starts, and the
     checkpoint beyond the limit is one line. The scene's forms are compiled, and caches written, by the
     run of the fixture, so the child writes only its run's files."""
+    if "Open MPI" not in MPI.Get_library_version():
+        # MPICH (the PyPI stack) bootstraps its shared memory through a file beyond the limit, in MPI_Init,
+        # before any fempdl code runs; no environment setting tried moves it (UCX_TLS, MPIR_CVAR_NOLOCAL).
+        pytest.skip("only Open MPI's start can be moved off files (PMIX_MCA_gds=hash)")
     path, out = trained[0], tmp_path / "out"
     limit = 16 << 10
 
