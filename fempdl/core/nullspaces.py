@@ -1,11 +1,14 @@
 """Null spaces of discrete operators as arrays of owned DOF values: an orthonormal basis of given
 vectors (the exact null space solves project out, or the near null space algebraic multigrid builds
-its coarse spaces from), and the rigid-body modes of a vector space (elasticity's near null space)."""
+its coarse spaces from), the rigid-body modes of a vector space (elasticity's near null space), and the
+constant of each component (what an operator without Dirichlet conditions annihilates)."""
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["orthonormal", "rigid_body_modes"]
+from fempdl.core import _dolfinx
+
+__all__ = ["orthonormal", "rigid_body_modes", "constant_modes"]
 
 
 def orthonormal(vectors, what: str, n: int, comm) -> np.ndarray:
@@ -43,3 +46,31 @@ def rigid_body_modes(V) -> np.ndarray:
         fields = [(one, zero, zero), (zero, one, zero), (zero, zero, one),
                   (-y, x, zero), (z, zero, -x), (zero, -z, y)]
     return np.stack([np.stack(f, axis=1).reshape(-1) for f in fields])
+
+
+def constant_modes(V) -> list[tuple[str, np.ndarray]]:
+    """The constant function of each scalar component of ``V`` (each field of a mixed space, each
+    component of a vector one) as (label, owned DOF values): 1 on that component's DOFs, 0 elsewhere.
+    For Lagrange elements this is the constant 1 (the basis is a partition of unity). An operator
+    with no Dirichlet condition on a component, no reaction term and no other boundary term
+    annihilates it: a pure-Neumann Laplacian, a pure-traction body's translations, an enclosed
+    flow's pressure."""
+    n = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
+    modes = []
+    for label, dofs in _component_dofs(V, "", np.arange(n, dtype=np.int64)):
+        mode = np.zeros(n)
+        mode[dofs] = 1.0
+        modes.append((label, mode))
+    return modes
+
+
+def _component_dofs(V, label: str, dofs: np.ndarray):
+    """(label, owned DOF indices in the parent) of every scalar component of ``V``, whose owned DOFs
+    sit at ``dofs`` of the parent space."""
+    count = V.num_sub_spaces
+    if count == 0:
+        yield label or "the solution", dofs
+        return
+    for i in range(count):
+        space, local = _dolfinx.collapsed_subspace(V, i)
+        yield from _component_dofs(space, f"{label}[{i}]" if label else f"component {i}", dofs[local])

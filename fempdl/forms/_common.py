@@ -105,12 +105,14 @@ def nonnegative_constant(msh, value, name: str):
     return dolfinx.fem.Constant(msh, float(value))
 
 
-def dirichlet_bcs(tagged: TaggedMesh, V, g, dirichlet) -> tuple:
+def dirichlet_bcs(tagged: TaggedMesh, V, g, dirichlet, *, within=None) -> tuple:
     """Dirichlet conditions u = g on the boundary parts named by ``dirichlet``.
 
     Args:
         dirichlet: ``None`` for the whole boundary; an iterable of facet tag
             names (bundled meshes) or integers; an empty tuple for none.
+        within: ``(W, index)`` when ``V`` is subspace ``index`` of the mixed space W, collapsed
+            (``g`` lives on V): the condition then constrains that subspace of W.
     """
     if dirichlet is None:
         facets = _dolfinx.boundary_facets(tagged.mesh)
@@ -119,7 +121,10 @@ def dirichlet_bcs(tagged: TaggedMesh, V, g, dirichlet) -> tuple:
         if not parts:
             return ()
         facets = tagged_facets(tagged, parts)
-    return (_dolfinx.dirichlet_bc(V, make_function(V, g, "g"), facets),)
+    value = make_function(V, g, "g")
+    if within is not None:
+        return (_dolfinx.dirichlet_bc_on_subspace(*within, value, facets),)
+    return (_dolfinx.dirichlet_bc(V, value, facets),)
 
 
 def tagged_facets(tagged: TaggedMesh, parts: tuple, argname: str = "dirichlet") -> np.ndarray:

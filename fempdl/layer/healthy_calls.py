@@ -23,6 +23,15 @@ tolerance for such layers (:mod:`fempdl.methods.k_start`).
 Measured are the first training call at new caps and every ``HEALTH_EVERY``-th
 after, forward and adjoint counted apart (the same calls on every rank: the
 caps agree and training calls run in step).
+
+Without a check (a plain call, outside PRDP) a layer whose capped forward
+solve is a stationary iteration (Richardson, Chebyshev: ``watched``) still
+measures its first call at each cap and warns when the residual grew: such an
+iteration diverges where its iteration matrix has a spectral radius above 1
+(Jacobi on P2 elements or on sliver cells), and its result is then no coarse
+solution but garbage. Krylov methods are not watched: CG and GMRES minimise a
+norm of the error or of the (preconditioned) residual, which a capped run
+bounds by its start.
 """
 from __future__ import annotations
 
@@ -42,6 +51,8 @@ MAX_HEALTH_REFINES = 100
 #: from a cap too small for the inputs, which a new cap's first call shows and inputs drifting over training
 #: show within a few calls; measuring every call would cost a loop whose solves are cheap several percent.
 HEALTH_EVERY = 8
+#: A residual ratio above this is growth: a plain call's stationary iteration diverges.
+DIVERGING = 1.0
 #: The solves a check measures: a call's forward solves and its backward's adjoint solves.
 DIRECTIONS = ("forward", "adjoint")
 
@@ -52,10 +63,13 @@ class HealthyCalls:
     Args:
         name: the layer's kind, for warnings.
         distributed: whether the layer's mesh is distributed (its norms are global already).
+        stats: the system's :class:`~fempdl.solve.stats.CumulativeStats` (a plain call's failed solve has
+            said so: no second warning).
     """
 
-    def __init__(self, name: str, distributed: bool):
-        self.name, self._distributed = name, distributed
+    def __init__(self, name: str, distributed: bool, stats=None):
+        self.name, self._distributed, self._stats = name, distributed, stats
+        self._watched_caps: set[Caps] = set()                # caps a plain call has measured at
         self.check: HealthCheck | None = None
         self._due = dict.fromkeys(DIRECTIONS, (None, 0))     # (caps of the last measured call, calls since)
         #: The largest residual ratio of the last measured call, by direction (None: none yet).
@@ -67,7 +81,7 @@ class HealthyCalls:
         self.check, self._due = check, dict.fromkeys(DIRECTIONS, (None, 0))
 
     def run(self, solve: Callable[[CallHealth | None], object], caps: Callable[[], Caps], training: bool,
-            direction: str = "forward", exact: bool = True):
+            direction: str = "forward", exact: bool = True, watched: bool = False):
         """``solve(health)``, one call's solves, which measure their residual ratios into ``health`` (a fresh
         :class:`CallHealth`, or ``None``: measure nothing), run again at a refined cap while a training
         call's capped solves are garbage (their largest ratio above the limit, agreed over the ranks that
@@ -76,8 +90,11 @@ class HealthyCalls:
         limit, when the caps cannot rise, or when a refinement did not lower the ratio (a diverging
         iteration: more of it does not help); the last two warn and keep the solve. ``caps()``: the layer's
         caps now; ``exact``: its capped gradient is the derivative of the capped map (else an adjoint has the
-        check's adjoint limit)."""
+        check's adjoint limit); ``watched``: without a check, measure the first call at each cap and warn when
+        its residual grew (module docstring)."""
         check = self.check
+        if check is None and direction == "forward" and watched and caps() not in self._watched_caps:
+            return self._watch(solve, caps())
         if check is None or not training or not self._is_due(direction, caps()):
             return solve(None)
         limit = check.limit_for(direction, exact)
@@ -103,6 +120,21 @@ class HealthyCalls:
         warn_at_caller(f"a capped {what} of this {self.name} ends with its residual at {ratio:.3g} times its start "
                        f"(health limit {limit:g}) at {caps()}, and {why}; the network trains on that "
                        "solve", SolverWarning)
+        return result
+
+    def _watch(self, solve: Callable[[CallHealth | None], object], caps: Caps):
+        """A plain call's capped stationary solves, measured; a warning when their residual grew."""
+        measured = CallHealth(DIVERGING)
+        failures = None if self._stats is None else self._stats.failures
+        result = solve(measured)
+        self._watched_caps.add(caps)
+        reported = failures is not None and self._stats.failures > failures     # the failure said it already
+        if measured.ratio is not None and measured.ratio > DIVERGING and not reported:
+            warn_at_caller(f"a capped solve of this {self.name} ends with its residual at {measured.ratio:.3g} times "
+                           f"its start at {caps}: the iteration diverges for this operator (its iteration "
+                           "matrix has a spectral radius above 1, e.g. Jacobi on P2 elements or sliver cells), so "
+                           "the result is no coarse solution; use CG or GMRES, or damp it "
+                           "(petsc_options={'ksp_richardson_scale': 0.5})", SolverWarning)
         return result
 
     def schedule(self) -> dict:

@@ -54,6 +54,7 @@ from fempdl.layer.rollout_inputs import checked_call
 from fempdl.layer.system_layer import SystemLayer
 from fempdl.solve.caps import Caps
 from fempdl.solve.linear_system import INITIAL_GUESS
+from fempdl.solve.stats import SolverFailedError
 
 __all__ = ["Rollout", "AUTOGRAD"]
 
@@ -318,17 +319,18 @@ class _Plan:
         guess = u if self.rollout.warm_start else None
         solve = lambda health=None: self.system.solve(  # noqa: E731
             self.step_controls(k, u), self.batch, frozenset(self.shared), initial_guess=guess, health=health)
-        if first:
-            out = self.layer.solve_healthy(solve, training)
-            self.caps[k] = self.layer.caps
-            return out
-        with _caps_set(self.layer, self.caps[k]):
-            return solve()
+        with _at_step(k, self.steps, u, "solve"):
+            if first:
+                out = self.layer.solve_healthy(solve, training)
+                self.caps[k] = self.layer.caps
+                return out
+            with _caps_set(self.layer, self.caps[k]):
+                return solve()
 
     def adjoint(self, k: int, uk: np.ndarray, uk1: np.ndarray, lam: np.ndarray):
         self.set_constants(k)
         state = self.rollout.state
-        with _caps_set(self.layer, self.caps[k]):
+        with _caps_set(self.layer, self.caps[k]), _at_step(k, self.steps, uk, "adjoint"):
             grads = self.system.adjoint(self.step_controls(k, uk), uk1, lam, [state, *self.wanted],
                                         frozenset(self.shared), initial_guess=self.rollout.warm_start)
         lam_k = grads.pop(state) + grads.pop(INITIAL_GUESS, 0.0)
@@ -364,6 +366,18 @@ class _Plan:
 
     def call_state(self):
         return self.layer.call_state.restored(self.system, self.packed)
+
+
+@contextmanager
+def _at_step(k: int, steps: int, state: np.ndarray, what: str):
+    """Name the step (and the size of the state it started from) in a failed step's error."""
+    try:
+        yield
+    except SolverFailedError as err:
+        largest = float(np.max(np.abs(state))) if state.size else 0.0
+        grown = ("; the state entering it is not finite" if not np.isfinite(largest) else
+                 f"; the state entering it reaches {largest:.3g}" if largest > 1e100 else "")
+        raise type(err)(f"step {k} of {steps} ({what}){grown}: {err}", err.stats) from err
 
 
 @contextmanager

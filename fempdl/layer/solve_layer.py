@@ -24,7 +24,7 @@ from fempdl.layer.implicit_diff import count_on_all_ranks
 from fempdl.layer.system_layer import SystemLayer, check_diff
 from fempdl.layer.unrolled_diff import UnrolledPath, unrolled_method
 from fempdl.solve.linear_system import LinearSystem
-from fempdl.solve.options import KSPOptions, default_options
+from fempdl.solve.options import STATIONARY_KSP_TYPES, KSPOptions, default_options
 
 __all__ = ["SolveLayer"]
 
@@ -80,6 +80,9 @@ class SolveLayer(SystemLayer):
         self.diff = diff
         self._unrolled = UnrolledPath(max_unrolled_values, memory_budget) if diff == "unrolled" else None
         self._init_system(problem, LinearSystem(problem, options, batched_engine=BatchedEngine()))
+
+    def _stationary_cap(self) -> bool:
+        return self.options.capped and self.options.ksp_type in STATIONARY_KSP_TYPES
 
     @property
     def max_unrolled_values(self) -> int | None:

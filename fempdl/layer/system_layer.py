@@ -60,7 +60,7 @@ class SystemLayer(torch.nn.Module):
         self._sizes = {**{n: problem.control_size(n) for n in problem.control_names},
                        INITIAL_GUESS: problem.output_size}
         self._handle = register_layer(self)
-        self._healthy = HealthyCalls(type(self).__name__, self._distributed)
+        self._healthy = HealthyCalls(type(self).__name__, self._distributed, system.stats)
         # Plain attributes, not submodules: a twin is no part of the model's state_dict (__setattr__).
         #: ``route``: the layer that answers this layer's calls instead of it (:mod:`fempdl.layer.reference`);
         #: ``reference_twin``: the converged twin that answers them at reference physics (built on first use).
@@ -137,7 +137,8 @@ class SystemLayer(torch.nn.Module):
         whether this call's gradient is the physics' derivative to the capped map's (default
         :attr:`exact_capped_gradient`)."""
         exact = self.exact_capped_gradient if exact is None else exact
-        return self._healthy.run(solve, lambda: self.caps, training, direction, exact=exact)
+        return self._healthy.run(solve, lambda: self.caps, training, direction, exact=exact,
+                                 watched=self._stationary_cap())
 
     @property
     def options(self):
@@ -153,6 +154,12 @@ class SystemLayer(torch.nn.Module):
 
     #: Whether this layer's own cap (``caps.max_it``) counts Newton steps rather than Krylov iterations.
     counts_newton_steps = False
+
+    def _stationary_cap(self) -> bool:
+        """Whether a plain call's solves are watched for a growing residual (:mod:`~fempdl.layer.healthy_calls`):
+        a capped stationary iteration's (a linear layer's)."""
+        return False
+
     #: Whether the health check measures the adjoint solves of this layer's backward too (a linear system's).
     measures_adjoint_health = False
 

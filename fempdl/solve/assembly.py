@@ -228,6 +228,45 @@ def check_operator(A: PETSc.Mat, controls: list[str], also: str = "") -> None:
                      f"coefficient (e.g. kappa = 0 somewhere){also} or a missing Dirichlet condition")
 
 
+#: A row whose product with a component's constant is below this fraction of the row's absolute sum is
+#: zero to round-off (measured: 1e-16 to 6e-16 on P1/P2 in 2D/3D); a ratio r means a condition number of at
+#: least about 1/r, so below this a solve keeps at most three digits.
+SINGULAR_ROW_RATIO = 1e-13
+
+
+def constant_mode_ratio(A: PETSc.Mat, mode: np.ndarray) -> float:
+    """max_i |(A m)_i| / sum_j |a_ij| over A's rows: about 1e-16 when the constant ``mode`` (owned DOF
+    values) is in A's null space, O(1) on a Dirichlet row or a row with a reaction or boundary term.
+    Row by row, so neither a coefficient's scale nor the 1 of a Dirichlet row sets the threshold."""
+    indptr, _, data = A.getValuesCSR()
+    abs_sums = np.add.reduceat(np.abs(data), indptr[:-1]) if len(data) else np.zeros(len(indptr) - 1)
+    v = A.createVecRight()
+    w = A.createVecLeft()
+    v.setArray(mode)
+    A.mult(v, w)
+    ratio = np.abs(w.getArray(readonly=True)) / np.where(abs_sums > 0, abs_sums, 1.0)
+    v.destroy()
+    w.destroy()
+    local = float(ratio.max()) if len(ratio) else 0.0
+    comm = A.getComm()
+    return comm.tompi4py().allreduce(local, op=MPI.MAX) if comm.getSize() > 1 else local
+
+
+def check_not_singular(A: PETSc.Mat, modes) -> None:
+    """Refuse, on every rank, an ``A`` that annihilates one of the constant ``modes``
+    (:func:`fempdl.core.nullspaces.constant_modes`): a problem with no Dirichlet condition on that
+    component and no declared null space, whose solution (a factorisation returns one of many) and
+    gradients are not unique."""
+    for label, mode in modes:
+        if constant_mode_ratio(A, mode) <= SINGULAR_ROW_RATIO:
+            raise ValueError(
+                f"the system is singular: the operator maps the constant {label} to zero (no Dirichlet "
+                "condition on it, no reaction or boundary term), so its solution is defined up to that "
+                "constant and gradients through it are not; add a Dirichlet condition, or declare the null "
+                "space (Problem(..., nullspace=[ones on that component]): solves then return the solution "
+                "orthogonal to it, with a load that has no part along it)")
+
+
 def operator_defect(A: PETSc.Mat) -> str | None:
     """What makes the assembled ``A`` unusable, the same answer on every rank: ``"NaN or inf entries"``,
     ``"N empty rows (it is singular)"``, or ``None``.

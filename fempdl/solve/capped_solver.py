@@ -13,15 +13,25 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Mapping
 
+from mpi4py import MPI
 import numpy as np
 from petsc4py import PETSc
 
 from fempdl.core import tuning
 from fempdl.solve.options import DEFAULT_CONVERGED_MAX_IT, KSPOptions
 from fempdl.solve.petsc import create_ksp, destroy_ksp, set_norm_type, set_up, unique_prefix
-from fempdl.solve.stats import DIVERGED_MAX_IT, REASON_NAMES, CumulativeStats, SolveStats, report_failure
+from fempdl.solve.scaling import row_exponents, scale_exponent, scale_vec
+from fempdl.solve.stats import (
+    DIVERGED_MAX_IT,
+    REASON_NAMES,
+    CumulativeStats,
+    SolverWarning,
+    SolveStats,
+    report_failure,
+)
 
 __all__ = ["CappedSolver", "PC_FAILED", "set_interrupt_checks"]
 
@@ -53,6 +63,31 @@ def set_interrupt_checks(ksp: PETSc.KSP, options: KSPOptions) -> None:
 
 def _interrupt_point(ksp, iteration, residual_norm) -> None:
     """A KSP monitor that does nothing: being Python, it lets signal handlers run (:func:`set_interrupt_checks`)."""
+
+
+def _ldexp(value: float, e: int) -> float:
+    """value * 2^e, inf where that overflows (a norm of data near float64's largest)."""
+    try:
+        return math.ldexp(value, e)
+    except OverflowError:
+        return math.inf
+
+
+#: A load whose part along the declared null space exceeds this fraction of it is incompatible, not
+#: round-off (an enclosed flow's lifted boundary data carry about 1e-16).
+INCOMPATIBLE_LOAD = 1e-10
+
+
+def _warn_incompatible(b: PETSc.Vec, nsp: PETSc.NullSpace) -> None:
+    """Say so when projecting the (orthonormal) null space out of the load ``b`` removes more than round-off."""
+    norm = b.norm()
+    if not norm or not math.isfinite(norm):
+        return
+    part = math.sqrt(sum(b.dot(v) ** 2 for v in nsp.getVecs())) / norm
+    if part > INCOMPATIBLE_LOAD:
+        warnings.warn(f"the load has a part along the operator's declared null space ({part:.2g} of its norm; e.g. "
+                      "a net source or flux in a pure-Neumann problem): the solve projects it out and returns the "
+                      "solution of the compatible rest, orthogonal to the null space", SolverWarning, stacklevel=3)
 
 
 class CappedSolver:
@@ -176,6 +211,8 @@ class CappedSolver:
         direction = "backward" if transpose else "forward"
         self._renew_failed()
         batch, n = R.shape
+        e = row_exponents(R)[:, None]          # rows far from 1 solved scaled (fempdl.solve.scaling)
+        R = np.ldexp(R, -e)
         t0 = time.perf_counter()
         set_up(self._ksp, self._reuse)
         t1 = time.perf_counter()
@@ -189,7 +226,7 @@ class CappedSolver:
                 self._ksp.matSolveTranspose(rhs, sol)
             else:
                 self._ksp.getPC().getFactorMatrix().matSolve(rhs, sol)
-            X = np.array(sol.getDenseArray().T)
+            X = np.ldexp(sol.getDenseArray().T, e)
         except PETSc.Error:
             self._failed.add(direction)
             raise
@@ -289,15 +326,23 @@ class CappedSolver:
         # b -> x is well defined (and its transpose is the adjoint's map).
         nsp = (operator.getTransposeNullSpace() if transpose else None) or operator.getNullSpace()
         if nsp is not None:
+            if nsp and direction == "forward":     # (petsc4py: a Mat without one hands out an empty handle)
+                _warn_incompatible(b, nsp)
             nsp.remove(b)
-        b_norm = b.norm()
+        # Data far from 1 are solved scaled by a power of two (exact; fempdl.solve.scaling).
+        warm = bool(ksp.getInitialGuessNonzero())
+        b_max = b.norm(PETSc.NormType.NORM_INFINITY)
+        e = scale_exponent(b_max, x.norm(PETSc.NormType.NORM_INFINITY) if warm else 0.0)
         self._set_interrupt_checks(ksp, options)
         t0 = time.perf_counter()
         set_up(ksp, self._reuse)      # the preconditioner's set-up, timed apart from the iterations
         t1 = time.perf_counter()
         failed_kind = "forward" if ksp is self._ksp else "adjoint"
         try:
+            self._scale_data(ksp, options, b, x if warm else None, -e)
+            b_norm = b.norm()
             (ksp.solveTranspose if transpose else ksp.solve)(b, x)
+            overflows = bool(e) and math.isfinite(x.norm(PETSc.NormType.NORM_INFINITY))  # unless scaled back
         except PETSc.Error as err:
             self._failed.add(failed_kind)
             # petsc4py >= 3.19 wraps an exception raised in a Python monitor
@@ -305,38 +350,71 @@ class CappedSolver:
             if isinstance(err.__cause__, KeyboardInterrupt):
                 raise err.__cause__ from None
             raise
+        finally:
+            self._scale_data(ksp, options, b, x, e, restore=True)
         elapsed = time.perf_counter() - t1
         if nsp is not None:
             nsp.remove(x)
         reason = int(ksp.getConvergedReason())
         iterations = int(ksp.getIterationNumber())
         norm_computed = ksp.getNormType() != PETSc.KSP.NormType.NONE
-        rnorm = float(ksp.getResidualNorm()) if norm_computed else None
+        rnorm = float(ksp.getResidualNorm()) if norm_computed else None     # of the scaled data, as b_norm
         finite = math.isfinite(x.norm(PETSc.NormType.NORM_INFINITY))
         capped = options.capped and (reason == DIVERGED_MAX_IT
                                      or (reason == PETSc.KSP.ConvergedReason.CONVERGED_ITS
                                          and iterations >= options.max_it))
         exact = (reason == _DIVERGED_BREAKDOWN and rnorm is not None and rnorm <= _HAPPY_BREAKDOWN * b_norm)
         ok = finite and (reason > 0 or capped or exact)
+        rnorm = None if rnorm is None else _ldexp(rnorm, e)
         if reason == PC_FAILED:
             self._failed.add(failed_kind)
         stats = SolveStats(iterations=iterations, reason=reason,
                            reason_name=REASON_NAMES.get(reason, str(reason)),
                            residual_norm=rnorm, time=elapsed, capped=capped, ok=ok, setup_time=t1 - t0)
-        return self.record(direction, stats, finite=finite)
+        upstream = ("was handed a right-hand side holding NaN or inf" if not math.isfinite(b_max) else
+                    f"overflows float64 (its right-hand side reaches {b_max:.3g})" if overflows and not finite else
+                    None)
+        return self.record(direction, stats, finite=finite, upstream=upstream)
+
+    @staticmethod
+    def _scale_data(ksp, options: KSPOptions, b, x, e: int, *, restore: bool = False) -> None:
+        """b *= 2^e and x *= 2^e (x None: b only); the user's absolute tolerance scaled alike, or put
+        back when ``restore``."""
+        if not e:
+            return
+        scale_vec(b, e)
+        if x is not None:
+            scale_vec(x, e)
+        if options.atol:
+            ksp.setTolerances(atol=options.atol if restore else math.ldexp(options.atol, e))
 
     # The rule NonlinearSystem applies to its inner KSP too.
     _set_interrupt_checks = staticmethod(set_interrupt_checks)
 
-    def record(self, direction: str, stats: SolveStats, *, finite: bool = True) -> SolveStats:
-        """Count a solve (also one run outside this KSP, e.g. by the batched
-        engine) and raise or warn per the options if it failed."""
+    def record(self, direction: str, stats: SolveStats, *, finite: bool = True,
+               upstream: str | None = None) -> SolveStats:
+        """Count a solve (also one run outside this KSP, e.g. by the batched engine) and raise or warn per
+        the options if it failed; ``upstream``: a cause in the data (:func:`~fempdl.solve.stats.report_failure`)."""
         self.stats.record(direction, stats)
         if not stats.ok:
-            self.report_failure(direction, stats, finite=finite)
+            self.report_failure(direction, stats, finite=finite, upstream=upstream)
         return stats
 
-    def report_failure(self, direction: str, stats: SolveStats, *, finite: bool, samples: int = 1) -> None:
+    def report_failure(self, direction: str, stats: SolveStats, *, finite: bool, samples: int = 1,
+                       upstream: str | None = None) -> None:
         """Raise :class:`SolverFailedError` or warn (per ``on_failure``) for a failed solve."""
         options = self._options if direction == "forward" else self._options.adjoint_options
-        report_failure(options, stats, finite, direction == "backward", samples)
+        span = None if finite or upstream or not options.direct else self._diagonal_span()
+        report_failure(options, stats, finite, direction == "backward", samples, diagonal_span=span,
+                       upstream=upstream)
+
+    def _diagonal_span(self) -> tuple[float, float]:
+        """The smallest and largest nonzero |a_ii| of the operator over every rank (names a badly scaled one)."""
+        diagonal = self._A.getDiagonal()
+        values = np.abs(diagonal.getArray(readonly=True))
+        diagonal.destroy()
+        values = values[values > 0]
+        comm = self._A.getComm().tompi4py()
+        low = comm.allreduce(float(values.min()) if len(values) else math.inf, op=MPI.MIN)
+        high = comm.allreduce(float(values.max()) if len(values) else 0.0, op=MPI.MAX)
+        return (low, high) if high > 0 else (1.0, 1.0)

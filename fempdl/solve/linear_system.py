@@ -29,9 +29,11 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 from fempdl.core import _dolfinx, matrices
+from fempdl.core.nullspaces import constant_modes
 from fempdl.core.problem import Problem
 from fempdl.solve import assembly
 from fempdl.solve.assembly import ControlValues, Timer
+from fempdl.solve.batched_calls import BatchedCalls
 from fempdl.solve.capped_solver import CappedSolver
 from fempdl.solve.caps import Caps
 from fempdl.solve.control_forms import ControlForms
@@ -69,10 +71,11 @@ class LinearSystem:
                                  "use engine='auto' or engine='petsc'")
         assembly.check_symmetric_factor(options, problem)
         self.problem = problem
-        self._batched = None if options.engine == "petsc" or len(problem.nullspace) else batched_engine
+        self._batched = (None if options.engine == "petsc" or len(problem.nullspace) or batched_engine is None
+                         else BatchedCalls(batched_engine))
         # A symmetric factorisation's first matrix is checked for symmetry (the flag is the user's word).
         self._symmetry_unchecked = options.pc_type in assembly.SYMMETRIC_PC_TYPES
-        self._batched_version = -1                             # A version the batched copy holds
+        self._singular_unchecked = not len(problem.nullspace)     # a declared null space is projected out
         self._A = matrices.create_matrix(problem.a_form)
         self._destroyed = False
         self._b = _dolfinx.create_vector(problem.L_form)       # ghosted: assembly target
@@ -334,25 +337,15 @@ class LinearSystem:
 
     # ------------------------------------------------------------ engines
     def _use_batched(self, batch: int, per_sample_matrix: bool) -> bool:
-        """Whether this call runs on the batched engine (see KSPOptions.engine)."""
-        if self._batched is None or per_sample_matrix:
-            return False
-        if self._batched.unsupported_reason(self.options, self._comm.size) is not None:
-            return False  # e.g. the cap was lifted to max_it=None after construction
-        if self.options.engine == "batched":
-            return True
-        # Measured rules (benchmarks/bench_floor.py, benchmarks/bench_krylov.py), for both directions' solvers.
-        return all(self._batched.faster_than_petsc(batch, opts.ksp_type)
-                   for opts in (self.options, self.options.adjoint_options))
+        return self._batched is not None and self._batched.runs(self.options, batch, per_sample_matrix,
+                                                                self._comm.size)
 
     def _batched_solve(self, R: np.ndarray, direction: str, initial_guess: np.ndarray | None = None) -> np.ndarray:
         """All rows of R at once on the batched engine (from ``initial_guess``'s rows
         if given); stats recorded per sample."""
-        if self._batched_version != self._A_version:
-            self._batched.load(self._A)
-            self._batched_version = self._A_version
         opts = self.options if direction == "forward" else self.options.adjoint_options
-        X, seconds, outcome = self._batched.solve(R, opts, transpose=direction == "backward", X0=initial_guess)
+        X, seconds, outcome = self._batched.solve(self._A, self._A_version, R, opts, transpose=direction == "backward",
+                                                  X0=initial_guess)
         self.record_batch(direction, opts, seconds, np.isfinite(X).all(axis=1), "batched", outcome)
         return X
 
@@ -405,6 +398,9 @@ class LinearSystem:
         with self._assembling():
             matrices.assemble_matrix_into(self._A, self.problem.a_form, self.problem.bcs)
             assembly.check_operator(self._A, sorted(frozenset(controls) & self.problem.matrix_controls))
+            if self._singular_unchecked:      # once: the null space is the forms' and bcs', not the values'
+                assembly.check_not_singular(self._A, constant_modes(self.problem.V))
+                self._singular_unchecked = False
             if self._symmetry_unchecked:
                 assembly.check_symmetric(self._A)
                 self._symmetry_unchecked = False

@@ -17,6 +17,16 @@ Two caps, as for a linear solve (:class:`~fempdl.solve.options.KSPOptions`):
   J(u_k) du = F(u_k), capped (``max_it=K``: K Krylov iterations per step) or
   converged, any preset.
 
+What ``rtol`` is relative to (:func:`rtol_scale`): the smaller of ||F(u_0)|| and ||F(u_ref)||, u_ref
+the zero state with the boundary values put in (the start of a solve from zero; its residual is the
+load's scale, what DOLFINx's Newton from a zero guess measures against). Relative to ||F(u_0)|| alone
+the test is only as good as the start: a warm start far from the solution has a huge residual (it
+grows as a power of the guess where F does), and rtol of that accepts a state still far from the
+solution. The smaller of the two is not fooled by a far start, still holds a warm start near its
+solution to its own rtol (there ||F(u_0)|| is the smaller), and costs one residual assembly per solve
+with an ``initial_guess`` (none from zero, where u_0 = u_ref). A NaN or inf residual at u_ref is no
+scale: then ||F(u_0)|| alone.
+
 Methods (``snes_type``): ``"newton"`` (the default), plain Newton:
 u_{k+1} = u_k - damping * J(u_k)^{-1} F(u_k) (``newtonls`` with the full-step
 ``"basic"`` line search scaled by ``damping``; DOLFINx's NewtonSolver does the
@@ -37,12 +47,21 @@ from dataclasses import dataclass
 from fempdl.core.checks import check_int, is_real, python_number
 from fempdl.solve.options import MAX_PETSC_INT, KSPOptions
 
-__all__ = ["NewtonOptions", "SNES_TYPES", "LINE_SEARCHES", "DEFAULT_NEWTON_RTOL", "DEFAULT_NEWTON_ATOL"]
+__all__ = ["NewtonOptions", "SNES_TYPES", "LINE_SEARCHES", "DEFAULT_NEWTON_RTOL", "DEFAULT_NEWTON_ATOL",
+           "rtol_scale"]
 
 SNES_TYPES = ("newtonls", "newtontr", "newton")
 LINE_SEARCHES = ("bt", "basic", "l2", "cp")
 DEFAULT_NEWTON_RTOL = 1e-10
 DEFAULT_NEWTON_ATOL = 1e-12
+
+
+def rtol_scale(initial: float, reference: float | None = None) -> float:
+    """What ``rtol`` is relative to (module docstring): min(||F(u_0)||, ||F(u_ref)||), ``initial`` alone
+    when the reference was not measured (``None``: a start from zero, where u_0 = u_ref) or is not finite."""
+    if reference is None or not math.isfinite(reference):
+        return initial
+    return min(initial, reference)
 
 
 @dataclass(frozen=True)
@@ -52,7 +71,8 @@ class NewtonOptions:
     Args:
         max_it: the Newton cap N (int >= 1): exactly N steps. ``None``: run to
             the tolerances, a failure if they are not met.
-        rtol: relative residual tolerance ||F(u_k)|| <= rtol ||F(u_0)|| (uncapped solves).
+        rtol: relative residual tolerance ||F(u_k)|| <= rtol min(||F(u_0)||, ||F(u_ref)||), u_ref the zero
+            state with the boundary values (:func:`rtol_scale`; solves that stop at their tolerances).
         atol: absolute residual tolerance ||F(u_k)|| <= atol (uncapped solves).
         snes_type: ``"newton"`` (plain, full steps: DOLFINx's NewtonSolver; the default),
             ``"newtonls"`` (a line search) or ``"newtontr"`` (a trust region).
@@ -136,11 +156,13 @@ class NewtonOptions:
             return dict(rtol=0.0, atol=0.0, stol=0.0, max_it=self.max_it)
         return dict(rtol=self.rtol, atol=self.atol, stol=0.0, max_it=self.converged_max_it)
 
-    def tolerances_met(self, residual_norms) -> bool:
-        """Whether the last of ||F(u_0)||, ..., ||F(u_k)|| meets the uncapped tolerances (``rtol``
-        relative to the first, or ``atol``)."""
+    def tolerances_met(self, residual_norms, reference: float | None = None) -> bool:
+        """Whether the last of ||F(u_0)||, ..., ||F(u_k)|| meets the uncapped tolerances: ``atol``, or
+        ``rtol`` relative to :func:`rtol_scale` of the first and ``reference`` (||F(u_ref)||, ``None``
+        for a start from zero), the rule the solve's stop test applied."""
         return bool(residual_norms) and math.isfinite(residual_norms[-1]) and (
-            residual_norms[-1] <= self.rtol * residual_norms[0] or residual_norms[-1] <= self.atol)
+            residual_norms[-1] <= self.rtol * rtol_scale(residual_norms[0], reference)
+            or residual_norms[-1] <= self.atol)
 
     def with_max_it(self, max_it: int | None) -> NewtonOptions:
         """A copy with the Newton cap moved."""

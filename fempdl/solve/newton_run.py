@@ -35,6 +35,7 @@ from fempdl.solve.newton_stats import (
     ended_nonfinite,
     report_newton_failure,
 )
+from fempdl.solve.newton_stop import NewtonStop
 from fempdl.solve.petsc import rejected_at_set_up
 from fempdl.solve.snes import weak_callback
 from fempdl.solve.stats import DIVERGED_MAX_IT, REASON_NAMES, SolveStats
@@ -75,6 +76,7 @@ class NewtonRun:
         self.b = _dolfinx.create_vector(problem.F_form)         # residual
         self.sol = _dolfinx.create_vector(problem.F_form)       # SNES's iterate
         self._accepted = self.sol.duplicate()                    # the monitor's last: a failure's result
+        self._reference_state: PETSc.Vec | None = None           # u_ref, made by the first solve from a guess
         self._nonfinite_state = self.sol.duplicate()             # the last state whose residual was NaN or inf
         self._u_vec = _dolfinx.function_vector(problem.u)
         self.stopped_on_error = False
@@ -162,6 +164,7 @@ class NewtonRun:
         s = self.stats
         inner_before, solves_before, assembly_before = s.forward_iterations, s.forward_solves, s.assembly_time
         t0 = time.perf_counter()
+        reference = self._measure_reference(from_guess=guess is not None)
         try:
             self._solvers.snes.solve(None, sol)
         except BaseException as err:            # a callback's error comes bare or as a PETSc.Error's cause
@@ -191,7 +194,8 @@ class NewtonRun:
         x = (self._accepted if reason < 0 and not capped else sol).getArray(readonly=True).copy()
         finite = bool(np.isfinite(x).all()) and all(np.isfinite(self._residual_norms))
         finite = self._comm.allreduce(finite, op=MPI.LAND) if self._comm.size > 1 else finite
-        if self._options.capped and reason in _STALLED and self._options.tolerances_met(self._residual_norms):
+        if (self._options.capped and reason in _STALLED
+                and self._options.tolerances_met(self._residual_norms, reference)):
             # A capped line search or trust region cannot improve a residual at round-off and stops
             # before the cap: the iterate is the solution (plain Newton's extra steps stay there too).
             reason = _CONVERGED_EARLY
@@ -199,7 +203,7 @@ class NewtonRun:
                                  residual_norms=tuple(self._residual_norms),
                                  inner_iterations=self.stats.forward_iterations - inner_before,
                                  capped=capped, ok=finite and (reason > 0 or capped), time=elapsed,
-                                 nonfinite_residual=self._nonfinite_residual)
+                                 nonfinite_residual=self._nonfinite_residual, reference_norm=reference)
         self.stats.record_newton(stats)
         iterates = None
         if record:
@@ -209,6 +213,32 @@ class NewtonRun:
         if not stats.ok:
             report_newton_failure(self._options, stats, self._failure(stats))
         return x, iterates
+
+    def _measure_reference(self, from_guess: bool) -> float | None:
+        """||F(u_ref)|| (u_ref: zero with the boundary values) for the stop test of a solve from a guess, which
+        takes rtol relative to min(||F(u_0)||, ||F(u_ref)||) (:mod:`fempdl.solve.newton_stop`), set as the
+        test's reference; one residual assembly, collective. ``None`` (and no assembly) from zero, where
+        u_0 = u_ref, and where the SNES's test does not read it (a capped solve that runs exactly max_it
+        steps, or rtol = 0)."""
+        test = self._solvers.snes.getConvergenceTest()
+        stop = test[0] if test else None
+        if not isinstance(stop, NewtonStop):
+            return None
+        stop.reference = None                    # not the last solve's
+        if not (from_guess and stop.needs_reference):
+            return None
+        p = self.problem
+        if self._reference_state is None:
+            self._reference_state = self.sol.duplicate()
+        ref = self._reference_state
+        ref.set(0.0)
+        _dolfinx.set_bc_values(ref, p.bcs)
+        with Timer(self.stats, "assembly_time"):
+            self._set_state(ref)
+            _dolfinx.assemble_residual_into(self.b, p.F_form, p.J_form, p.bcs, self._u_vec)
+        norm = float(self.b.norm())
+        stop.reference = norm      # a NaN or inf one is no scale: rtol_scale then takes ||F(u_0)||
+        return norm
 
     def _failure(self, stats: NewtonSolveStats) -> NewtonFailure:
         """What the failure message needs besides the stats (failed solves only; collective): values at hand
@@ -228,5 +258,6 @@ class NewtonRun:
                              nullspace=len(p.nullspace) > 0, given_jacobian=p.exact_J_form is not p.J_form)
 
     def destroy(self) -> None:
-        for vec in (self.b, self.sol, self._accepted, self._nonfinite_state):
-            vec.destroy()
+        for vec in (self.b, self.sol, self._accepted, self._nonfinite_state, self._reference_state):
+            if vec is not None:
+                vec.destroy()

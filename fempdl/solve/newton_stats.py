@@ -12,7 +12,7 @@ from petsc4py import PETSc
 from fempdl.solve.stats import CumulativeStats, SolverFailedError, SolverWarning, warn_at_caller
 
 __all__ = ["NewtonSolveStats", "NewtonCumulativeStats", "NewtonFailure", "SNES_REASON_NAMES", "NONFINITE_REASONS",
-           "report_newton_failure", "explain", "ended_nonfinite"]
+           "report_newton_failure", "explain", "ended_nonfinite", "DIVERGED_GROWTH"]
 
 SNES_REASON_NAMES = {
     getattr(PETSc.SNES.ConvergedReason, n): n
@@ -43,6 +43,10 @@ class NewtonSolveStats:
         time: wall time of the solve (assembly included).
         nonfinite_residual: a residual with NaN or inf entries was assembled during the solve (a line
             search may have stepped back from it).
+        reference_norm: ||F(u_ref)||, the residual at the zero state with the boundary values, measured
+            for a solve from an initial guess that stops at its tolerances (``rtol`` is relative to
+            min(||F(u_0)||, ||F(u_ref)||): :func:`~fempdl.solve.newton_options.rtol_scale`); ``None``
+            when not measured (a start from zero is u_ref).
     """
 
     steps: int
@@ -54,6 +58,7 @@ class NewtonSolveStats:
     ok: bool
     time: float
     nonfinite_residual: bool = False
+    reference_norm: float | None = None
 
 
 @dataclass
@@ -264,6 +269,11 @@ def _max_it(options, stats, failure):
         return ("did not reach its tolerance",
                 f"the residual stopped decreasing at {norms[-1]:.3e} (a Newton step no longer reduces it): J(u) is "
                 f"singular there and more steps will not help; likely cause: {_singular_hint(failure)}")
+    if norms[0] > 0 and norms[-1] >= DIVERGED_GROWTH * norms[0]:
+        return "did not reach its tolerance", _diverged(options, stats, failure)
+    far = _far_start(options, stats)
+    if far is not None:
+        return "did not reach its tolerance", far
     if len(norms) > 10 and norms[-1] >= 0.9 * norms[0]:
         return "did not reach its tolerance", _no_progress(options, stats, failure)
     fix = "raise converged_max_it, loosen rtol/atol, start from a better initial_guess, or load in increments"
@@ -272,6 +282,49 @@ def _max_it(options, stats, failure):
     if not failure.dirichlet:
         fix += f"; J(u) may be singular: {_singular_hint(failure)}"
     return "did not reach its tolerance", fix
+
+
+def _diverged(options, stats, failure) -> str:
+    """The fix when the residual ended :data:`DIVERGED_GROWTH` or more times above where it started: Newton
+    diverged from its start (a lid-driven cavity at Re = 1000 from zero). Not a load or a null space to
+    check: nearer starts (continuation) or shorter steps."""
+    norms = stats.residual_norms
+    hints = [f"the residual grew {norms[-1] / norms[0]:.2g}-fold from the initial guess: Newton diverged; start "
+             "closer (continuation in the parameter, e.g. solve at a lower Reynolds number or load and use that "
+             f"solution as initial_guess, in steps up to this one) or {_shorter_steps(options)}",
+             "if the continuation stops converging at some parameter value, there may be no solution beyond it "
+             "(a fold or a limit load)"]
+    if options.ksp.capped:
+        hints.append(f"the inner solve, capped at {options.ksp.max_it} iterations, gives inexact steps: converge "
+                     "it (max_it=None)")
+    if failure.given_jacobian:
+        hints.append("the problem's J= is not dF/du, which can make Newton diverge: check it")
+    if not failure.dirichlet:
+        hints.append(f"J(u) may be singular: {_singular_hint(failure)}")
+    return "; ".join(hints)
+
+
+def _shorter_steps(options) -> str:
+    """How to shorten the steps of the method in use."""
+    if options.snes_type == "newton":
+        return (f"damp the step (damping={options.damping / 2:g}), or use snes_type='newtonls' with "
+                "linesearch='bt'")
+    if options.snes_type == "newtonls" and options.linesearch == "basic":
+        return "use a backtracking line search (linesearch='bt')"
+    return _other_methods(options)
+
+
+def _far_start(options, stats) -> str | None:
+    """The fix when the residual is still above that of the zero state with the boundary values (what rtol is
+    relative to, :func:`~fempdl.solve.newton_options.rtol_scale`), having started above it: the initial guess
+    was far from the solution and Newton had not come near it in its steps."""
+    norms, reference = stats.residual_norms, stats.reference_norm
+    if reference is None or not math.isfinite(reference) or not norms[-1] > reference or not norms[0] > reference:
+        return None
+    return (f"the residual is still {norms[-1] / reference:.2g} times that of the zero state with the boundary "
+            f"values ({reference:.3e}, the scale rtol is relative to): the initial guess is far from the solution; "
+            f"start closer (an initial_guess nearer the solution, or none: from zero), or raise converged_max_it "
+            f"(now {options.converged_max_it})")
 
 
 def _no_progress(options, stats, failure) -> str:
@@ -321,6 +374,9 @@ def _methods_other_than(options, *excluded: str) -> list[str]:
     return [text for name, text in methods.items() if name != options.snes_type and name not in excluded]
 
 
+#: A failed solve whose residual ended this many times above its start diverged from it (a residual that
+#: wanders at its start's scale, or shrinks too slowly, is named otherwise).
+DIVERGED_GROWTH = 1e2
 # Inner solves that stop this way met a singular (or indefinite) J: a breakdown, a zero pivot.
 _SINGULAR_INNER = frozenset({"DIVERGED_BREAKDOWN", "DIVERGED_BREAKDOWN_BICG", "DIVERGED_INDEFINITE_PC",
                              "DIVERGED_INDEFINITE_MAT", "DIVERGED_PCSETUP_FAILED", "DIVERGED_PC_FAILED"})

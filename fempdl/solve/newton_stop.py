@@ -1,6 +1,18 @@
 """When a Newton solve stops: its tolerances, the cap as a budget, and the round-off floor.
 
-PETSc's default test, with one departure that warm starts need. A solve
+PETSc's default test, with two departures that warm starts need.
+
+What ``rtol`` is relative to: min(||F(u_0)||, ||F(u_ref)||), u_ref the zero state with the boundary
+values (:func:`~fempdl.solve.newton_options.rtol_scale`), not ||F(u_0)|| alone. A start far from the
+solution (``initial_guess=`` of 1e6 for a conductivity 1 + u^2) has a residual many orders above the
+load's, and rtol of it was met by a state still far from the solution. ||F(u_ref)|| is the load's
+scale, what a solve from zero (and DOLFINx's Newton from a zero guess) measures against; a warm start
+near its solution has the smaller residual and keeps its own. The run measures ||F(u_ref)|| once per
+solve that starts from a guess (:attr:`NewtonStop.reference`, one residual assembly; a solve from zero
+starts at u_ref). A far start then either converges to the solution or fails by the step limit, with
+a message that names the far start; it is never accepted where it is.
+
+The round-off floor. A solve
 started at (or near) its solution has a residual at the round-off floor of its
 own scale: the tolerance relative to that start is unreachable and ``atol``
 may lie below the floor (a neo-Hookean beam with E = 1e4 sits at 6e-11 against
@@ -29,7 +41,7 @@ import math
 
 from petsc4py import PETSc
 
-from fempdl.solve.newton_options import NewtonOptions
+from fempdl.solve.newton_options import NewtonOptions, rtol_scale
 from fempdl.solve.round_off import round_off_floor
 
 __all__ = ["NewtonMode", "NewtonStop", "FLOOR_STEP", "FLOOR_STALL"]
@@ -79,18 +91,30 @@ class NewtonMode:
 
 
 class NewtonStop:
-    """A SNES convergence test (``snes.setConvergenceTest(NewtonStop(...))``): ``atol`` and ``rtol`` as
-    PETSc's default test applies them, the round-off floor (module docstring), NaN/inf as divergence.
-    The step limit is SNES's own ``max_it``."""
+    """A SNES convergence test (``snes.setConvergenceTest(NewtonStop(...))``): ``atol`` as PETSc's default
+    test applies it, ``rtol`` relative to min(||F(u_0)||, :attr:`reference`), the round-off floor (module
+    docstring), NaN/inf as divergence. The step limit is SNES's own ``max_it``.
+
+    Attributes:
+        reference: ||F(u_ref)|| of the solve about to run, set before each solve
+            (:class:`~fempdl.solve.newton_run.NewtonRun`); ``None``: not measured (a start from zero,
+            where it is ||F(u_0)||).
+    """
 
     def __init__(self, rtol: float, atol: float, *, force_step: bool = False):
         self.rtol, self.atol, self.force_step = rtol, atol, force_step
+        self.reference: float | None = None
         self._first = self._previous = math.inf
+
+    @property
+    def needs_reference(self) -> bool:
+        """Whether a solve from a guess needs ||F(u_ref)|| measured (only the rtol test reads it)."""
+        return self.rtol > 0
 
     def __call__(self, snes, its: int, norms) -> int:
         xnorm, step_norm, fnorm = norms
         if its == 0:
-            self._first = self._previous = fnorm
+            self._first, self._previous = rtol_scale(fnorm, self.reference), fnorm
         if not math.isfinite(fnorm):
             return _REASON.DIVERGED_FNORM_NAN
         reason = _REASON.ITERATING

@@ -39,7 +39,8 @@ from fempdl.solve.option_checks import (
 )
 
 __all__ = ["KSPOptions", "PRESETS", "ENGINES", "ADJOINT_OPERATORS", "MAX_PETSC_INT", "DEFAULT_RTOL",
-           "DEFAULT_CONVERGED_MAX_IT", "PRIVATE_PREFIX", "NORM_FREE_KSP_TYPES", "DIRECT_MAX_DOFS", "default_options"]
+           "DEFAULT_CONVERGED_MAX_IT", "PRIVATE_PREFIX", "NORM_FREE_KSP_TYPES", "STATIONARY_KSP_TYPES",
+           "DIRECT_MAX_DOFS", "default_options"]
 
 _KSP_TYPES = frozenset(getattr(PETSc.KSP.Type, n) for n in dir(PETSc.KSP.Type) if n.isupper())
 _PC_TYPES = frozenset(getattr(PETSc.PC.Type, n) for n in dir(PETSc.PC.Type) if n.isupper())
@@ -48,6 +49,8 @@ _RESTARTED_KSP_TYPES = frozenset({"gmres", "fgmres", "lgmres", "dgmres", "pgmres
 # run with NORM_NONE (no reduction per iteration).
 NORM_FREE_KSP_TYPES = frozenset({"richardson", "cg", "chebyshev"})
 _DIRECT_KSP_TYPES = frozenset({"preonly"})
+# Stationary iterations: a fixed iteration matrix, which diverges where its spectral radius exceeds 1.
+STATIONARY_KSP_TYPES = frozenset({"richardson", "chebyshev"})
 # PETSc's largest int in this build (32- or 64-bit indices): larger caps overflow inside PETSc.
 MAX_PETSC_INT = int(np.iinfo(PETSc.IntType).max)
 PRIVATE_PREFIX = "fempdl_"
@@ -90,7 +93,10 @@ class KSPOptions:
             converged in another (a preset is converged unless given ``max_it``).
         rtol: relative tolerance. With a cap it applies only if given; without a
             cap it defaults to 1e-10.
-        atol: absolute tolerance (default 0 with a cap, PETSc's 1e-50 without).
+        atol: absolute tolerance (default 0: a solve stops at ``rtol`` relative to its initial residual,
+            whatever the data's scale; PETSc's own default, 1e-50, would accept x = 0 for a right-hand
+            side below it). Data far from 1 are solved scaled by a power of two
+            (:mod:`fempdl.solve.scaling`), a given atol scaled with them.
         divtol: divergence tolerance; ``None`` disables the divergence test
             (a capped iteration is allowed to grow; NaN/inf is still caught).
         gmres_restart: restart length m of GMRES(m) (GMRES-family only).
@@ -346,7 +352,7 @@ class KSPOptions:
             max_it = self.max_it
         else:
             rtol = DEFAULT_RTOL if self.rtol is None else self.rtol
-            atol = 1e-50 if self.atol is None else self.atol
+            atol = 0.0 if self.atol is None else self.atol      # scale-free: rtol alone decides
             max_it = DEFAULT_CONVERGED_MAX_IT
         divtol = 1e300 if self.divtol is None else self.divtol
         return {"rtol": rtol, "atol": atol, "divtol": divtol, "max_it": max_it}

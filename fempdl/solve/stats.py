@@ -164,16 +164,37 @@ class SolverWarning(RuntimeWarning):
     """A solve failed and ``on_failure="warn"`` asked for the iterate anyway."""
 
 
+#: A matrix whose nonzero diagonal entries span more than this factor is named as badly scaled where its
+#: factorisation fails (a viscosity of 1e-6 beside a saddle point's O(1) coupling spans 1e6).
+BADLY_SCALED_SPAN = 1e4
+
+
 def report_failure(options: KSPOptions, stats: SolveStats, finite: bool, transpose: bool,
-                    samples: int = 1) -> None:
+                    samples: int = 1, diagonal_span: tuple[float, float] | None = None,
+                    upstream: str | None = None) -> None:
+    """Raise :class:`SolverFailedError` or warn (per ``options.on_failure``) with the cause and the fix;
+    ``diagonal_span``: the smallest and largest nonzero |a_ii| of the operator, for a factorisation's failure;
+    ``upstream``: a cause in the data rather than the solver (a right-hand side holding NaN or inf, a
+    solution beyond float64's range), which then leads the message."""
     what = "transposed solve" if transpose else "solve"
     if samples > 1:
         what += f" of {samples} samples"
-    if not finite:
+    if upstream:
+        cause = upstream
+        fix = ("what it was assembled from overflowed or was not finite: a state grown without bound over a time "
+               "loop (an unstable step for this dt, e.g. explicit Euler beyond its stability limit), or a control "
+               "or gradient holding NaN or inf")
+    elif not finite:
         cause = "produced NaN or inf"
         if options.direct:
-            fix = ("check for a zero coefficient (e.g. kappa = 0) or a missing Dirichlet condition: "
-                   "the matrix is probably singular")
+            low, high = diagonal_span or (1.0, 1.0)
+            fix = ("the factorisation met a zero pivot: the matrix is singular (a zero coefficient, e.g. kappa = 0, "
+                   "or a missing Dirichlet condition) or badly scaled")
+            if low > 0 and high / low > BADLY_SCALED_SPAN:
+                fix += (f"; its diagonal spans {high / low:.1e} (|a_ii| from {low:.2e} to {high:.2e}), e.g. a "
+                        "viscosity of 1e-6 beside a saddle point's O(1) coupling: nondimensionalise the "
+                        "equations, or use an iterative preset ('schur' for a (u, p) flow, 'amg' or 'gmres' "
+                        "otherwise)")
         else:
             fix = ("check the inputs and the operator (e.g. a zero or negative coefficient, or an "
                    "unstable damping), or use a more robust solver such as KSPOptions.preset('lu')")
