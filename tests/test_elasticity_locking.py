@@ -23,7 +23,7 @@ import ufl
 from fempdl import forms, mesh
 from fempdl.bridge_torch import SolveLayer
 from fempdl.core import _dolfinx
-from fempdl.forms.elasticity import LOCKING_LAME_RATIO
+from fempdl.forms._common import LOCKING_LAME_RATIO
 
 from helpers import integral
 

@@ -177,3 +177,12 @@ def test_an_overflowing_rollout_names_the_step_and_the_state():
     with pytest.raises(SolverFailedError, match=r"step \d+ of 400 \(solve\); the state entering it reaches .*: "
                                                 r".*(right-hand side holding NaN|overflows float64).*unstable step"):
         rollout(u0, 400)
+
+
+def test_hyperelasticity_warns_where_its_displacement_form_locks():
+    msh = dolfinx.mesh.create_unit_square(MPI.COMM_WORLD, 4, 4)
+    with pytest.warns(UserWarning, match=r"hyperelasticity: nu=0.4999 .* displacement-only P1 locks"):
+        forms.hyperelasticity.problem(msh, nu=0.4999)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        forms.hyperelasticity.problem(msh, nu=0.3)

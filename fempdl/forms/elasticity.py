@@ -12,7 +12,7 @@ mu = E / (2 (1 + nu)), lmbda = E nu / ((1 + nu)(1 - 2 nu)), so lmbda / mu = 2 nu
 It *locks* as nu -> 1/2: the lmbda term forces the discrete div u towards zero, which low-order
 displacement spaces can only meet with far too small displacements (P1 loses nearly all of it,
 P2 much less but far more than at nu = 0.3). ``problem`` warns when lmbda / mu exceeds
-:data:`LOCKING_LAME_RATIO` = 10, i.e. nu > 5/11 (where P1's error has doubled; see the constant).
+:data:`~fempdl.forms._common.LOCKING_LAME_RATIO` = 10, i.e. nu > 5/11 (where P1's error has doubled; see the constant).
 
 ``formulation="mixed"``: the solid pressure p = lmbda div u becomes an unknown (Taylor-Hood:
 u in [P_k]^d, p in P_(k-1), k = ``degree`` >= 2); find (u, p) in V_g x Q with
@@ -39,8 +39,6 @@ displacement space alone, so the mixed form has none (``near_nullspace`` is igno
 """
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import ufl
 
@@ -59,16 +57,12 @@ from fempdl.forms._common import (
     make_coefficient,
     nonnegative_constant,
     tagged_facets,
+    warn_if_locking,
 )
 from fempdl.forms._flow import vector_function
 
 CONTROLS = ("f", "E")
 FORMULATIONS = ("displacement", "mixed")
-#: The rule of the locking warning: displacement-only P_k warns when lmbda / mu = 2 nu / (1 - 2 nu)
-#: exceeds this, i.e. nu > 5/11 (about 0.455). Chosen where P1's L2 error on a small clamped problem
-#: (the unit square, 16 x 16, a divergence-free manufactured displacement, valid for every nu) first
-#: doubles its nu = 0.3 error; tests/test_elasticity_locking.py re-measures it.
-LOCKING_LAME_RATIO = 10.0
 
 
 def problem(msh, controls=("f",), *, degree: int | None = None, E=1.0, nu: float = 0.3, E_space: str = "DG0",
@@ -89,7 +83,7 @@ def problem(msh, controls=("f",), *, degree: int | None = None, E=1.0, nu: float
         near_nullspace: hand the rigid-body modes to PETSc (for GAMG); False only to compare.
             Ignored by the mixed formulation (no rigid-body modes of the (u, p) space).
         formulation: ``"displacement"`` (u only; a UserWarning when lmbda / mu >
-            :data:`LOCKING_LAME_RATIO`, where it locks) or ``"mixed"`` (Taylor-Hood (u, p),
+            :data:`~fempdl.forms._common.LOCKING_LAME_RATIO`, where it locks) or ``"mixed"`` (Taylor-Hood (u, p),
             locking-free; output the whole (u, p) vector, ``problem.split`` splits it).
 
     Returns:
@@ -114,7 +108,7 @@ def problem(msh, controls=("f",), *, degree: int | None = None, E=1.0, nu: float
         V, _ = _dolfinx.collapsed_subspace(W, 0)
     else:
         degree = check_degree(1 if degree is None else degree)
-        warn_if_locking(nu, degree)
+        warn_if_locking("elasticity", nu, degree, 'pass formulation="mixed" (Taylor-Hood u, p: locking-free)')
         W = V = _dolfinx.function_space(tagged.mesh, "Lagrange", degree, shape=(gdim,))
     f_fn = vector_function(V, f, "f")
     E_fn = make_coefficient(coefficient_space(tagged.mesh, E_space), E, "E", control="E" in controls, positive=True)
@@ -165,15 +159,6 @@ def mixed_form(W, E, nu) -> ufl.Form:
     (u, p), (v, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
     return (2 * mu * ufl.inner(_eps(u), _eps(v)) + p * ufl.div(v) + q * ufl.div(u)
             - inverse_lmbda * p * q) * ufl.dx
-
-
-def warn_if_locking(nu: float, degree: int) -> None:
-    """Warn (UserWarning) when the displacement-only P_k form meets lmbda / mu > :data:`LOCKING_LAME_RATIO`."""
-    ratio = 2 * nu / (1 - 2 * nu)
-    if ratio > LOCKING_LAME_RATIO:
-        warnings.warn(f"elasticity: nu={nu:g} gives lmbda/mu={ratio:.3g} > {LOCKING_LAME_RATIO:g}: displacement-only "
-                      f"P{degree} locks (displacements far too small as nu -> 0.5); pass formulation=\"mixed\" "
-                      "(Taylor-Hood u, p: locking-free)", UserWarning, stacklevel=3)
 
 
 def _check_nu(nu, mixed: bool) -> None:

@@ -60,6 +60,7 @@ from fempdl.forms._common import (
     make_coefficient,
     nonnegative_constant,
     tagged_facets,
+    warn_if_locking,
 )
 from fempdl.forms._flow import vector_function
 
@@ -119,6 +120,8 @@ def problem(msh, controls=("T",), *, degree: int = 1, E=1.0, nu: float = 0.3, E_
                                  positive=True)}
     zero = vector_function(V, 0.0, "clamped")
     bcs = (_dolfinx.dirichlet_bc(V, zero, clamped),)
+    warn_if_locking("hyperelasticity", nu, degree, "no mixed form is offered for it: refine the mesh with P2, or "
+                    "for small strains use forms.elasticity with formulation=\"mixed\"")
     nu_c = nonnegative_constant(tagged.mesh, nu, "nu")
     E_fn = fns["E"]
     mu = E_fn / (2 * (1 + nu_c))
