@@ -63,17 +63,17 @@ def test_unpreconditioned_richardson_matches_petsc(lshape):
 def test_engine_choice_per_call(lshape):
     prob = build("poisson", lshape)
     layer = SolveLayer(prob, jacobi(4, "auto"))
-    f = control_values(prob, "f", batch=3)
+    f = control_values(prob, "f", batch=8)          # from 8 columns batched Richardson wins at any size
     layer(f=f)
     assert layer.stats.last.engine == "batched"
     layer(f=f[0])                                      # B = 1: nothing to batch
     assert layer.stats.last.engine == "petsc"
-    layer(f=f, kappa=control_values(prob, "kappa", batch=3))   # a matrix per sample
+    layer(f=f, kappa=control_values(prob, "kappa", batch=8))   # a matrix per sample
     assert layer.stats.last.engine == "petsc"
     layer.max_it = None                               # converged mode: PETSc's KSP
     layer(f=f)
     assert layer.stats.last.engine == "petsc" and layer.stats.last.iterations > 4
-    assert layer.stats.solves_by_engine == {"batched": 3, "petsc": 1 + 3 + 3}
+    assert layer.stats.solves_by_engine == {"batched": 8, "petsc": 1 + 8 + 8}
 
 
 def test_engine_batched_refuses_what_it_cannot_run(lshape):

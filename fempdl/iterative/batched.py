@@ -20,8 +20,8 @@ diagonal entry by 1, and so does this engine.
 
 The operator is a torch CSR copy of the assembled PETSc matrix (serial only,
 int32 indices), refreshed when the matrix is reassembled. When batching pays
-is :meth:`BatchedEngine.faster_than_petsc` (measured: ``benchmarks/bench_floor.py``,
-``benchmarks/bench_krylov.py``).
+is :meth:`BatchedEngine.faster_than_petsc` (measured: ``benchmarks/bench_batched_auto.py``,
+``benchmarks/bench_floor.py``, ``benchmarks/bench_krylov.py``).
 
 This module knows PETSc and torch, nothing of UFL.
 """
@@ -34,7 +34,7 @@ import torch
 from petsc4py import PETSc
 
 from fempdl.core import tuning
-from fempdl.iterative.batched_cg import Tolerance, converged_cg, fast_cg
+from fempdl.iterative.batched_cg import Tolerance, capped_cg, converged_cg, fast_cg
 from fempdl.iterative.columns import spmm_into
 from fempdl.iterative.sparse import sparse_to_torch, torch_to_scipy
 from fempdl.iterative.sweeps import column_groups, richardson, sweep_matrix, threads_for, torch_threads
@@ -44,6 +44,23 @@ from fempdl.solve.petsc import petsc_to_scipy
 __all__ = ["BatchedEngine", "fast_cg", "converged_cg", "fast_gmres"]
 
 _OWN_OPTIONS = frozenset({"ksp_richardson_scale"})
+
+# The rule of BatchedEngine.faster_than_petsc (engine="auto"), measured on 2D P1 Poisson, 289 to 66k
+# unknowns, B = 2 to 128, forward + adjoint through SolveLayer (benchmarks/bench_batched_auto.py). Per
+# iteration, batched CG pays a fixed cost in torch operations per group of tuning.CG_GROUP columns
+# (tens of microseconds) where PETSc's CG pays about a microsecond per solve, and saves part of
+# PETSc's cost per nonzero: only a large enough matrix amortises the difference, at any batch size.
+# Batched Richardson has one fused product per iteration but a fixed cost per call that a small batch
+# amortises only over enough work.
+#: Batched CG needs at least this many nonzeros: where batched / PETSc crosses 1 from B = 8, between
+#: 7.4k nonzeros (1089 unknowns, PETSc ahead) and 29k (4225 unknowns, batched ahead).
+CG_MIN_NONZEROS = 10_000
+#: From this many columns batched Richardson was faster at every size and cap measured (289 unknowns
+#: at K = 20 included).
+AUTO_FULL_BATCH = 8
+#: Below AUTO_FULL_BATCH columns, batched Richardson needs nonzeros x cap of at least this: at B = 2,
+#: 0.15M and 0.38M are ties (K = 20 on 7.4k, K = 200 on 1.9k nonzeros), from 0.58M batched is ahead.
+RICHARDSON_MIN_WORK = 500_000
 
 
 class BatchedEngine:
@@ -80,12 +97,33 @@ class BatchedEngine:
         return options.capped and options.rtol is None and options.atol is None
 
     @staticmethod
-    def faster_than_petsc(batch: int, ksp_type: str = "richardson") -> bool:
-        """The measured rules of :mod:`fempdl.core.tuning`: Richardson from
-        ``RICHARDSON_MIN_BATCH``, CG from ``CG_MIN_BATCH``, GMRES never."""
+    def faster_than_petsc(batch: int, ksp_type: str = "richardson", *, options: KSPOptions | None = None,
+                          nnz: int | None = None) -> bool:
+        """Whether a batch of ``batch`` solves runs faster here than as PETSc's loop of KSP solves.
+
+        The cost of both grows with the matrix's nonzeros ``nnz`` times the iterations; what differs is
+        a fixed cost per torch operation (per iteration and column group here, against PETSc's per
+        solve), which only enough columns and enough nonzeros amortise. Measured rules
+        (``benchmarks/bench_batched_auto.py``): Richardson from ``RICHARDSON_MIN_BATCH`` columns, and
+        below :data:`AUTO_FULL_BATCH` columns only when ``nnz`` times the cap (``options.max_it``)
+        reaches :data:`RICHARDSON_MIN_WORK`; CG (capped or converged) from ``CG_MIN_BATCH`` columns on
+        a matrix of at least :data:`CG_MIN_NONZEROS` nonzeros; GMRES never. Without ``nnz`` only the
+        batch sizes are compared (the matrix is not known yet)."""
         if ksp_type == "richardson":
-            return batch >= tuning.RICHARDSON_MIN_BATCH
-        return ksp_type == "cg" and batch >= tuning.CG_MIN_BATCH
+            if batch < tuning.RICHARDSON_MIN_BATCH:
+                return False
+            if nnz is None or options is None or options.max_it is None or batch >= AUTO_FULL_BATCH:
+                return True
+            return nnz * options.max_it >= RICHARDSON_MIN_WORK
+        if ksp_type != "cg" or batch < tuning.CG_MIN_BATCH:
+            return False
+        return nnz is None or nnz >= CG_MIN_NONZEROS
+
+    @staticmethod
+    def nonzeros(A: PETSc.Mat) -> int:
+        """The stored entries of ``A`` (its sparsity pattern, known before the first assembly): the
+        ``nnz`` of :meth:`faster_than_petsc`."""
+        return int(A.getInfo()["nz_used"])
 
     def load(self, A: PETSc.Mat) -> None:
         """Copy the current entries of ``A`` (call again after it is reassembled)."""
@@ -136,13 +174,22 @@ class BatchedEngine:
             if options.ksp_type == "gmres":
                 X = fast_gmres(op, P, res, options.max_it, options.gmres_restart or 30)
             elif self.pure_cap(options):
-                X = torch.cat([fast_cg(op, P, res[:, i:i + w].contiguous(), options.max_it)
-                               for i, w in column_groups(res.shape[1], tuning.CG_GROUP)], dim=1)
+                X, outcome = self._capped_cg(op, P, res, options.max_it)
             else:
                 X, outcome = self._converged_cg(op, P, rhs, res, start is not None, options)
             if start is not None:
                 X.add_(start)
         return np.ascontiguousarray(X.T.numpy()), time.perf_counter() - t0, outcome
+
+    @staticmethod
+    def _capped_cg(op, P, res, K: int) -> tuple[torch.Tensor, tuple | None]:
+        """K capped CG iterations per column, group by group (:func:`~fempdl.iterative.batched_cg.capped_cg`);
+        the outcome is ``None`` (a pure cap's record) unless some column stopped as KSPCG would."""
+        parts = [capped_cg(op, P, res[:, i:i + w].contiguous(), K)
+                 for i, w in column_groups(res.shape[1], tuning.CG_GROUP)]
+        X = torch.cat([part[0] for part in parts], dim=1)
+        outcome = tuple(np.concatenate([np.asarray(part[k]) for part in parts]) for k in (1, 2, 3))
+        return X, (None if (outcome[1] == "CONVERGED_ITS").all() else outcome)
 
     @staticmethod
     def _converged_cg(op, P, rhs, res, warm: bool, options: KSPOptions) -> tuple[torch.Tensor, tuple]:
@@ -174,7 +221,10 @@ def fast_gmres(A: torch.Tensor, P: torch.Tensor | None, R: torch.Tensor, K: int,
     as :func:`fempdl.iterative.unrolled.gmres` (PETSc's KSPGMRES); R (n, B), returns X (n, B).
 
     The basis is kept sample-major, (B, m + 1, n), so that the Gram-Schmidt
-    products for all columns are two batched matrix products."""
+    products for all columns are two batched matrix products. It always runs K iterations: past
+    convergence PETSc's KSPGMRES may stop sooner, at a restart whose recursive residual has drifted
+    from the true one (DIVERGED_BREAKDOWN, which the PETSc path accepts as an exact solve); the
+    iterates agree to round-off, the counts do not."""
     n, batch = R.shape
     dtype = R.dtype
     m = min(restart, K)

@@ -1,10 +1,12 @@
 """Per-column operations on (n, B) blocks, and a sparse product into a given block:
 what the batched and the unrolled iterations share.
 
-A column counts as solved once its preconditioned residual product r.z has
-fallen below :data:`SOLVED` times its start (1e-20 in the norm, far past double
-precision): its step lengths are then 0, so that no 0/0 occurs and squared
-norms never underflow into overflowing derivatives.
+In the unrolled (differentiable) iterations a column counts as solved once its
+preconditioned residual product r.z has fallen below :data:`SOLVED` times its
+start (1e-20 in the norm, far past double precision): its step lengths are then
+0, so that no 0/0 occurs and squared norms never underflow into overflowing
+derivatives. The batched engine's CG, which has no derivatives to guard, stops
+where PETSc's KSPCG stops instead (:mod:`fempdl.iterative.batched_cg`).
 """
 from __future__ import annotations
 

@@ -21,7 +21,11 @@ import torch
 
 from fempdl.core import tuning
 
-__all__ = ["sweep_matrix", "richardson", "column_groups", "torch_threads", "threads_for"]
+__all__ = ["sweep_matrix", "richardson", "column_groups", "torch_threads", "threads_for", "FIXED_POINT_CHECK"]
+
+#: Sweeps between two checks for a fixed point in :func:`richardson` (each check reads a group's two
+#: iterates once, about 1/30 of a sweep's traffic spread over this many sweeps).
+FIXED_POINT_CHECK = 32
 
 
 def sweep_matrix(S: sp.csr_matrix, omega: float, dinv: np.ndarray | None) -> sp.csr_matrix:
@@ -62,7 +66,11 @@ def richardson(M: torch.Tensor, c: torch.Tensor, K: int, X0: torch.Tensor | None
     """K sweeps X <- c + M X from X0 (or 0) for c (n, B), column group by column group; returns X (n, B).
 
     A group has :data:`fempdl.core.tuning.SWEEP_GROUP` columns per torch thread (each thread's rows of the
-    group's iterates stay in its cache). No autograd: two buffers per group, nothing kept."""
+    group's iterates stay in its cache). No autograd: two buffers per group, nothing kept. Every
+    :data:`FIXED_POINT_CHECK` sweeps the new iterate is compared with the last: once a sweep leaves a
+    group exactly where it was (a zero residual, or a converged iterate that rounds onto itself), every
+    later sweep would too, and the group stops there with the iterate K sweeps give (what PETSc's
+    KSPRICHARDSON computes in all K iterations, which it runs and counts)."""
     threads = torch.get_num_threads()
     if threads_for(M.values().numel(), min(c.shape[1], tuning.SWEEP_GROUP * threads)) == 1:
         threads = 1
@@ -73,8 +81,10 @@ def richardson(M: torch.Tensor, c: torch.Tensor, K: int, X0: torch.Tensor | None
             cg = c[:, i:i + width].contiguous()
             X = torch.zeros_like(cg) if X0 is None else X0[:, i:i + width].clone(memory_format=torch.contiguous_format)
             Y = torch.empty_like(cg)
-            for _ in range(K):
+            for k in range(K):
                 torch.addmm(cg, M, X, out=Y)
+                if k % FIXED_POINT_CHECK == FIXED_POINT_CHECK - 1 and torch.equal(X, Y):
+                    break                       # a fixed point: every later sweep gives Y again
                 X, Y = Y, X
             out.append(X)
         return out[0] if len(out) == 1 else torch.cat(out, dim=1)

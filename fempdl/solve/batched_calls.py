@@ -23,14 +23,16 @@ class BatchedCalls:
         self.engine = engine
         self._version = -1          # the matrix version the engine's copy holds
 
-    def runs(self, options: KSPOptions, batch: int, per_sample_matrix: bool, comm_size: int) -> bool:
-        """Whether a call of ``batch`` samples runs on the engine (see ``KSPOptions.engine``)."""
+    def runs(self, options: KSPOptions, batch: int, per_sample_matrix: bool, comm_size: int,
+             A: PETSc.Mat | None = None) -> bool:
+        """Whether a call of ``batch`` samples on ``A`` runs on the engine (see ``KSPOptions.engine``)."""
         if per_sample_matrix or self.engine.unsupported_reason(options, comm_size) is not None:
             return False  # e.g. the cap was lifted to max_it=None after construction
         if options.engine == "batched":
             return True
-        # Measured rules (benchmarks/bench_floor.py, benchmarks/bench_krylov.py), for both directions' solvers.
-        return all(self.engine.faster_than_petsc(batch, opts.ksp_type)
+        # Measured rules (benchmarks/bench_batched_auto.py), for both directions' solvers.
+        nnz = None if A is None else self.engine.nonzeros(A)
+        return all(self.engine.faster_than_petsc(batch, opts.ksp_type, options=opts, nnz=nnz)
                    for opts in (options, options.adjoint_options))
 
     def solve(self, A: PETSc.Mat, version: int, R: np.ndarray, options: KSPOptions, *, transpose: bool,

@@ -338,7 +338,7 @@ class LinearSystem:
     # ------------------------------------------------------------ engines
     def _use_batched(self, batch: int, per_sample_matrix: bool) -> bool:
         return self._batched is not None and self._batched.runs(self.options, batch, per_sample_matrix,
-                                                                self._comm.size)
+                                                                self._comm.size, self._A)
 
     def _batched_solve(self, R: np.ndarray, direction: str, initial_guess: np.ndarray | None = None) -> np.ndarray:
         """All rows of R at once on the batched engine (from ``initial_guess``'s rows

@@ -123,9 +123,11 @@ class KSPOptions:
             cap only, CG also to ``rtol``/``atol`` with or without a cap, each sample
             stopping where its own KSPCG would, with its own iterations and reason in
             the stats; used whenever the call's matrix is shared by the batch).
-            ``"auto"`` (default): batched where it is faster than the PETSc loop
-            (:meth:`BatchedEngine.faster_than_petsc`: Richardson from B = 2, CG capped
-            or converged from B = 8, GMRES never), PETSc otherwise. ``SolveStats.engine`` reports which ran.
+            ``"auto"`` (default): batched where it measured faster than the PETSc loop
+            (:meth:`BatchedEngine.faster_than_petsc`, from the batch size, the method, the cap and
+            the matrix's nonzeros: Richardson from B = 8, or from B = 2 once nonzeros x cap reaches
+            500k; CG capped or converged from B = 8 on at least 10k nonzeros; GMRES never), PETSc
+            otherwise. ``SolveStats.engine`` reports which ran.
         adjoint_operator: how the transposed solve gets A^T. ``"transpose"``:
             KSPSolveTranspose on A (the preconditioner's transpose is applied).
             ``"assembled"``: an explicitly assembled A^T (PETSc's MatTranspose,
