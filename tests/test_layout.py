@@ -32,7 +32,7 @@ FLOORS = [
               ["fempdl.forms"], ["fempdl.core"], ["fempdl.mesh", "fempdl.io"]]),
     ("solve", [["fempdl.solve.caps", "fempdl.solve.options", "fempdl.solve.option_checks",
                 "fempdl.solve.newton_options", "fempdl.solve.round_off",
-                "fempdl.solve.scaling"],
+                "fempdl.solve.scaling", "fempdl.solve.default_solver"],
                ["fempdl.solve.stats", "fempdl.solve.petsc", "fempdl.solve.newton_stats", "fempdl.solve.newton_stop",
                 "fempdl.solve.health", "fempdl.solve.lagged_preconditioner"],
                ["fempdl.solve.snes", "fempdl.solve.capped_solver", "fempdl.solve.batched_calls"],

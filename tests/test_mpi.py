@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from petsc4py import PETSc
 
 from fempdl.core import _dolfinx
 
@@ -23,6 +24,7 @@ from helpers import tiny_scene
 SCRIPTS = Path(__file__).parent / "mpi"
 EXAMPLES = Path(__file__).parent.parent / "tools"
 TIMEOUT = 300
+HYPRE = PETSc.Sys.hasExternalPackage("hypre")
 MPI_ENV = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1", "OMP_NUM_THREADS": "1"}
 
 
@@ -71,6 +73,19 @@ def test_distributed_layer_equals_serial(layer_results, pde, solver):
             assert int(a) == int(b), key
             continue
         assert np.abs(a - b).max() <= 1e-10 * np.abs(a).max(), key
+
+
+def test_the_iterative_defaults_on_a_distributed_3d_mesh_equal_the_serial_ones(tmp_path):
+    """CG + AMG and, inside Newton, GMRES + block Jacobi/ILU(0) (PCILU alone does not run in parallel):
+    each solves to rtol 1e-10, so one and two ranks agree to that times the condition (~1e2 here)."""
+    results = on_one_and_two_ranks("default_solver.py", tmp_path, ".npz")
+    serial, split = results[1], results[2]
+    assert str(serial["poisson/ksp"]) == str(split["poisson/ksp"]) == f"cg+{'hypre' if HYPRE else 'gamg'}"
+    assert str(serial["newton/ksp"]) == str(split["newton/ksp"]) == "gmres+bjacobi"
+    for key in [k for k in serial if not k.endswith("/ksp")]:
+        a, b = serial[key], split[key]
+        assert a.shape == b.shape, key
+        assert np.abs(a - b).max() <= 1e-7 * np.abs(a).max(), key
 
 
 def test_an_error_on_one_rank_ends_the_job_instead_of_hanging():

@@ -9,7 +9,6 @@ import torch
 
 from fempdl import KSPOptions, SolveLayer, forms
 from fempdl.layer.implicit_diff import SECOND_DERIVATIVE_MESSAGE
-from fempdl.solve.options import DIRECT_MAX_DOFS, default_options
 
 F64 = torch.float64
 
@@ -46,14 +45,6 @@ def test_options_are_capped_only_when_asked(prob):
     assert KSPOptions().max_it is None and KSPOptions(ksp_type="cg").max_it is None
     assert KSPOptions(ksp_type="richardson", pc_type="jacobi") == KSPOptions.preset("jacobi")
     assert KSPOptions(max_it=7).max_it == 7 and KSPOptions.preset("jacobi", max_it=7).max_it == 7
-
-
-def test_large_problems_default_to_a_converged_iterative_solve(prob, monkeypatch):
-    import fempdl.solve.options as solve_options
-    assert DIRECT_MAX_DOFS >= prob.output_size
-    monkeypatch.setattr(solve_options, "DIRECT_MAX_DOFS", prob.output_size - 1)
-    options = default_options(prob)
-    assert options == KSPOptions.preset("gmres") and not options.capped
 
 
 # ------------------------------------------------------------------ singular operators

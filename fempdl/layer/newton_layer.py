@@ -42,11 +42,11 @@ from fempdl.layer.implicit_diff import count_on_all_ranks
 from fempdl.layer.newton_unrolled import UnrolledNewton, check_unrolled_newton, stored_values
 from fempdl.layer.system_layer import SystemLayer, check_diff
 from fempdl.solve.caps import Caps
+from fempdl.solve.default_solver import default_options
 from fempdl.solve.newton_options import NewtonOptions
 from fempdl.solve.newton_stats import NewtonCumulativeStats
 from fempdl.solve.newton_stop import NewtonMode
 from fempdl.solve.nonlinear_system import NonlinearSystem
-from fempdl.solve.options import default_options
 
 __all__ = ["NonlinearSolveLayer"]
 

@@ -8,7 +8,7 @@ is converged physics, so that is what judges it:
 * :func:`reference_physics` (``with reference_physics(layer): metric = ...``)
   sends each call of the given layers to its *reference twin*, a layer of the
   same class on the same problem that solves converged: LU where it fits, else
-  the converged GMRES preset (:func:`~fempdl.solve.options.default_options`);
+  the converged iterative default (:func:`~fempdl.solve.default_solver.default_options`);
   for a Newton layer, Newton to its tolerance (at most 1e-8) with that inner
   solve, or its own inner solve where that is direct. The twin is built on the
   first reference call and kept (its factorisations too); its counters are the
@@ -36,7 +36,7 @@ from fempdl.layer.cap_target import layers_target
 from fempdl.layer.newton_layer import NonlinearSolveLayer
 from fempdl.layer.solve_layer import SolveLayer
 from fempdl.layer.system_layer import SystemLayer
-from fempdl.solve.options import default_options
+from fempdl.solve.default_solver import default_options
 
 __all__ = ["reference_physics", "routed", "converged_counts", "refuse_uncalled", "reference_options",
            "converged_options", "twin_of", "counters_kept", "REFERENCE_NEWTON_RTOL"]

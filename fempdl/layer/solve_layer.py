@@ -23,8 +23,9 @@ from fempdl.iterative.batched import BatchedEngine
 from fempdl.layer.implicit_diff import count_on_all_ranks
 from fempdl.layer.system_layer import SystemLayer, check_diff
 from fempdl.layer.unrolled_diff import UnrolledPath, unrolled_method
+from fempdl.solve.default_solver import default_options
 from fempdl.solve.linear_system import LinearSystem
-from fempdl.solve.options import STATIONARY_KSP_TYPES, KSPOptions, default_options
+from fempdl.solve.options import STATIONARY_KSP_TYPES, KSPOptions
 
 __all__ = ["SolveLayer"]
 
@@ -35,7 +36,9 @@ class SolveLayer(SystemLayer):
     Args:
         problem: the variational problem; its controls become keyword inputs.
         options: :class:`KSPOptions` or a preset name; default
-            (:func:`~fempdl.solve.options.default_options`) a solution, never a cap.
+            (:func:`~fempdl.solve.default_solver.default_options`) a solution, never a cap: LU
+            while the factorisation is cheap, else CG + AMG, a Schur fieldsplit or GMRES + ILU(0)
+            by the problem's symmetry and fields.
         diff: ``"implicit"`` (adjoint solve with the same cap) or ``"unrolled"``
             (autograd through the K iterations: Richardson, CG and GMRES(m) with
             Jacobi or no preconditioner, one process).

@@ -39,8 +39,7 @@ from fempdl.solve.option_checks import (
 )
 
 __all__ = ["KSPOptions", "PRESETS", "ENGINES", "ADJOINT_OPERATORS", "MAX_PETSC_INT", "DEFAULT_RTOL",
-           "DEFAULT_CONVERGED_MAX_IT", "PRIVATE_PREFIX", "NORM_FREE_KSP_TYPES", "STATIONARY_KSP_TYPES",
-           "DIRECT_MAX_DOFS", "default_options"]
+           "DEFAULT_CONVERGED_MAX_IT", "PRIVATE_PREFIX", "NORM_FREE_KSP_TYPES", "STATIONARY_KSP_TYPES"]
 
 _KSP_TYPES = frozenset(getattr(PETSc.KSP.Type, n) for n in dir(PETSc.KSP.Type) if n.isupper())
 _PC_TYPES = frozenset(getattr(PETSc.PC.Type, n) for n in dir(PETSc.PC.Type) if n.isupper())
@@ -388,17 +387,3 @@ PRESETS: Mapping[str, KSPOptions] = types.MappingProxyType({
                             petsc_options={"pc_factor_mat_solver_type": "mumps", "ksp_pc_side": "right"}),
 })
 
-
-#: The most unknowns a layer without options solves directly (MUMPS LU). The fill of a 3D
-#: factorisation grows like n^(4/3); beyond a few hundred thousand unknowns a converged
-#: iterative solve is the safer default.
-DIRECT_MAX_DOFS = 300_000
-
-
-def default_options(problem) -> KSPOptions:
-    """The options of ``SolveLayer(problem)`` and of a Newton step's inner solve: a converged solve,
-    never a cap (a cap is what a user asks for): the ``"lu"`` preset up to :data:`DIRECT_MAX_DOFS`
-    unknowns, the converged ``"gmres"`` preset (GMRES(30) + Jacobi to rtol 1e-10, an error if not
-    reached) above it."""
-    n = problem.V.mesh.comm.allreduce(problem.output_size)
-    return KSPOptions.preset("lu" if n <= DIRECT_MAX_DOFS else "gmres")
