@@ -7,6 +7,7 @@ import warnings
 from mpi4py import MPI
 import dolfinx.fem
 import numpy as np
+import ufl
 
 from fempdl.core import _dolfinx
 from fempdl.core.checks import is_int, is_real
@@ -14,6 +15,43 @@ from fempdl.core.mesh import TaggedMesh
 
 # Spaces a coefficient (kappa) may live in.
 COEFFICIENT_SPACES = {"P1": ("Lagrange", 1), "DG0": ("DG", 0)}
+
+
+# What a form offers in place of a network: a UFL law whose parameters are controls.
+NO_NETWORK_IN_FORMS = ("a form is UFL, compiled once to C, and torch cannot run inside it: write the law as a UFL "
+                       "expression of u (e.g. lambda u: 1 + a * u**2) whose parameters are controls, such as a "
+                       "polynomial in u with its coefficients as a control Function")
+
+
+def _is_torch(obj) -> bool:
+    """A torch module, tensor or function (told by its type's module: the forms do not import torch)."""
+    return (getattr(type(obj), "__module__", None) or "").split(".")[0] == "torch"
+
+
+def _raised_in_torch(exc: BaseException) -> bool:
+    tb = exc.__traceback__
+    while tb is not None:
+        if "/torch/" in tb.tb_frame.f_code.co_filename.replace("\\", "/"):
+            return True
+        tb = tb.tb_next
+    return False
+
+
+def ufl_law(law, u, name: str):
+    """``law(u)``, a user's constitutive function of the UFL unknown, refusing torch code in one line."""
+    if _is_torch(law):
+        raise TypeError(f"{name} is a torch {type(law).__name__}; {NO_NETWORK_IN_FORMS}")
+    try:
+        value = law(u)
+    except Exception as exc:
+        if _raised_in_torch(exc):
+            raise TypeError(f"{name}(u) called torch on the UFL unknown ({type(exc).__name__}: {exc}); "
+                            f"{NO_NETWORK_IN_FORMS}") from exc
+        raise
+    if not (isinstance(value, ufl.core.expr.Expr) or is_real(value)):
+        raise TypeError(f"{name}(u) must return a UFL expression of u, got a {type(value).__name__}"
+                        + (f"; {NO_NETWORK_IN_FORMS}" if _is_torch(value) else ""))
+    return value
 
 
 def check_controls(requested, allowed: tuple, pde: str) -> tuple:
@@ -48,8 +86,18 @@ def make_function(space, value, name: str, *, positive: bool = False) -> dolfinx
     ``positive``: the values must be > 0 (a diffusion coefficient: zero or
     negative values make the operator singular or indefinite)."""
     fn = dolfinx.fem.Function(space, name=name)
+    if _is_torch(value):
+        raise TypeError(f"{name} is a torch {type(value).__name__}; give a float or a callable x (3, N) -> (N,) "
+                        f"numpy values, or make {name} a control and pass its values as a layer input")
     if callable(value):
-        fn.interpolate(value)
+        try:
+            fn.interpolate(value)
+        except Exception as exc:
+            if _raised_in_torch(exc):
+                raise TypeError(f"{name}: the callable called torch on numpy coordinates ({type(exc).__name__}: "
+                                f"{exc}); return numpy values, or make {name} a control and pass a tensor as a "
+                                "layer input") from exc
+            raise
     elif is_real(value):
         if not math.isfinite(value):
             raise ValueError(f"{name} must be finite, got {value!r}")

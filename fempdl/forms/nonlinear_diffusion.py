@@ -31,6 +31,7 @@ from fempdl.forms._common import (
     make_coefficient,
     make_function,
     positive_constant,
+    ufl_law,
 )
 
 CONTROLS = ("f", "kappa", "alpha", "u0")
@@ -47,7 +48,8 @@ def problem(msh, controls=("f",), *, degree: int = 1, q=None, kappa=1.0, kappa_s
             (``"u0"`` only with ``dt``).
         degree: Lagrange degree k of u (and of f and u0).
         q: a function of the UFL unknown returning the conductivity (e.g.
-            ``lambda u: 1 + u**4``); default ``1 + alpha u^2``.
+            ``lambda u: 1 + u**4``); default ``1 + alpha u^2``. Torch code here is refused in one
+            line (a form is compiled to C once): a trainable law is UFL with controls as parameters.
         kappa, alpha: fixed values (float or callable x -> values) of the fields,
             in ``kappa_space`` / ``alpha_space`` (``"P1"`` or ``"DG0"``); kappa > 0.
         f, g: the source and the Dirichlet data (float or callable).
@@ -80,7 +82,7 @@ def problem(msh, controls=("f",), *, degree: int = 1, q=None, kappa=1.0, kappa_s
                          "give at least one Dirichlet boundary part")
     u = dolfinx.fem.Function(V, name="u")
     v = ufl.TestFunction(V)
-    conductivity = (1 + fns["alpha"] * u ** 2) if q is None else q(u)
+    conductivity = (1 + fns["alpha"] * u ** 2) if q is None else ufl_law(q, u, "q")
     F = fns["kappa"] * conductivity * ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx - fns["f"] * v * ufl.dx
     constants = fixed_constants(fns, ("kappa",))
     if dt is not None:
