@@ -37,8 +37,8 @@ class SolveLayer(SystemLayer):
         problem: the variational problem; its controls become keyword inputs.
         options: :class:`KSPOptions` or a preset name; default
             (:func:`~fempdl.solve.default_solver.default_options`) a solution, never a cap: LU
-            while the factorisation is cheap, else CG + AMG, a Schur fieldsplit or GMRES + ILU(0)
-            by the problem's symmetry and fields.
+            while the factorisation is cheap, else CG + AMG, a Schur fieldsplit, GMRES + GAMG or
+            GMRES + ILU(0) by the problem's symmetry, fields and near null space.
         diff: ``"implicit"`` (adjoint solve with the same cap) or ``"unrolled"``
             (autograd through the K iterations: Richardson, CG and GMRES(m) with
             Jacobi or no preconditioner, one process).

@@ -28,7 +28,6 @@ give it ``options=KSPOptions.preset("gmres")``, or ``"lu"``.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -112,7 +111,7 @@ def default_preset(traits: SystemTraits) -> tuple[str, KSPOptions]:
         return "gmres-gamg", KSPOptions(ksp_type="gmres", pc_type="gamg", gmres_restart=30)
     if {"u", "p"} <= set(traits.fields):
         return "schur", KSPOptions.preset("schur")
-    return "gmres-ilu", dataclasses.replace(KSPOptions.preset("gmres-ilu"), pc_type="bjacobi")
+    return "gmres-ilu", KSPOptions.preset("gmres-ilu", pc_type="bjacobi")
 
 
 def default_options(problem) -> KSPOptions:
@@ -126,12 +125,13 @@ def explain_default(problem) -> str:
     unknowns > 25000, the direct limit in 3D for a fixed matrix (block size 1); symmetric on one field"``."""
     t = SystemTraits.of(problem)
     name, _ = default_preset(t)
+    most = direct_max_dofs(t.tdim, t.block_size, t.matrix_fixed)
     limit = (f"the direct limit in {t.tdim}D for a {'fixed' if t.matrix_fixed else 'refactorised'} matrix "
              f"(block size {t.block_size})")
     if name == "lu":
-        return f"lu: {t.dofs} unknowns <= {direct_max_dofs(t.tdim, t.block_size, t.matrix_fixed)}, {limit}"
+        return f"lu: {t.dofs} unknowns <= {most}, {limit}"
     why = ("symmetric on one field" + (", with a near null space for GAMG" if t.near_nullspace else "") if t.spd
            else "a near null space for GAMG, not declared symmetric" if name == "gmres-gamg"
            else "fields 'u' and 'p' (a saddle point)" if name == "schur"
            else f"fields {list(t.fields)}" if t.fields else "not declared symmetric")
-    return f"{name}: {t.dofs} unknowns > {direct_max_dofs(t.tdim, t.block_size, t.matrix_fixed)}, {limit}; {why}"
+    return f"{name}: {t.dofs} unknowns > {most}, {limit}; {why}"
