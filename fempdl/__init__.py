@@ -4,6 +4,7 @@ Public names, in one line::
 
     from fempdl import Problem, SolveLayer, KSPOptions, PRDP, SolverFailedError, forms, mesh
     from fempdl import NonlinearProblem, NonlinearSolveLayer, NewtonOptions
+    from fempdl import Network, derivative       # a torch network inside a form, and d/du through it
 
 They load on first use, so ``import fempdl`` (and ``fempdl --help``) does not pay
 for DOLFINx and torch until a name needs them.
@@ -72,6 +73,8 @@ _PUBLIC = {
     "PointObservation": "fempdl.layer.observation",
     "MassInner": "fempdl.layer.observation",
     "Rollout": "fempdl.layer.rollout",
+    "Network": "fempdl.layer.network",
+    "derivative": "fempdl.core.pointwise",
 }
 _SUBMODULES = {"forms": "fempdl.forms", "mesh": "fempdl.mesh", "io": "fempdl.io",
                "ksp_adjoint": "fempdl.ksp_adjoint", "bridge_torch": "fempdl.bridge_torch", "prdp": "fempdl.prdp"}

@@ -76,3 +76,20 @@ def test_learn_material_through_newton_solves(tmp_path):
     assert last < first / 4 and kappa_error < 0.25
     assert solves == 8 + 80 * 8            # the observations, then 80 steps of a batch of 8
     assert 2 * solves <= steps <= 8 * solves   # converged Newton: a few quadratic steps per solve
+
+
+def test_learn_conductivity_fits_the_law_through_the_network_in_the_form(tmp_path):
+    stdout = run_example("learn_conductivity.py", cwd=tmp_path)
+    m = re.fullmatch(r"loss (\S+); kappa error (\S+) over u in \[0, (\S+)\]; network time (\d+)% of the layer's\n",
+                     stdout)
+    assert m, stdout
+    assert float(m[1]) < 0.02 and float(m[2]) < 0.5 and float(m[3]) > 0.3      # 40 epochs on the coarse plate
+    assert 0 < int(m[4]) < 100
+
+
+def test_learn_energy_fits_a_neo_hookean_beam(tmp_path):
+    stdout = run_example("learn_energy.py", cwd=tmp_path)
+    m = re.fullmatch(r"loss (\S+); energy error (\S+) near F = I; newton steps (\d+) in (\d+) solves\n", stdout)
+    assert m, stdout
+    assert float(m[1]) < 0.05 and float(m[2]) < 0.3
+    assert int(m[4]) == 30 * 3 and int(m[3]) >= int(m[4])        # 30 epochs of 3 loads (the reference apart)

@@ -26,7 +26,8 @@ PUBLIC_PATHS = ["fempdl.ksp_adjoint", "fempdl.bridge_torch", "fempdl.prdp"]
 # Floors bottom to top, each a list of rooms in order; a room is a list of module prefixes.
 FLOORS = [
     ("core", [["fempdl.core._dolfinx", "fempdl.core.checks", "fempdl.core.resources", "fempdl.core.parallel",
-               "fempdl.core.meshgen", "fempdl.core.nullspaces", "fempdl.core.locks", "fempdl.core.ranks"],
+               "fempdl.core.meshgen", "fempdl.core.nullspaces", "fempdl.core.locks", "fempdl.core.ranks",
+               "fempdl.core.pointwise"],
               ["fempdl.core.mesh", "fempdl.core.problem_base", "fempdl.core.matrices"],
               ["fempdl.core.problem", "fempdl.core.nonlinear_problem", "fempdl.core.io", "fempdl.core.time_series"],
               ["fempdl.forms"], ["fempdl.core"], ["fempdl.mesh", "fempdl.io"]]),
@@ -43,7 +44,7 @@ FLOORS = [
                ["fempdl.solve"]]),
     ("iterative", [["fempdl.iterative"]]),
     ("layer", [["fempdl.layer.cap_target", "fempdl.layer.implicit_diff", "fempdl.layer.unrolled_diff",
-                "fempdl.layer.observation", "fempdl.layer.healthy_calls"],
+                "fempdl.layer.observation", "fempdl.layer.healthy_calls", "fempdl.layer.network"],
                ["fempdl.layer.system_layer", "fempdl.layer.newton_unrolled"],
                ["fempdl.layer.newton_layer", "fempdl.layer.revolve", "fempdl.layer.rollout_checkpoint",
                 "fempdl.layer.rollout_inputs"],

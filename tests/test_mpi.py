@@ -309,3 +309,17 @@ def test_a_rollout_on_a_distributed_mesh_equals_the_serial_one(tmp_path):
         assert abs(results[2][key] - value) <= max(tol, 1e-10) * abs(value), key
         plain = results[1][key.split()[0] + " None"]
         assert abs(value - plain) <= tol * abs(plain), key          # every schedule, the same gradient
+
+
+def test_a_network_in_the_form_on_two_ranks_equals_one_rank_and_ranks_with_other_weights_refuse(tmp_path):
+    """The quadrature points are rank-local, the weights' gradient summed over the ranks: with LU the
+    solution and both gradients agree to round-off (the condition of this 121-DOF system is ~1e2); ranks
+    holding different weights refuse the call together instead of assembling different physics."""
+    results = on_one_and_two_ranks("network.py", tmp_path, ".npz")
+    for key in ("u", "grad_f", "grad_theta"):
+        a, b = results[1][key], results[2][key]
+        assert a.shape == b.shape and np.abs(a - b).max() <= 1e-12 * np.abs(a).max(), key
+    path = tmp_path / "differ.npz"
+    done = mpirun(2, "network.py", "differ", str(path))
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "every rank must call it with the same network weights" in str(np.load(path)["refused"])

@@ -6,10 +6,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fempdl import NonlinearSolveLayer, forms
+from fempdl import Network, NonlinearSolveLayer, forms
 
 NET = torch.nn.Sequential(torch.nn.Linear(1, 8), torch.nn.Softplus(), torch.nn.Linear(8, 1)).double()
-WHAT_WORKS = r"torch cannot run inside it: write the law as a UFL expression of u"
+WHAT_WORKS = "q=lambda u: fempdl.Network(module, operands=(u,))"
 
 
 @pytest.mark.parametrize("q, message", [
@@ -57,3 +57,15 @@ def test_a_ufl_law_and_numpy_callables_still_work(coarse_lshape):
     u_given, u_default = NonlinearSolveLayer(given)(kappa=kappa), NonlinearSolveLayer(default)(kappa=kappa)
     assert u_given.abs().max() > 0.01
     torch.testing.assert_close(u_given, u_default, rtol=0, atol=1e-12)
+
+
+def test_the_route_the_refusal_names_trains_the_module_through_the_bundled_form(coarse_lshape):
+    """q=lambda u: Network(module, (u,)): the law torch computes, its weights' gradient from backward."""
+    net = torch.nn.Sequential(torch.nn.Linear(1, 8), torch.nn.Tanh(), torch.nn.Linear(8, 1),
+                              torch.nn.Softplus()).double()
+    prob = forms.nonlinear_diffusion.problem(coarse_lshape, q=lambda u: Network(net, (u,), name="q", positive=True),
+                                             controls=("f",))
+    layer = NonlinearSolveLayer(prob)
+    u = layer(f=torch.full((prob.control_size("f"),), 5.0, dtype=torch.float64))
+    u.square().sum().backward()
+    assert u.abs().max() > 0.01 and all(p.grad is not None and p.grad.abs().max() > 0 for p in net.parameters())

@@ -25,6 +25,7 @@ from pathlib import Path
 
 # mpi4py's MPI first: PyPI's DOLFINx finds libmpi only once mpi4py has loaded it.
 from mpi4py import MPI
+import basix
 import dolfinx
 import dolfinx.fem
 import dolfinx.fem.petsc
@@ -357,3 +358,44 @@ def point_evaluator(msh, points: np.ndarray):
             found.append(i)
             cells.append(links[0])
     return np.asarray(found, dtype=np.int64), np.asarray(cells, dtype=np.int32)
+
+
+def quadrature_space(msh, degree: int, shape: tuple = ()):
+    """The space of values at the quadrature points of ``degree`` (basix's default scheme) on every cell:
+    scalar, a vector (m,) or a matrix (a, b). Its DOFs are numbered cell by cell, point by point."""
+    if _NEW_SPACES:
+        element = basix.ufl.quadrature_element(msh.basix_cell(), value_shape=tuple(shape), degree=degree)
+        return dolfinx.fem.functionspace(msh, element)
+    cell = msh.ufl_cell()
+    if not shape:
+        element = ufl.FiniteElement("Quadrature", cell, degree, quad_scheme="default")
+    elif len(shape) == 1:
+        element = ufl.VectorElement("Quadrature", cell, degree, dim=shape[0], quad_scheme="default")
+    else:
+        element = ufl.TensorElement("Quadrature", cell, degree, shape=tuple(shape), quad_scheme="default")
+    return dolfinx.fem.FunctionSpace(msh, element)
+
+
+def quadrature_points(msh, degree: int) -> np.ndarray:
+    """(P, tdim) reference points of basix's default quadrature of ``degree`` on ``msh``'s cell: the points of
+    :func:`quadrature_space` and of an integral with that ``quadrature_degree``."""
+    cell = msh.basix_cell() if hasattr(msh, "basix_cell") else basix.cell.string_to_type(cell_name(msh))
+    return basix.make_quadrature(cell, degree)[0]
+
+
+def quadrature_weights(msh, degree: int) -> np.ndarray:
+    """(P,) reference weights of :func:`quadrature_points`."""
+    cell = msh.basix_cell() if hasattr(msh, "basix_cell") else basix.cell.string_to_type(cell_name(msh))
+    return basix.make_quadrature(cell, degree)[1]
+
+
+def expression(expr, points: np.ndarray):
+    """A compiled UFL expression to evaluate at ``points`` (reference coordinates) of cells."""
+    return dolfinx.fem.Expression(expr, points)
+
+
+def evaluate_expression(compiled, msh, cells: np.ndarray, value_size: int) -> np.ndarray:
+    """(len(cells) * P, value_size) values of a compiled :func:`expression` at its points of ``cells``, cell by
+    cell and point by point (0.5: ``eval(cells)``; 0.6+: ``eval(mesh, cells)``)."""
+    values = compiled.eval(msh, cells) if _NEW_SPACES else compiled.eval(cells)
+    return np.asarray(values).reshape(-1, value_size)

@@ -31,6 +31,7 @@ import ufl
 from ufl.algorithms import expand_derivatives
 
 from fempdl.core import _dolfinx
+from fempdl.core.pointwise import coefficients_of, roots_in, total_derivative, with_pointwise_quadrature
 from fempdl.core.problem_base import ProblemBase, describe_form, validated_controls
 
 __all__ = ["NonlinearProblem"]
@@ -74,10 +75,12 @@ class NonlinearProblem(ProblemBase):
         if F.arguments()[0].ufl_function_space() != V:
             raise ValueError("F's test function lives on a different space than u; build the TestFunction on "
                              "u.function_space")
-        if u not in F.coefficients():
+        F = with_pointwise_quadrature(F, "F")
+        if u not in coefficients_of(F):
             raise ValueError("F is not a residual in u: u does not appear in F (a linear problem a(w, v) = L(v) "
                              "in a TrialFunction w is a fempdl.Problem)")
-        exact_J = ufl.derivative(F, u, ufl.TrialFunction(V))
+        # With a network N(u) in F, dF/du takes the chain rule through N's operands (fempdl.core.pointwise).
+        exact_J = total_derivative(F, u, ufl.TrialFunction(V))
         given_J = J is not None
         if J is None:
             J = exact_J
@@ -85,13 +88,15 @@ class NonlinearProblem(ProblemBase):
             raise TypeError(f"J must be a bilinear UFL form (test and trial function), got {describe_form(J)}")
         elif any(arg.ufl_function_space() != V for arg in J.arguments()):
             raise ValueError("J's test and trial functions must live on u's space")
+        else:
+            J = with_pointwise_quadrature(J, "J")
         checked = validated_controls(controls or {}, {"F": F}, V.mesh)
         for name, fn in checked.items():
             if fn is u:
                 raise ValueError(f"controls[{name!r}] is the unknown u itself; a control is an input of F")
         self.F, self.J = F, J
         self._init_spaces(V, bcs, checked, fields=fields, nullspace=nullspace, near_nullspace=near_nullspace,
-                          constants=constants, positive=positive, nonnegative=nonnegative)
+                          constants=constants, positive=positive, nonnegative=nonnegative, forms=(F, J))
         self.u = u
         self.step = dolfinx.fem.Function(V, name="newton_step")
         self.F_form = _dolfinx.compile_form(F)
@@ -113,6 +118,15 @@ class NonlinearProblem(ProblemBase):
         return self._cached(("gradient", name), lambda: self._derivative(
             -ufl.replace(self.F, {self._test: self.lam}), self._controls[name]))
 
+    def network_cotangent_forms(self, name: str, step: bool = False) -> dict:
+        """{alpha: compiled linear form} on the spaces of network ``name``'s values and derivatives: d/dN_alpha
+        of -F(u, lam) (the implicit gradient's cotangents), or with ``step`` of Q (one Newton step run
+        backwards); their vector-Jacobian product through the network is the parameters' gradient."""
+        functional = self._step_objective() if step else -ufl.replace(self.F, {self._test: self.lam})
+        return self._cached(("network", name, step), lambda: {
+            alpha: _dolfinx.compile_form(form)
+            for alpha, form in self.networks[name].cotangent_forms(expand_derivatives(functional)).items()})
+
     def step_state_form(self):
         """Compiled linear form on V: dQ/du for one Newton step run backwards (module docstring),
         with ``u`` = u_k, ``step`` = delta_k and ``lam`` = mu_k set."""
@@ -131,7 +145,7 @@ class NonlinearProblem(ProblemBase):
                 - ufl.replace(self.F, {self._test: self.lam}))
 
     def _derivative(self, functional: ufl.Form, wrt: dolfinx.fem.Function):
-        form = expand_derivatives(ufl.derivative(functional, wrt, ufl.TestFunction(wrt.function_space)))
+        form = total_derivative(functional, wrt, ufl.TestFunction(wrt.function_space))
         return None if form.empty() else _dolfinx.compile_form(form)
 
     def _cached(self, key, build):
@@ -146,6 +160,7 @@ class NonlinearProblem(ProblemBase):
 
 def _controls_in(form: ufl.Form, controls: Mapping) -> frozenset:
     """Names of the ``controls`` among the coefficients of ``form`` once its derivatives are expanded."""
-    coefficients = set(expand_derivatives(form).coefficients())
-    return frozenset(name for name, fn in controls.items() if fn in coefficients)
+    form = expand_derivatives(form)
+    coefficients = coefficients_of(form)
+    return frozenset([name for name, fn in controls.items() if fn in coefficients] + list(roots_in([form])))
 

@@ -34,6 +34,7 @@ import ufl
 from ufl.algorithms import expand_derivatives
 
 from fempdl.core import _dolfinx
+from fempdl.core.pointwise import coefficients_of, pointwise_in, roots_in, total_derivative, with_pointwise_quadrature
 from fempdl.core.problem_base import ProblemBase, describe_form, validated_controls
 
 __all__ = ["Problem"]
@@ -106,28 +107,32 @@ class Problem(ProblemBase):
         if L.arguments()[0].ufl_function_space() != test.ufl_function_space():
             raise ValueError("L's test space differs from a's test space; build both with the same TestFunction")
         V = trial.ufl_function_space()
+        a, L = with_pointwise_quadrature(a, "a"), with_pointwise_quadrature(L, "L")
         self.a = a
         self.L = L
         self._init_spaces(V, bcs, validated_controls(controls or {}, {"a": a, "L": L}, V.mesh), fields=fields,
                           nullspace=nullspace, near_nullspace=near_nullspace, constants=constants,
-                          positive=positive, nonnegative=nonnegative)
+                          positive=positive, nonnegative=nonnegative, forms=(a, L))
         self.u = dolfinx.fem.Function(self.V, name="u")
         self.a_form = _dolfinx.compile_form(a)
         self.L_form = _dolfinx.compile_form(L)
 
-        a_coeffs, L_coeffs = set(a.coefficients()), set(L.coefficients())
-        self.matrix_controls = frozenset(n for n, fn in self._controls.items() if fn in a_coeffs)
-        self.rhs_controls = frozenset(n for n, fn in self._controls.items() if fn in L_coeffs)
-        self._rhs_derivatives = {n: self._rhs_derivative(n) for n in self.rhs_controls}
+        a_coeffs, L_coeffs = coefficients_of(a), coefficients_of(L)
+        # A network's parameters are an input of the forms that hold it (a matrix "control" of a kappa_theta(x)).
+        self.matrix_controls = frozenset([n for n, fn in self._controls.items() if fn in a_coeffs]
+                                         + list(roots_in([a])))
+        self.rhs_controls = frozenset([n for n, fn in self._controls.items() if fn in L_coeffs] + list(roots_in([L])))
+        self._rhs_derivatives = {n: self._rhs_derivative(n) for n in self.rhs_controls if n in self._controls}
         self.affine_rhs_controls = frozenset(
             n for n, dL in self._rhs_derivatives.items()
             if n not in self.matrix_controls and not self._depends_on_controls(dL))
         # Matrix controls the matrix is affine in (A(m) = A0 + sum_k m_k A_k).
         # (The direction is a third argument: a already has a test and a trial function.)
         self.affine_matrix_controls = frozenset(
-            n for n in self.matrix_controls
-            if self._controls[n] not in set(expand_derivatives(ufl.derivative(
-                a, self._controls[n], ufl.Argument(self._controls[n].function_space, 2))).coefficients()))
+            n for n in self.matrix_controls if n in self._controls
+            and not _reads_control(total_derivative(a, self._controls[n],
+                                                    ufl.Argument(self._controls[n].function_space, 2)),
+                                   self._controls[n]))
         if not isinstance(symmetric, bool):
             raise TypeError(f"symmetric must be a bool, got {type(symmetric).__name__}")
         self.symmetric = symmetric
@@ -141,12 +146,26 @@ class Problem(ProblemBase):
         self._check_name(name)
         if name not in self._gradient_forms:
             m = self._controls[name]
-            residual = ufl.action(self.a, self.u) - self.L
-            dF = expand_derivatives(ufl.derivative(residual, m, ufl.TrialFunction(m.function_space)))
+            dF = total_derivative(self._residual(), m, ufl.TrialFunction(m.function_space))
             form = None if dF.empty() else _dolfinx.compile_form(
                 -ufl.action(ufl.adjoint(dF), self.lam))
             self._gradient_forms[name] = form
         return self._gradient_forms[name]
+
+    def network_cotangent_forms(self, name: str) -> dict:
+        """{alpha: compiled linear form} on the spaces of network ``name``'s values and derivatives:
+        d/dN_alpha of -F(u, lam), F = a(u, .) - L, the cotangents whose vector-Jacobian product through the
+        network is dJ/dtheta (:mod:`fempdl.core.pointwise`)."""
+        key = ("network", name)
+        if key not in self._gradient_forms:
+            test = self.a.arguments()[0] if self.a.arguments()[0].number() == 0 else self.a.arguments()[1]
+            functional = -ufl.replace(self._residual(), {test: self.lam})
+            self._gradient_forms[key] = {alpha: _dolfinx.compile_form(form) for alpha, form in
+                                         self.networks[name].cotangent_forms(expand_derivatives(functional)).items()}
+        return self._gradient_forms[key]
+
+    def _residual(self) -> ufl.Form:
+        return ufl.action(self.a, self.u) - self.L
 
     def rhs_matrix_form(self, name: str):
         """Compiled bilinear form C_m = dL/dm (test space V, trial space of m)
@@ -174,14 +193,17 @@ class Problem(ProblemBase):
     # ----------------------------------------------------------------- helpers
     def _rhs_derivative(self, name: str) -> ufl.Form:
         m = self._controls[name]
-        return expand_derivatives(ufl.derivative(self.L, m, ufl.TrialFunction(m.function_space)))
+        return total_derivative(self.L, m, ufl.TrialFunction(m.function_space))
 
     def _depends_on_controls(self, form: ufl.Form) -> bool:
-        coeffs = set(form.coefficients())
-        return any(fn in coeffs for fn in self._controls.values())
+        coeffs = coefficients_of(form)
+        return bool(pointwise_in(form)) or any(fn in coeffs for fn in self._controls.values())
 
     def __repr__(self) -> str:
         return (f"Problem(V={_dolfinx.element_family(self.V)} {_dolfinx.element_degree(self.V)}, n={self.output_size}, "
                 f"controls={list(self.control_names)}, matrix_controls={sorted(self.matrix_controls)})")
 
 
+def _reads_control(form: ufl.Form, control) -> bool:
+    """Whether ``form`` reads ``control``, directly or through a network's operands or values."""
+    return bool(pointwise_in(form)) or control in coefficients_of(form)

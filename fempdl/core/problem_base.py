@@ -24,6 +24,7 @@ import ufl
 
 from fempdl.core import _dolfinx
 from fempdl.core.nullspaces import orthonormal
+from fempdl.core.pointwise import coefficients_of, roots_in
 
 __all__ = ["ProblemBase", "validated_controls", "validated_constants", "owned_size", "as_array", "describe_form",
            "count_nonpositive", "nonpositive_control_message"]
@@ -49,8 +50,9 @@ class ProblemBase:
         super().__setattr__(name, value)
 
     def _init_spaces(self, V, bcs, controls: dict, *, fields, nullspace, near_nullspace, constants,
-                     positive=(), nonnegative=()) -> None:
-        """Set V, bcs (checked to be Dirichlet conditions on V), the validated ``controls``,
+                     positive=(), nonnegative=(), forms=()) -> None:
+        """Set V, bcs (checked to be Dirichlet conditions on V), the validated ``controls``, the networks
+        (pointwise coefficients) the ``forms`` hold,
         the work Functions ``u`` and ``lam``, BC DOFs, fields, null spaces, constants, the
         controls and Constants that must be positive and the Constants that must be >= 0."""
         self.V = V
@@ -69,6 +71,13 @@ class ProblemBase:
                                  "create it with the same FunctionSpace")
         self._controls = controls
         self.control_names = tuple(controls)
+        networks = roots_in(forms)
+        clash = sorted(set(networks) & set(controls))
+        if clash:
+            raise ValueError(f"the network(s) {clash} have the name of a control; give the network another name=")
+        #: ``{name: network}`` of the networks (pointwise coefficients) the forms hold: a layer passes each one's
+        #: parameters as a call input under its name (:meth:`refresh_networks` evaluates them).
+        self.networks = MappingProxyType(networks)
         self.lam = dolfinx.fem.Function(self.V, name="adjoint")
         imap = self.V.dofmap.index_map
         self._n_owned = imap.size_local * self.V.dofmap.index_map_bs
@@ -84,6 +93,18 @@ class ProblemBase:
         self.constants = MappingProxyType(validated_constants(constants or {}))
         self.positive = positive
         self.nonnegative = nonnegative
+
+    @property
+    def input_names(self) -> tuple:
+        """The names a layer's call passes tensors for: the controls, then the networks' parameters."""
+        return (*self.control_names, *self.networks)
+
+    def refresh_networks(self, strict: bool = True) -> None:
+        """Evaluate the networks at the current values of their operands (the state, the controls) and
+        parameters, where any of them changed; collective on a distributed mesh. ``strict``: refuse
+        non-finite or non-positive values (:meth:`fempdl.core.pointwise.PointwiseCoefficient.refresh`)."""
+        for network in self.networks.values():
+            network.refresh(strict)
 
     @property
     def enclosed(self) -> bool:
@@ -181,7 +202,9 @@ class ProblemBase:
         return self._controls[name]
 
     def control_size(self, name: str) -> int:
-        """Number of owned DOF values a tensor for control ``name`` must have."""
+        """Number of owned DOF values a tensor for control ``name`` must have (a network's: its parameter count)."""
+        if name in self.networks:
+            return self.networks[name].parameter_count
         space = self.control(name).function_space
         return space.dofmap.index_map.size_local * space.dofmap.index_map_bs
 
@@ -306,7 +329,7 @@ def validated_controls(controls: Mapping, forms: Mapping[str, ufl.Form], msh) ->
     ``forms`` ({"a": a, "L": L}: named in the error)."""
     if not isinstance(controls, Mapping):
         raise TypeError(f"controls must be a mapping {{name: dolfinx.fem.Function}}, got {type(controls).__name__}")
-    coefficients = set().union(*(form.coefficients() for form in forms.values()))
+    coefficients = set().union(*(coefficients_of(form) for form in forms.values()))
     out = {}
     for name, fn in controls.items():
         if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name):

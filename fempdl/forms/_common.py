@@ -18,9 +18,9 @@ COEFFICIENT_SPACES = {"P1": ("Lagrange", 1), "DG0": ("DG", 0)}
 
 
 # What a form offers in place of a network: a UFL law whose parameters are controls.
-NO_NETWORK_IN_FORMS = ("a form is UFL, compiled once to C, and torch cannot run inside it: write the law as a UFL "
-                       "expression of u (e.g. lambda u: 1 + a * u**2) whose parameters are controls, such as a "
-                       "polynomial in u with its coefficients as a control Function")
+NO_NETWORK_IN_FORMS = ("a form is UFL, compiled once to C, and torch cannot run inside its code: wrap the module as a "
+                       "coefficient that torch evaluates at the quadrature points, q=lambda u: fempdl.Network(module, "
+                       "operands=(u,)), or write the law as a UFL expression of u whose parameters are controls")
 
 
 def _is_torch(obj) -> bool:

@@ -152,10 +152,13 @@ class Rollout(torch.nn.Module):
         per_step = dict(per_step or {})
         schedule = (self._one_node(initial, controls, per_step) if self.schedule is None
                     else None if self.schedule == AUTOGRAD else self.schedule)
-        values, indices = checked_call(self, schedule, initial, steps, constants or {}, controls, per_step, outputs)
+        networks = {name: network.parameters_tensor() for name, network in self.step.problem.networks.items()}
+        values, indices = checked_call(self, schedule, initial, steps, constants or {}, controls, per_step, outputs,
+                                       networks)
         write = self._writer(series, values, steps)
         write(0, initial)
         if schedule is not None:
+            controls = {**controls, **networks}       # a step layer's call would pass them itself
             return _Scheduled.apply(self, schedule, steps, values, tuple(controls), tuple(per_step), indices, write,
                                     initial, *controls.values(), *per_step.values())
         problem = self.step.problem

@@ -7,6 +7,7 @@ different collectives)."""
 from __future__ import annotations
 
 from collections.abc import Mapping
+from types import MappingProxyType
 
 import numpy as np
 import torch
@@ -18,15 +19,16 @@ __all__ = ["checked_call"]
 
 
 def checked_call(rollout, schedule, initial, steps: int, constants: Mapping, controls: dict, per_step: dict,
-                 outputs) -> tuple[dict, list]:
+                 outputs, networks: Mapping = MappingProxyType({})) -> tuple[dict, list]:
     """(values, indices): the Constants' per-step values, name -> (N, ...) float64 arrays, and the output
     state indices in 0 ... N, of a checked call (module docstring); a ValueError or TypeError naming the
-    argument otherwise. ``schedule``: the call's, ``None`` when every step is a call of the step layer."""
+    argument otherwise. ``schedule``: the call's, ``None`` when every step is a call of the step layer;
+    ``networks``: the step's networks' parameters (name -> flat tensor), inputs of every step."""
     check_int("steps", steps, minimum=1)
     values = _constant_values(rollout, constants, steps)
     _check_controls(rollout, controls, per_step, steps)
     indices = _outputs(outputs, steps)
-    _check_call(rollout, schedule, initial, steps, values, controls, per_step, indices)
+    _check_call(rollout, schedule, initial, steps, values, {**controls, **networks}, per_step, indices)
     return values, indices
 
 
@@ -87,7 +89,12 @@ def _constant_values(rollout, constants: Mapping, steps: int) -> dict:
 
 
 def _check_controls(rollout, controls: dict, per_step: dict, steps: int) -> None:
-    names = set(rollout.step.problem.control_names)
+    problem = rollout.step.problem
+    given = sorted((set(controls) | set(per_step)) & set(problem.networks))
+    if given:
+        raise ValueError(f"{given} name the step's network(s), whose parameters the rollout passes itself (the "
+                         "module's current weights, to every step); call it with the controls only")
+    names = set(problem.control_names)
     for name in (*controls, *per_step):
         if name == rollout.state:
             raise ValueError(f"{rollout.state!r} is the rollout's state: pass it as `initial`")

@@ -13,6 +13,7 @@ Shapes: each control tensor is (B, n_m) or (n_m,) with n_m = ``problem.control_s
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import weakref
 from collections.abc import Callable
 
@@ -58,7 +59,11 @@ class SystemLayer(torch.nn.Module):
         # Plain values for forward, so torch.compile traces it without entering the Problem.
         self._distributed = problem.V.mesh.comm.size > 1
         self._sizes = {**{n: problem.control_size(n) for n in problem.control_names},
-                       INITIAL_GUESS: problem.output_size}
+                       INITIAL_GUESS: problem.output_size,
+                       **{n: network.parameter_count for n, network in problem.networks.items()}}
+        if problem.networks:
+            # Submodules: the networks' weights are the model's parameters (model.parameters(), state_dict).
+            self.networks = torch.nn.ModuleDict({n: network.module for n, network in problem.networks.items()})
         self._handle = register_layer(self)
         self._healthy = HealthyCalls(type(self).__name__, self._distributed, system.stats)
         # Plain attributes, not submodules: a twin is no part of the model's state_dict (__setattr__).
@@ -221,11 +226,18 @@ class SystemLayer(torch.nn.Module):
     def _inputs(self, positional, initial_guess, controls: dict):
         """Checked call inputs: (names, tensors, batch, batched, dtype, device), the ranks' calls compared."""
         if positional:
-            names = [n for n in self._sizes if n != INITIAL_GUESS]
+            names = [n for n in self.problem.control_names]
             raise TypeError(f"{type(self).__name__} takes its controls as keywords, got {len(positional)} positional "
                             f"argument(s); call it as layer({', '.join(f'{n}=...' for n in names)})")
         if initial_guess is not None:
             controls = {**controls, INITIAL_GUESS: initial_guess}
+        networks = self.problem.networks
+        if networks:
+            given = sorted(set(controls) & set(networks))
+            if given:
+                raise ValueError(f"{given} name the problem's network(s), whose parameters the layer passes itself "
+                                 "(the module's current weights, by value); call the layer with its controls only")
+            controls = {**controls, **{n: network.parameters_tensor() for n, network in networks.items()}}
         names, tensors, batch, batched = self._validate(controls)
         self.note_call(torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
         if self._distributed:
@@ -254,7 +266,10 @@ class SystemLayer(torch.nn.Module):
                 "shared (n,) or batched (B, n)": tuple("shared" if t.dim() == 1 else "batched" for t in tensors),
                 "requires_grad": tuple(t.requires_grad for t in tensors) if torch.is_grad_enabled() else "no_grad",
                 "Constants": tuple((name, tuple(np.ravel(c.value).tolist()))
-                                   for name, c in self.problem.constants.items())}
+                                   for name, c in self.problem.constants.items()),
+                # The weights are every rank's: ranks holding different ones would assemble different physics.
+                "network weights": tuple(hashlib.sha1(t.detach().cpu().numpy().tobytes()).hexdigest()[:16]
+                                         for n, t in zip(names, tensors) if n in self.problem.networks)}
 
     def _check_ranks_agree(self, names, tensors, batch: int, extra: dict | None = None, caller: str = "") -> None:
         """On a distributed mesh every rank must make the same call (:meth:`call_signature`, with ``extra``
@@ -348,7 +363,7 @@ class SystemLayer(torch.nn.Module):
         unknown = [n for n in controls if n not in sizes]
         if unknown:
             raise ValueError(f"unknown control(s) {unknown}; this layer's controls are "
-                             f"{[n for n in sizes if n != INITIAL_GUESS]}")
+                             f"{list(self.problem.control_names)}")
         names = tuple(n for n in sizes if n in controls)
         tensors = [controls[n] for n in names]
         batch_sizes = {}

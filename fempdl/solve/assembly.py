@@ -109,12 +109,15 @@ class Timer:
 
 
 class ControlValues:
-    """Sets control Functions per sample and restores their values on exit (saved at the first
-    :meth:`set_sample`: a call that never sets them, a batched affine solve, copies nothing)."""
+    """Sets control Functions (and networks' parameters) per sample and restores their values on exit
+    (saved at the first :meth:`set_sample`: a call that never sets them, a batched affine solve, copies
+    nothing). With ``refresh`` each sample's networks are evaluated at the values set (a linear problem's
+    operands are its coefficients; a Newton system evaluates them at each iterate instead)."""
 
-    def __init__(self, problem: Problem, controls: Mapping[str, np.ndarray]):
+    def __init__(self, problem: Problem, controls: Mapping[str, np.ndarray], refresh: bool = True):
         self._problem = problem
         self._values = controls
+        self._refresh = refresh and bool(problem.networks)
         self._fns = self._saved = None
 
     def __enter__(self):
@@ -124,14 +127,22 @@ class ControlValues:
         if self._saved is not None:
             for n, fn in self._fns.items():
                 fn.x.array[:] = self._saved[n]
+            for n, values in self._saved_parameters.items():
+                self._problem.networks[n].set_parameters(values)
 
     def set_sample(self, i: int) -> None:
+        networks = self._problem.networks
         if self._saved is None:
-            self._fns = {n: self._problem.control(n) for n in self._values}
-            self._sizes = {n: self._problem.control_size(n) for n in self._values}
+            self._fns = {n: self._problem.control(n) for n in self._values if n not in networks}
+            self._sizes = {n: self._problem.control_size(n) for n in self._fns}
             self._saved = {n: fn.x.array.copy() for n, fn in self._fns.items()}
+            self._saved_parameters = {n: networks[n].parameter_values().copy() for n in self._values if n in networks}
         for n, fn in self._fns.items():
             set_owned(fn, self._values[n][i], self._sizes[n])
+        for n in self._saved_parameters:
+            networks[n].set_parameters(self._values[n][i])
+        if self._refresh:
+            self._problem.refresh_networks()
 
     def zeroed(self, names):
         return Zeroed([self._problem.control(n) for n in names])

@@ -22,6 +22,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from fempdl.core.pointwise import reads_of
 from fempdl.solve.assembly import value_of
 from fempdl.solve.caps import Caps
 
@@ -41,7 +42,7 @@ def read_inputs(problem) -> tuple:
     own = {id(getattr(problem, name)) for name in ("u", "lam", "step") if hasattr(problem, name)}
     found: dict = {}
     candidates = [problem.control(n) for n in problem.control_names]
-    candidates += [obj for form in forms for obj in (*form.coefficients(), *form.constants())]
+    candidates += [obj for form in forms for obj in reads_of(form)]
     candidates += [bc.g for bc in problem.bcs if hasattr(bc.g, "x") or hasattr(bc.g, "value")]
     for obj in candidates:
         if id(obj) not in own:

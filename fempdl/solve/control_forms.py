@@ -116,8 +116,11 @@ class ControlForms:
         return np.ascontiguousarray(R.T)
 
     def gradient(self, name: str) -> np.ndarray:
-        """The assembled gradient form of control ``name`` (owned values; u and lam set by the caller)."""
+        """The assembled gradient form of control ``name`` (owned values; u and lam set by the caller); for a
+        network, its parameters' gradient (:meth:`network_gradient`)."""
         p = self.problem
+        if name in p.networks:
+            return self.network_gradient(name, p.network_cotangent_forms(name))
         form = p.gradient_form(name)
         n = p.control_size(name)
         if form is None:
@@ -128,6 +131,24 @@ class ControlForms:
         with self._assembling():
             _dolfinx.assemble_vector_into(vec, form)
         return vec.getArray(readonly=True)[:n].copy()
+
+    def network_gradient(self, name: str, forms: dict) -> np.ndarray:
+        """(n_theta,) sum_alpha <dR/dN_alpha, dN_alpha/dtheta> for network ``name``: the cotangent ``forms``
+        {alpha: compiled dR/dN_alpha} assembled at the points of this rank's cells, one vector-Jacobian product
+        through the network, summed over the ranks (the parameters are every rank's)."""
+        network = self.problem.networks[name]
+        vectors = {}
+        with self._assembling():
+            for alpha, form in forms.items():
+                key = (name, alpha, id(form))
+                vec = self._gradients.get(key)
+                if vec is None:
+                    vec = self._gradients[key] = _dolfinx.create_vector(form)
+                _dolfinx.assemble_vector_into(vec, form)
+                vectors[alpha] = vec.getArray(readonly=True)
+            cotangents = network.cotangents(vectors)
+        grad = np.asarray(network.parameter_vjp(network.operand_values(), cotangents), dtype=np.float64)
+        return self._comm.allreduce(grad) if self._comm.size > 1 else grad
 
     def destroy(self) -> None:
         objs = [v for v, _ in self._base.values()]

@@ -226,7 +226,7 @@ class LinearSystem:
         for a direct solve (whose result does not depend on a guess)."""
         p = self.problem
         batch = G.shape[0]
-        wanted = [n for n in p.control_names if n in set(wanted)]
+        wanted = [n for n in p.input_names if n in set(wanted)]
         names = frozenset(controls)
         per_sample_matrix = bool((names - frozenset(shared)) & p.matrix_controls)
         use_batched = self._use_batched(batch, per_sample_matrix)

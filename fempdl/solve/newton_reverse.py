@@ -61,13 +61,13 @@ class NewtonReversePass:
         gradient for the starting point: a solution of F(u) = 0 does not depend on it."""
         p = self.problem
         batch = G.shape[0]
-        wanted = [n for n in p.control_names if n in set(wanted)]
+        wanted = [n for n in p.input_names if n in set(wanted)]
         grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
         if initial_guess:
             grads[INITIAL_GUESS] = np.zeros((batch, p.output_size))
         G = without_bc_entries(G, p)
         called = frozenset(controls)
-        with ControlValues(p, controls) as ctl:
+        with ControlValues(p, controls, refresh=False) as ctl:
             for i in range(batch):
                 ctl.set_sample(i)
                 self._transpose_solve(U[i], G[i], True, called)
@@ -81,12 +81,12 @@ class NewtonReversePass:
         dJ/dm (batch, n_m) for m in ``wanted`` and, with ``initial_guess``, dJ/du_0 (batch, n)."""
         p = self.problem
         batch = G.shape[0]
-        wanted = [n for n in p.control_names if n in set(wanted)]
+        wanted = [n for n in p.input_names if n in set(wanted)]
         grads = {n: np.zeros((batch, p.control_size(n))) for n in wanted}
         a = path.damping
         G = without_bc_entries(G, p)
         called = frozenset(controls)
-        with ControlValues(p, controls) as ctl:
+        with ControlValues(p, controls, refresh=False) as ctl:
             for i in range(batch):
                 ctl.set_sample(i)
                 iterates = path.iterates[i]
@@ -95,7 +95,9 @@ class NewtonReversePass:
                     self._transpose_solve(iterates[k], u_bar, False, called)     # lam = mu_k, u = u_k
                     set_owned(p.step, (iterates[k] - iterates[k + 1]) / a, p.output_size)
                     for name in wanted:
-                        grads[name][i] += a * self._assembled(p.step_control_form(name), name)
+                        grads[name][i] += a * (self._forms.network_gradient(name, p.network_cotangent_forms(name, True))
+                                               if name in p.networks else
+                                               self._assembled(p.step_control_form(name), name))
                     u_bar = u_bar + a * self._assembled(p.step_state_form(), None)
                     if len(p.bc_dofs):
                         u_bar[p.bc_dofs] = 0.0        # u_k takes the boundary values whatever came before

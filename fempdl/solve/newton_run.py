@@ -89,6 +89,7 @@ class NewtonRun:
         self._recording: list | None = None
         self._residual_norms: list = []
         self._nonfinite_residual = False
+        self._first_state = True            # the networks are checked strictly at a solve's first state
 
     def callbacks(self) -> tuple:
         """The SNES's (residual, jacobian, monitor), through weak references (no cycle with the SNES)."""
@@ -104,9 +105,13 @@ class NewtonRun:
             setattr(self, name, _dolfinx.create_vector(self.problem.F_form))
 
     def _set_state(self, x: PETSc.Vec) -> None:
-        """u <- x (owned values), ghosts updated."""
+        """u <- x (owned values), ghosts updated, and the networks evaluated at it: strictly at a solve's
+        first state (a network that gives NaN or a sign it must not is refused by name), as they come at
+        later iterates (a step may leave a law's domain, and Newton reports it or a line search shortens it)."""
         x.copy(self._u_vec)
         self._u_vec.ghostUpdate(addv=_INSERT, mode=_FORWARD)
+        self.problem.refresh_networks(strict=self._first_state)
+        self._first_state = False
 
     def _residual(self, snes, x, b) -> None:
         with Timer(self.stats, "assembly_time"):
@@ -164,7 +169,9 @@ class NewtonRun:
         s = self.stats
         inner_before, solves_before, assembly_before = s.forward_iterations, s.forward_solves, s.assembly_time
         t0 = time.perf_counter()
+        self._first_state = True
         reference = self._measure_reference(from_guess=guess is not None)
+        self._first_state = True
         try:
             self._solvers.snes.solve(None, sol)
         except BaseException as err:            # a callback's error comes bare or as a PETSc.Error's cause

@@ -183,7 +183,7 @@ class NonlinearSystem:
         U = np.empty((batch, n))
         paths = []
         called = frozenset(controls)
-        with ControlValues(p, controls) as ctl:
+        with ControlValues(p, controls, refresh=False) as ctl:
             for i in range(batch):
                 ctl.set_sample(i)
                 if self._run.stopped_on_error:
@@ -228,6 +228,7 @@ class NonlinearSystem:
         ``controls`` (the call's control names) that J depends on."""
         p = self.problem
         assembly.set_owned(p.u, u, p.output_size)
+        p.refresh_networks()
         A, form, solver = ((self._dFdu, p.exact_J_form, self._solvers.exact_adjoint) if exact
                            else (self._J, p.J_form, self._solvers.adjoint))
         with Timer(self.stats, "assembly_time"):
