@@ -41,16 +41,19 @@ sources = torch.tensor(np.stack([(20 + k) * (1 + 0.5 * np.sin((k + 1) * x[:, 0] 
 points = [p for p in np.random.default_rng(7).uniform([0.05, 0.05], [1.95, 0.95], (400, 2))
           if min(np.hypot(p[0] - 0.6, p[1] - 0.5), np.hypot(p[0] - 1.4, p[1] - 0.5)) > 0.25][:50]
 sensors = PointObservation(problem, np.array(points))
-with torch.no_grad():
-    data = sensors(solutions := NonlinearSolveLayer(truth)(f=sources))
-epochs = 40 if small else 400
-optimizer = torch.optim.Adam(net.parameters(), lr=2e-2)
-scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, epochs)
-for _ in range(epochs):
+data = sensors(solutions := NonlinearSolveLayer(truth)(f=sources))   # no input requires grad: no graph
+optimizer = torch.optim.LBFGS(net.parameters(), max_iter=20 if small else 300, history_size=50,
+                              line_search_fn="strong_wolfe", tolerance_grad=1e-14, tolerance_change=1e-16)
+
+
+def misfit():                                              # one epoch: the 8 Newton solves and their adjoints
     optimizer.zero_grad()
     (loss := ((sensors(layer(f=sources)) - data) ** 2).sum() / (data ** 2).sum()).backward()
-    optimizer.step()
-    scheduler.step()
+    return loss
+
+
+optimizer.step(misfit)
+loss = misfit()
 s = torch.linspace(0, float(solutions.max()), 100, dtype=torch.float64)[:, None]
 error = ((net(s)[:, 0] - (law := 1 + 4 * s[:, 0] ** 2)).norm() / law.norm()).item()
 print(f"loss {loss.item():.2e}; kappa error {error:.2e} over u in [0, {float(solutions.max()):.2f}]; "

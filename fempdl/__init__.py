@@ -74,7 +74,7 @@ _PUBLIC = {
     "MassInner": "fempdl.layer.observation",
     "Rollout": "fempdl.layer.rollout",
     "Network": "fempdl.layer.network",
-    "derivative": "fempdl.core.pointwise",
+    "derivative": "fempdl.core.pointwise_forms",
 }
 _SUBMODULES = {"forms": "fempdl.forms", "mesh": "fempdl.mesh", "io": "fempdl.io",
                "ksp_adjoint": "fempdl.ksp_adjoint", "bridge_torch": "fempdl.bridge_torch", "prdp": "fempdl.prdp"}

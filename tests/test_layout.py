@@ -27,7 +27,7 @@ PUBLIC_PATHS = ["fempdl.ksp_adjoint", "fempdl.bridge_torch", "fempdl.prdp"]
 FLOORS = [
     ("core", [["fempdl.core._dolfinx", "fempdl.core.checks", "fempdl.core.resources", "fempdl.core.parallel",
                "fempdl.core.meshgen", "fempdl.core.nullspaces", "fempdl.core.locks", "fempdl.core.ranks",
-               "fempdl.core.pointwise"],
+               "fempdl.core.pointwise", "fempdl.core.pointwise_forms"],
               ["fempdl.core.mesh", "fempdl.core.problem_base", "fempdl.core.matrices"],
               ["fempdl.core.problem", "fempdl.core.nonlinear_problem", "fempdl.core.io", "fempdl.core.time_series"],
               ["fempdl.forms"], ["fempdl.core"], ["fempdl.mesh", "fempdl.io"]]),

@@ -190,6 +190,8 @@ def test_a_network_of_x_and_a_control_in_a_linear_problem_has_exact_gradients(sq
                    controls={"f": f, "m": m})
     assert prob.matrix_controls == {"m", "kappa"} and prob.affine_rhs_controls == {"f"}
     layer = SolveLayer(prob)
+    with pytest.raises(ValueError, match=r"a network in the form \(\['kappa'\]\) has none of; use diff='implicit'"):
+        SolveLayer(prob, "jacobi", diff="unrolled")
     X = prob.dof_coordinates()
     fs = torch.tensor(np.sin(3 * X[:, 0]), dtype=F64)
     ms = torch.tensor(np.stack([X[:, 1], X[:, 0] ** 2]), dtype=F64, requires_grad=True)
@@ -325,3 +327,41 @@ def test_the_network_as_a_field_is_its_cell_mean_at_a_state_and_writes_to_xdmf(s
     assert np.abs(field.x.array[:n] - expected).max() <= 1e-13 * np.abs(expected).max()
     path = fempdl.io.write_xdmf(tmp_path / "kappa.xdmf", {"kappa": field})
     assert path.exists() and path.with_suffix(".h5").stat().st_size > 0
+
+
+def test_a_capped_newton_layers_implicit_gradient_tends_to_the_converged_one_as_the_cap_grows(square):
+    prob, N = diffusion(square, mlp())
+    fs, w = sources(prob), weights_of(prob)
+
+    def weight_gradient(options):
+        layer = NonlinearSolveLayer(prob, options)
+        for p in N.module.parameters():
+            p.grad = None
+        (layer(f=fs) * w).sum().backward()
+        return torch.cat([p.grad.reshape(-1) for p in N.module.parameters()])
+    exact = weight_gradient(NewtonOptions(ksp="lu"))
+    errors = [float((weight_gradient(NewtonOptions(ksp="lu", max_it=k)) - exact).norm() / exact.norm())
+              for k in (1, 2, 3)]
+    assert errors[0] > 1e-3 and errors[1] < errors[0] / 3 and errors[2] < errors[1] / 3, errors
+
+
+def test_the_adjoint_takes_each_samples_values_from_its_forward_instead_of_evaluating_again(square):
+    """The network keeps its recent evaluations: a batch's backward, at each sample's solution, evaluates
+    nothing, and its gradient is that of a layer that evaluates everything again."""
+    prob, N = diffusion(square, mlp())
+    layer = NonlinearSolveLayer(prob, NewtonOptions(ksp="lu"))
+    fs, w = sources(prob, 3), weights_of(prob, 3)
+    out = layer(f=fs)
+    before = N.evaluations
+    (out * w).sum().backward()
+    assert N.evaluations == before
+    kept = torch.cat([p.grad.reshape(-1) for p in N.module.parameters()])
+    for p in N.module.parameters():
+        p.grad = None
+    out = layer(f=fs)
+    N._recent.clear()                      # forget them: the backward evaluates at each solution again
+    before = N.evaluations
+    (out * w).sum().backward()
+    assert N.evaluations == before + 3
+    again = torch.cat([p.grad.reshape(-1) for p in N.module.parameters()])
+    assert torch.allclose(kept, again, rtol=1e-13, atol=0)

@@ -31,7 +31,7 @@ import ufl
 from ufl.algorithms import expand_derivatives
 
 from fempdl.core import _dolfinx
-from fempdl.core.pointwise import coefficients_of, roots_in, total_derivative, with_pointwise_quadrature
+from fempdl.core.pointwise_forms import coefficients_of, roots_in, total_derivative, with_pointwise_quadrature
 from fempdl.core.problem_base import ProblemBase, describe_form, validated_controls
 
 __all__ = ["NonlinearProblem"]
@@ -79,7 +79,7 @@ class NonlinearProblem(ProblemBase):
         if u not in coefficients_of(F):
             raise ValueError("F is not a residual in u: u does not appear in F (a linear problem a(w, v) = L(v) "
                              "in a TrialFunction w is a fempdl.Problem)")
-        # With a network N(u) in F, dF/du takes the chain rule through N's operands (fempdl.core.pointwise).
+        # With a network N(u) in F, dF/du takes the chain rule through N's operands (fempdl.core.pointwise_forms).
         exact_J = total_derivative(F, u, ufl.TrialFunction(V))
         given_J = J is not None
         if J is None:

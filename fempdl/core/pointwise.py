@@ -8,12 +8,13 @@ A :class:`PointwiseCoefficient` N is a DOLFINx Function on a quadrature space of
 for operands o_i (UFL expressions: the unknown, its gradient, x, other coefficients) and a map f that
 UFL does not see (a torch network: :class:`fempdl.layer.network.Network` implements
 :meth:`PointwiseCoefficient.values_at` and :meth:`PointwiseCoefficient.parameter_vjp`). A form that
-holds N is integrated with quadrature degree q (:func:`with_pointwise_quadrature`), at exactly the
+holds N is integrated with quadrature degree q
+(:func:`fempdl.core.pointwise_forms.with_pointwise_quadrature`), at exactly the
 points N holds values at.
 
 Derivatives. UFL sees N as an independent coefficient, so the derivative of a form F in a coefficient c
 (the unknown for a Jacobian, a control for a gradient) is completed by the chain rule through the
-operands (:func:`total_derivative`):
+operands (:func:`fempdl.core.pointwise_forms.total_derivative`):
 
     dF[c; dc] = dF/dc[dc] + dF/dN[ sum_i N_(i) . do_i/dc[dc] ],
 
@@ -35,35 +36,55 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterable
+from dataclasses import dataclass
 
 from mpi4py import MPI
 import dolfinx.fem
 import numpy as np
 import ufl
-from ufl.algorithms import expand_derivatives
-from ufl.constantvalue import Zero
 
 from fempdl.core import _dolfinx
 
-__all__ = ["PointwiseCoefficient", "derivative", "total_derivative", "with_pointwise_quadrature", "pointwise_in",
-           "coefficients_of", "roots_in"]
+__all__ = ["PointwiseCoefficient", "PointwiseFunction", "view", "operand_functions"]
 
 _MAX_SHAPE_RANK = 2          # a quadrature space of rank > 2 does not compile on DOLFINx 0.5
+#: Bytes of recent evaluations (inputs and values) a coefficient keeps, so that a state met again (each
+#: sample's solution in its adjoint, after the batch's other solves) is not evaluated again.
+RECENT_BYTES = 32 * 2 ** 20
 
 
-class _PointwiseFunction(dolfinx.fem.Function):
+@dataclass
+class _Evaluation:
+    """One evaluation: the derivative orders, the inputs (operand Functions' and Constants' values, the
+    parameters) and the values (alpha -> (P, size_alpha)); whether they were checked (finite, positive)."""
+
+    alphas: tuple
+    key: list
+    values: dict
+    checked: bool
+
+    def matches(self, alphas: tuple, key: list) -> bool:
+        return self.alphas == alphas and len(key) == len(self.key) and all(
+            a.shape == b.shape and np.array_equal(a, b) for a, b in zip(key, self.key))
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self.key) + sum(v.nbytes for v in self.values.values())
+
+
+class PointwiseFunction(dolfinx.fem.Function):
     """A Function holding values of a pointwise coefficient or of one of its derivatives (``alpha``)."""
 
     root: PointwiseCoefficient
     alpha: tuple
 
     @property
-    def size(self) -> int:
+    def point_size(self) -> int:
+        """Values per quadrature point."""
         return math.prod(self.full_shape)
 
 
-class PointwiseCoefficient(_PointwiseFunction):
+class PointwiseCoefficient(PointwiseFunction):
     """N(x_q) = f(o_1(x_q), ..., o_k(x_q)) at the quadrature points (module docstring).
 
     Args:
@@ -100,7 +121,7 @@ class PointwiseCoefficient(_PointwiseFunction):
         if len(shape) > _MAX_SHAPE_RANK or any(s < 1 for s in shape):
             raise ValueError(f"shape must be (), (m,) or (a, b), got {shape}")
         if degree is None:
-            degree = 2 * max((_dolfinx.element_degree(fn.function_space) for fn in _functions_in(ops)), default=1)
+            degree = 2 * max((_dolfinx.element_degree(fn.function_space) for fn in operand_functions(ops)), default=1)
         if not isinstance(degree, int) or isinstance(degree, bool) or degree < 1:
             raise ValueError(f"degree must be a positive int (a quadrature degree), got {degree!r}")
         super().__init__(_dolfinx.quadrature_space(msh, degree, shape), name=name)
@@ -113,7 +134,7 @@ class PointwiseCoefficient(_PointwiseFunction):
         self._compiled = None                       # the operands' Expression, compiled on first evaluation
         self._functions = {(): self}                # alpha -> Function holding N_alpha
         self._reads = _reads_of(ops)
-        self._seen = None                           # what the values were last computed from
+        self._recent: list[_Evaluation] = []        # recent evaluations, the one the Functions hold first
         #: Seconds spent computing values (operands at the points, the map and its derivatives), and how often.
         self.evaluation_time, self.evaluations = 0.0, 0
 
@@ -125,11 +146,11 @@ class PointwiseCoefficient(_PointwiseFunction):
         if alpha not in self._functions:
             shape = self.value_shape + sum((self.operands[i].ufl_shape for i in alpha), ())
             size = math.prod(shape)
-            fn = _PointwiseFunction(_dolfinx.quadrature_space(self._mesh, self.degree, () if size == 1 else (size,)),
+            fn = PointwiseFunction(_dolfinx.quadrature_space(self._mesh, self.degree, () if size == 1 else (size,)),
                                     name=f"d{len(alpha)}_{self.name}_{'_'.join(map(str, alpha))}")
             fn.root, fn.alpha, fn.full_shape = self, alpha, shape
             self._functions[alpha] = fn
-            if self._seen is not None:
+            if self._recent:
                 # A form built in the middle of a solve or a backward (a gradient form on first use) is
                 # assembled at the state the values were just computed at: evaluate the new derivative there.
                 self.refresh()
@@ -143,36 +164,44 @@ class PointwiseCoefficient(_PointwiseFunction):
     # ---------------------------------------------------------------- values
     def refresh(self, strict: bool = True) -> None:
         """Evaluate N and every derivative in use at the operands' current values, unless neither they nor
-        the parameters changed since the last evaluation (on any rank: collective). ``strict``: refuse
+        the parameters changed since the last evaluation, or since one of the recent ones it keeps (on any
+        rank: collective). ``strict``: refuse
         non-finite values, or values <= 0 where N is ``positive``, on every rank alike; otherwise (a Newton
         iterate after the first, which may leave the law's domain: an inverted element under log J) write
         them as they are, and the residual shows them as a law undefined there does (Newton's failure, or
         a line search's shorter step)."""
         comm = self._mesh.comm
-        key = [np.asarray(_value(obj)) for obj in self._reads] + [np.asarray(self.parameter_values())]
-        same = self._seen is not None and self._seen[0] == self.alphas and all(
-            a.shape == b.shape and np.array_equal(a, b) for a, b in zip(key, self._seen[1]))
-        if comm.size > 1:
-            same = comm.allreduce(same, op=MPI.LAND)
-        if same:
-            return
-        self._seen = None
         alphas = self.alphas
-        started = time.perf_counter()
-        values = self.values_at(self.operand_values(), alphas)
-        self.evaluation_time += time.perf_counter() - started
-        self.evaluations += 1
-        for alpha in alphas:
-            fn = self._functions[alpha]
-            array = np.asarray(values[alpha], dtype=np.float64)
-            expected = (self._n_cells * len(self._points), fn.size)
-            if array.shape != expected:
-                raise ValueError(f"{self.kind} {self.name!r} gave values of shape {array.shape} for "
-                                 f"derivative {alpha}, expected {expected}")
-            if strict:
+        key = [np.asarray(_value(obj)) for obj in self._reads] + [np.asarray(self.parameter_values())]
+        hit = next((i for i, entry in enumerate(self._recent) if entry.matches(alphas, key)), None)
+        if comm.size > 1:
+            hit = hit if comm.allreduce(hit is not None, op=MPI.LAND) else None
+        if hit is None:
+            started = time.perf_counter()
+            values = self.values_at(self.operand_values(), alphas)
+            self.evaluation_time += time.perf_counter() - started
+            self.evaluations += 1
+            entry = _Evaluation(alphas, [a.copy() for a in key], {}, checked=False)
+            for alpha in alphas:
+                array = np.asarray(values[alpha], dtype=np.float64)
+                expected = (self._n_cells * len(self._points), self._functions[alpha].point_size)
+                if array.shape != expected:
+                    raise ValueError(f"{self.kind} {self.name!r} gave values of shape {array.shape} for "
+                                     f"derivative {alpha}, expected {expected}")
+                entry.values[alpha] = array
+        else:
+            entry = self._recent.pop(hit)
+        if strict and not entry.checked:
+            for alpha, array in entry.values.items():
                 _check_values(self, alpha, array, comm)
-            fn.x.array.reshape(-1, fn.size)[self._cell_dofs(fn)] = array
-        self._seen = (alphas, [a.copy() for a in key])
+            entry.checked = True
+        if hit != 0:                      # the first entry's values are those the Functions hold
+            for alpha, array in entry.values.items():
+                fn = self._functions[alpha]
+                fn.x.array.reshape(-1, fn.point_size)[self._cell_dofs(fn)] = array
+        self._recent.insert(0, entry)
+        while len(self._recent) > 1 and sum(e.nbytes for e in self._recent) > RECENT_BYTES:
+            self._recent.pop()
 
     def operand_values(self) -> list[np.ndarray]:
         """The operands at the quadrature points of this rank's owned cells: one (P, size_i) array each."""
@@ -198,17 +227,17 @@ class PointwiseCoefficient(_PointwiseFunction):
 
     def cotangents(self, vectors: dict) -> dict:
         """Per-point cotangents (P, size_a) from assembled vectors {alpha: owned values on N_alpha's space}."""
-        return {alpha: np.asarray(vec).reshape(-1, self._functions[alpha].size)[self._cell_dofs(self._functions[alpha])]
-                for alpha, vec in vectors.items()}
+        out = {}
+        for alpha, vec in vectors.items():
+            fn = self._functions[alpha]
+            out[alpha] = np.asarray(vec).reshape(-1, fn.point_size)[self._cell_dofs(fn)]
+        return out
 
     def cotangent_forms(self, functional: ufl.Form) -> dict:
         """{alpha: linear form dR/dN_alpha on N_alpha's space} for each N_alpha that the functional R holds."""
         present = set(functional.coefficients())
         return {alpha: ufl.derivative(functional, fn, ufl.TestFunction(fn.function_space))
                 for alpha, fn in self._functions.items() if fn in present}
-
-    def function(self, alpha: tuple) -> dolfinx.fem.Function:
-        return self._functions[alpha]
 
     def _cell_dofs(self, fn) -> np.ndarray:
         return _dolfinx.cell_dofs(fn.function_space)[:self._n_cells].ravel()
@@ -238,11 +267,11 @@ class PointwiseCoefficient(_PointwiseFunction):
 
 
 # ------------------------------------------------------------------- forms
-def view(fn: _PointwiseFunction) -> ufl.core.expr.Expr:
+def view(fn: PointwiseFunction) -> ufl.core.expr.Expr:
     """``fn`` as a UFL expression of its full shape (a derivative of rank > 2 is stored flat)."""
     if fn.ufl_shape == fn.full_shape:
         return fn
-    return _reshaped((lambda k: fn) if fn.size == 1 else (lambda k: fn[k]), fn.full_shape)
+    return _reshaped((lambda k: fn) if fn.point_size == 1 else (lambda k: fn[k]), fn.full_shape)
 
 
 def _reshaped(component, shape: tuple):
@@ -251,116 +280,6 @@ def _reshaped(component, shape: tuple):
     def build(block):
         return [build(b) for b in block] if block.ndim else component(int(block))
     return ufl.as_tensor(build(flat))
-
-
-def pointwise_in(form) -> list[_PointwiseFunction]:
-    """The pointwise Functions (coefficients and derivatives) a form or an expression holds."""
-    coefficients = form.coefficients() if isinstance(form, ufl.Form) else ufl.algorithms.extract_coefficients(form)
-    return [c for c in coefficients if isinstance(c, _PointwiseFunction)]
-
-
-def roots_in(forms: Iterable) -> dict:
-    """{name: PointwiseCoefficient} of the pointwise coefficients the forms hold (directly or by a derivative);
-    two different ones under one name are refused."""
-    roots: dict = {}
-    for form in forms:
-        for fn in pointwise_in(form):
-            other = roots.setdefault(fn.root.name, fn.root)
-            if other is not fn.root:
-                raise ValueError(f"two pointwise coefficients (networks) are named {fn.root.name!r}; give each "
-                                 "its own name=")
-    return roots
-
-
-def coefficients_of(form) -> set:
-    """The coefficients a form reads: its own and, through each pointwise coefficient, its operands'."""
-    found = set(form.coefficients())
-    for fn in pointwise_in(form):
-        found |= set(_functions_in(fn.root.operands))
-    return found
-
-
-def reads_of(form) -> list:
-    """The Functions and Constants a form's values depend on, pointwise coefficients replaced by their
-    operands' (which a call record captures: the pointwise values are recomputed from them)."""
-    found = [c for c in form.coefficients() if not isinstance(c, _PointwiseFunction)] + list(form.constants())
-    for fn in pointwise_in(form):
-        found += fn.root._reads
-    return found
-
-
-def total_derivative(form: ufl.Form, coefficient, direction) -> ufl.Form:
-    """dF[c; dc] with the chain rule through every pointwise coefficient F holds (module docstring);
-    derivatives expanded. ``coefficient`` a Function, ``direction`` an Argument (or Function) on its space."""
-    result = expand_derivatives(ufl.derivative(form, coefficient, direction))
-    for fn in pointwise_in(form):
-        root, terms = fn.root, []
-        for i, op in enumerate(root.operands):
-            d_op = expand_derivatives(ufl.derivative(op, coefficient, direction))
-            if isinstance(d_op, Zero):
-                continue
-            terms.append(_contract(root.derivative(fn.alpha + (i,)), d_op))
-        if not terms:
-            continue
-        chain = sum(terms[1:], terms[0])
-        placeholder = dolfinx.fem.Function(fn.function_space)
-        along = expand_derivatives(ufl.derivative(form, fn, placeholder))
-        if along.empty():
-            continue
-        flat = (chain if fn.ufl_shape == chain.ufl_shape
-                else ufl.as_vector([chain[idx] for idx in np.ndindex(chain.ufl_shape)]))
-        result = result + ufl.replace(along, {placeholder: flat})
-    return result
-
-
-def derivative(form: ufl.Form, coefficient, direction=None) -> ufl.Form:
-    """``ufl.derivative`` through the networks a form holds: the residual of an energy with a network,
-    ``F = fempdl.derivative(psi_theta(F(u)) * dx, u, v)``, holds d psi/dF at the points (UFL alone would
-    give zero: it sees a network as an independent coefficient). Same arguments as ``ufl.derivative``
-    (``direction`` default: a TestFunction, or a TrialFunction for a form that has one already)."""
-    if direction is None:
-        space = coefficient.function_space
-        direction = ufl.TestFunction(space) if not form.arguments() else ufl.TrialFunction(space)
-    return total_derivative(with_pointwise_quadrature(form, "the form"), coefficient, direction)
-
-
-def _contract(derivative, d_op):
-    """D . d_op over d_op's indices: D has shape S + d_op's shape."""
-    rank = len(d_op.ufl_shape)
-    if rank == 0:
-        return derivative * d_op
-    lead = derivative.ufl_shape[:len(derivative.ufl_shape) - rank]
-    i, j = ufl.indices(len(lead)), ufl.indices(rank)
-    expr = derivative[(*i, *j)] * d_op[j]
-    return ufl.as_tensor(expr, i) if i else expr
-
-
-def with_pointwise_quadrature(form: ufl.Form, what: str) -> ufl.Form:
-    """``form`` with each integral that holds a pointwise coefficient integrated at its degree (refused: an
-    integral over facets, two degrees in one integral, or another degree the user set)."""
-    integrals, changed = [], False
-    for itg in form.integrals():
-        found = pointwise_in(itg.integrand())
-        degrees = {fn.root.degree for fn in found}
-        if not degrees:
-            integrals.append(itg)
-            continue
-        names = sorted({fn.root.name for fn in found})
-        if itg.integral_type() != "cell":
-            raise ValueError(f"{what} holds pointwise coefficient(s) {names} in a {itg.integral_type()} integral; "
-                             "a network is evaluated at the cells' quadrature points: use it in dx integrals only")
-        if len(degrees) > 1:
-            raise ValueError(f"{what} holds pointwise coefficients {names} of different degrees {sorted(degrees)} "
-                             "in one integral; give them one degree=")
-        degree = degrees.pop()
-        given = itg.metadata().get("quadrature_degree")
-        if given is not None and given != degree:
-            raise ValueError(f"{what} integrates {names} with quadrature_degree={given}, but their values are held "
-                             f"at the points of degree {degree}; drop the metadata or build the network with "
-                             f"degree={given}")
-        integrals.append(itg.reconstruct(metadata={**itg.metadata(), "quadrature_degree": degree}))
-        changed = True
-    return ufl.Form(integrals) if changed else form
 
 
 # ------------------------------------------------------------------ helpers
@@ -379,7 +298,7 @@ def _check_values(coefficient: PointwiseCoefficient, alpha: tuple, array: np.nda
 
 
 def _mesh_of(ops: list):
-    meshes = {id(fn.function_space.mesh): fn.function_space.mesh for fn in _functions_in(ops)}
+    meshes = {id(fn.function_space.mesh): fn.function_space.mesh for fn in operand_functions(ops)}
     if not meshes:
         domains = {id(d): d for op in ops for d in ufl.domain.extract_domains(op)}
         for domain in domains.values():
@@ -392,7 +311,8 @@ def _mesh_of(ops: list):
     return next(iter(meshes.values()))
 
 
-def _functions_in(ops) -> list:
+def operand_functions(ops) -> list:
+    """The DOLFINx Functions the UFL expressions ``ops`` hold."""
     return [c for op in ops for c in ufl.algorithms.extract_coefficients(op) if isinstance(c, dolfinx.fem.Function)]
 
 

@@ -34,7 +34,13 @@ import ufl
 from ufl.algorithms import expand_derivatives
 
 from fempdl.core import _dolfinx
-from fempdl.core.pointwise import coefficients_of, pointwise_in, roots_in, total_derivative, with_pointwise_quadrature
+from fempdl.core.pointwise_forms import (
+    coefficients_of,
+    pointwise_in,
+    roots_in,
+    total_derivative,
+    with_pointwise_quadrature,
+)
 from fempdl.core.problem_base import ProblemBase, describe_form, validated_controls
 
 __all__ = ["Problem"]
@@ -155,7 +161,7 @@ class Problem(ProblemBase):
     def network_cotangent_forms(self, name: str) -> dict:
         """{alpha: compiled linear form} on the spaces of network ``name``'s values and derivatives:
         d/dN_alpha of -F(u, lam), F = a(u, .) - L, the cotangents whose vector-Jacobian product through the
-        network is dJ/dtheta (:mod:`fempdl.core.pointwise`)."""
+        network is dJ/dtheta (:mod:`fempdl.core.pointwise_forms`)."""
         key = ("network", name)
         if key not in self._gradient_forms:
             test = self.a.arguments()[0] if self.a.arguments()[0].number() == 0 else self.a.arguments()[1]

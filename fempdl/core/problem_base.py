@@ -24,7 +24,7 @@ import ufl
 
 from fempdl.core import _dolfinx
 from fempdl.core.nullspaces import orthonormal
-from fempdl.core.pointwise import coefficients_of, roots_in
+from fempdl.core.pointwise_forms import coefficients_of, roots_in
 
 __all__ = ["ProblemBase", "validated_controls", "validated_constants", "owned_size", "as_array", "describe_form",
            "count_nonpositive", "nonpositive_control_message"]

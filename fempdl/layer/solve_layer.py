@@ -80,6 +80,10 @@ class SolveLayer(SystemLayer):
             if len(problem.nullspace):
                 raise ValueError("diff='unrolled' does not project out the operator's null space (an enclosed "
                                  "flow's pressure constant); use diff='implicit'")
+            if problem.networks:
+                raise ValueError(f"diff='unrolled' differentiates the iterations through assembled matrix "
+                                 f"derivatives, which a network in the form ({sorted(problem.networks)}) has none "
+                                 "of; use diff='implicit' (exact at a converged or direct solve)")
         self.diff = diff
         self._unrolled = UnrolledPath(max_unrolled_values, memory_budget) if diff == "unrolled" else None
         self._init_system(problem, LinearSystem(problem, options, batched_engine=BatchedEngine()))

@@ -22,7 +22,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from fempdl.core.pointwise import reads_of
+from fempdl.core.pointwise_forms import reads_of
 from fempdl.solve.assembly import value_of
 from fempdl.solve.caps import Caps
 
